@@ -1,0 +1,29 @@
+# Two set-up-free commands: `make demo` (the main job) and `make test`.
+# Each creates .venv on first use and installs what it needs. On a machine that should not pull the
+# multi-GB CUDA wheel, the CPU build is pinned; override with `make test TORCH=torch` (or any spec).
+PYTHON ?= python3
+VENV ?= .venv
+TORCH ?= torch==2.13.0
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.mssf-installed
+
+.PHONY: demo test bench clean-venv
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install --quiet "$(TORCH)"
+	$(PY) -m pip install --quiet -e ".[dev,examples]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) examples/quickstart.py
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+bench: $(STAMP)
+	$(PY) benchmarks/centroids.py
+
+clean-venv:
+	rm -rf $(VENV)

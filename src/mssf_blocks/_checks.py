@@ -1,0 +1,144 @@
+"""Input validation shared by every function and module.
+
+One place that turns a wrong shape, dtype or value into an :class:`MSSFError` whose message names the
+argument, what was expected and what was received.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, MutableMapping, Sequence, Union
+
+import torch
+from torch import Tensor
+
+from .errors import MSSFError
+
+Dim = Union[int, str, None]
+
+
+def _fmt_spec(spec: Sequence[Dim], dims: Mapping[str, int]) -> str:
+    parts = []
+    for d in spec:
+        if d is None:
+            parts.append("*")
+        elif isinstance(d, str) and d in dims:
+            parts.append(f"{d}={dims[d]}")
+        else:
+            parts.append(str(d))
+    return "(" + ", ".join(parts) + ")"
+
+
+def check_tensor(x: Any, name: str) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise MSSFError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    return x
+
+
+def check_shape(
+    x: Any,
+    name: str,
+    spec: Sequence[Dim],
+    dims: MutableMapping[str, int] | None = None,
+) -> Tensor:
+    """Check ``x`` against a shape spec with named dimensions.
+
+    Args:
+        x: the tensor.
+        name: the argument name used in the error message.
+        spec: one entry per dimension: an ``int`` (exact size), a ``str`` (a named size that must agree
+            with every other use of the same name in ``dims``) or ``None`` (any size).
+        dims: named sizes bound so far; new names are bound here (so several arguments can be checked
+            against each other).
+
+    Raises:
+        MSSFError: naming ``name``, the expected shape (with bound sizes) and the received shape.
+    """
+    x = check_tensor(x, name)
+    dims = {} if dims is None else dims
+    if x.dim() != len(spec):
+        raise MSSFError(
+            f"{name}: expected a {len(spec)}-d tensor of shape {_fmt_spec(spec, dims)}, "
+            f"got shape {tuple(x.shape)}"
+        )
+    for size, d in zip(x.shape, spec):
+        if d is None:
+            continue
+        if isinstance(d, int):
+            if size != d:
+                raise MSSFError(
+                    f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)}"
+                )
+        else:
+            if d in dims and dims[d] != size:
+                raise MSSFError(
+                    f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)} "
+                    f"({d} disagrees with another argument)"
+                )
+            dims.setdefault(d, int(size))
+    return x
+
+
+def check_floating(x: Tensor, name: str) -> Tensor:
+    if not x.is_floating_point():
+        raise MSSFError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    return x
+
+
+def check_dtype(x: Tensor, name: str, dtypes: Sequence[torch.dtype], hint: str = "") -> Tensor:
+    if x.dtype not in dtypes:
+        names = " or ".join(str(d) for d in dtypes)
+        raise MSSFError(f"{name}: expected dtype {names}, got {x.dtype}{hint}")
+    return x
+
+
+def check_finite(x: Tensor, name: str) -> Tensor:
+    if x.is_floating_point() and x.numel() and not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).sum())
+        raise MSSFError(f"{name}: expected finite values, got {bad} NaN/inf entries")
+    return x
+
+
+def check_index_range(x: Tensor, name: str, upper: int, upper_name: str) -> Tensor:
+    """Integer tensor with every entry in ``[0, upper)``."""
+    if x.numel():
+        lo, hi = int(x.min()), int(x.max())
+        if lo < 0 or hi >= upper:
+            raise MSSFError(
+                f"{name}: expected values in [0, {upper}) ({upper_name}={upper}), "
+                f"got values in [{lo}, {hi}]"
+            )
+    return x
+
+
+def check_triple(value: Any, name: str, kind: type, positive: bool = False) -> tuple:
+    """Turn a length-3 sequence (or tensor) into a tuple of ``kind``, with a clear error."""
+    if isinstance(value, Tensor):
+        value = value.detach().cpu().tolist()
+    try:
+        items = list(value)
+    except TypeError:
+        raise MSSFError(f"{name}: expected a sequence of 3 numbers, got {value!r}") from None
+    if len(items) != 3:
+        raise MSSFError(f"{name}: expected 3 values, got {len(items)}: {value!r}")
+    out = []
+    for v in items:
+        if kind is int:
+            if isinstance(v, bool) or int(v) != v:
+                raise MSSFError(f"{name}: expected integers, got {value!r}")
+            v = int(v)
+        else:
+            v = float(v)
+            if v != v or v in (float("inf"), float("-inf")):
+                raise MSSFError(f"{name}: expected finite values, got {value!r}")
+        if positive and v <= 0:
+            raise MSSFError(f"{name}: expected positive values, got {value!r}")
+        out.append(v)
+    return tuple(out)
+
+
+def check_positive_int(value: Any, name: str, allow_zero: bool = False) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise MSSFError(f"{name}: expected an int, got {type(value).__name__} {value!r}")
+    if value < 0 or (value == 0 and not allow_zero):
+        raise MSSFError(f"{name}: expected a {'non-negative' if allow_zero else 'positive'} int, got {value}")
+    return value

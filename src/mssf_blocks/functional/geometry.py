@@ -1,0 +1,380 @@
+"""Pure geometry functions: voxel centres, voxel centroids and camera projection.
+
+Conventions (see ``docs/conventions.md``):
+
+* coords are ``(batch, z, y, x)`` int32 at a stride ``(sz, sy, sx)`` of the base grid;
+* the metric centre of a voxel is ``(index + 0.5) * voxel_size * stride + point_range_min``;
+* ``lidar2img`` maps homogeneous sensor points to ``(u*d, v*d, d)`` with OpenCV pixel coordinates
+  (pixel ``i``'s centre at ``i``); normalised sampling coordinates are ``((u + 0.5) / W, (v + 0.5) / H)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from .._checks import (
+    check_dtype,
+    check_finite,
+    check_floating,
+    check_index_range,
+    check_positive_int,
+    check_shape,
+    check_triple,
+)
+from ..errors import MSSFError
+
+__all__ = [
+    "voxel_centers",
+    "voxel_centroids",
+    "voxel_centroids_reference",
+    "project_points",
+    "Projection",
+    "normalize_lidar2img",
+]
+
+_INT_DTYPES = (torch.int32, torch.int64)
+
+
+def voxel_centers(
+    coords: Tensor,
+    voxel_size: Sequence[float],
+    point_range_min: Sequence[float],
+    stride: Sequence[int] = (1, 1, 1),
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
+    """Metric centre of voxels.
+
+    Args:
+        coords: ``(N, 4)`` integer ``(batch, z, y, x)``.
+        voxel_size: base-grid ``(x, y, z)`` voxel size in metres.
+        point_range_min: ``(x, y, z)`` lower corner of the grid.
+        stride: ``(sz, sy, sx)`` of ``coords`` relative to the base grid.
+        dtype: floating dtype of the result.
+
+    Returns:
+        ``(N, 3)`` ``(x, y, z)`` centres: ``(index + 0.5) * voxel_size * stride + point_range_min``.
+    """
+    check_shape(coords, "coords", ("N", 4))
+    check_dtype(coords, "coords", _INT_DTYPES)
+    vs = check_triple(voxel_size, "voxel_size", float, positive=True)
+    lo = check_triple(point_range_min, "point_range_min", float)
+    sz, sy, sx = check_triple(stride, "stride", int, positive=True)
+    step = torch.tensor([vs[0] * sx, vs[1] * sy, vs[2] * sz], dtype=dtype, device=coords.device)
+    origin = torch.tensor(lo, dtype=dtype, device=coords.device)
+    xyz = coords[:, [3, 2, 1]].to(dtype)
+    return (xyz + 0.5) * step + origin
+
+
+def _grid_keys(coords: Tensor, spatial_shape: Tuple[int, int, int]) -> Tensor:
+    """Linear int64 key of ``(batch, z, y, x)`` rows (unique per voxel of a batch)."""
+    d, h, w = spatial_shape
+    c = coords.long()
+    return ((c[:, 0] * d + c[:, 1]) * h + c[:, 2]) * w + c[:, 3]
+
+
+def _point_voxel_index(
+    points: Tensor,
+    voxel_size: Tuple[float, float, float],
+    point_range_min: Tuple[float, float, float],
+    point_range_max: Optional[Tuple[float, float, float]],
+    stride: Tuple[int, int, int],
+    spatial_shape: Tuple[int, int, int],
+) -> Tuple[Tensor, Tensor]:
+    """``(P, 3)`` ``(z, y, x)`` voxel index at ``stride`` of every point, and which points are inside."""
+    xyz = points[:, :3]
+    vs = torch.tensor(voxel_size, dtype=xyz.dtype, device=xyz.device)
+    lo = torch.tensor(point_range_min, dtype=xyz.dtype, device=xyz.device)
+    base = torch.floor((xyz - lo) / vs).long()  # (P, 3) x, y, z at stride 1
+    inside = (base >= 0).all(dim=1)
+    if point_range_max is not None:
+        hi = torch.tensor(point_range_max, dtype=xyz.dtype, device=xyz.device)
+        inside &= (xyz < hi).all(dim=1)
+    sz, sy, sx = stride
+    zyx = torch.stack(
+        [
+            torch.div(base[:, 2], sz, rounding_mode="floor"),
+            torch.div(base[:, 1], sy, rounding_mode="floor"),
+            torch.div(base[:, 0], sx, rounding_mode="floor"),
+        ],
+        dim=1,
+    )
+    shape = torch.tensor(spatial_shape, device=xyz.device)
+    inside &= (zyx < shape).all(dim=1)
+    return zyx, inside
+
+
+def _check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size,
+                           point_range_min, point_range_max):
+    check_shape(points, "points", ("P", None))
+    check_floating(points, "points")
+    if points.shape[1] < 3:
+        raise MSSFError(f"points: expected shape (P, >=3) with x, y, z first, got {tuple(points.shape)}")
+    check_finite(points[:, :3], "points[:, :3]")
+    check_shape(points_batch, "points_batch", (points.shape[0],))
+    check_dtype(points_batch, "points_batch", _INT_DTYPES)
+    check_shape(coords, "coords", ("N", 4))
+    check_dtype(coords, "coords", _INT_DTYPES)
+    spatial_shape = check_triple(spatial_shape, "spatial_shape", int, positive=True)
+    batch_size = check_positive_int(batch_size, "batch_size")
+    check_index_range(points_batch, "points_batch", batch_size, "batch_size")
+    stride = check_triple(stride, "stride", int, positive=True)
+    voxel_size = check_triple(voxel_size, "voxel_size", float, positive=True)
+    point_range_min = check_triple(point_range_min, "point_range_min", float)
+    if point_range_max is not None:
+        point_range_max = check_triple(point_range_max, "point_range_max", float)
+        if any(h <= l for h, l in zip(point_range_max, point_range_min)):
+            raise MSSFError(
+                f"point_range_max: expected every value above point_range_min {point_range_min}, "
+                f"got {point_range_max}"
+            )
+    if coords.device != points.device or points_batch.device != points.device:
+        raise MSSFError(
+            f"points, points_batch, coords: expected one device, got {points.device}, "
+            f"{points_batch.device}, {coords.device}"
+        )
+    return spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max
+
+
+def voxel_centroids(
+    points: Tensor,
+    points_batch: Tensor,
+    coords: Tensor,
+    spatial_shape: Sequence[int],
+    batch_size: int,
+    voxel_size: Sequence[float],
+    point_range_min: Sequence[float],
+    stride: Sequence[int] = (1, 1, 1),
+    point_range_max: Optional[Sequence[float]] = None,
+) -> Tuple[Tensor, Tensor]:
+    """Mean of the raw points inside every non-empty voxel (its centre where it holds none).
+
+    A point belongs to voxel ``(b, z, y, x)`` at stride ``(sz, sy, sx)`` when its base-grid index
+    ``floor((p - point_range_min) / voxel_size)`` divided (floor) by the stride equals ``(x, y, z)`` and
+    its batch index is ``b``. Points below ``point_range_min``, at or above ``point_range_max`` (when
+    given; otherwise beyond the grid) are ignored. The join sorts the voxel keys and looks every point
+    up with ``searchsorted``: memory ``O(P + N)``, never a dense ``B x D x H x W`` table. Duplicate
+    coordinate rows all receive the same centroid.
+
+    Args:
+        points: ``(P, 3+)`` floating points, ``x, y, z`` first (extra columns are ignored).
+        points_batch: ``(P,)`` integer batch index of every point.
+        coords: ``(N, 4)`` integer ``(batch, z, y, x)`` voxel indices at ``stride``.
+        spatial_shape: ``(D, H, W)`` of the grid at ``stride``.
+        batch_size: ``B``.
+        voxel_size: base-grid ``(x, y, z)`` voxel size.
+        point_range_min: ``(x, y, z)`` lower corner.
+        stride: ``(sz, sy, sx)``.
+        point_range_max: optional ``(x, y, z)`` upper corner of the point-cloud range.
+
+    Returns:
+        ``centroids (N, 3)`` in the dtype of ``points`` and ``has_points (N,)`` bool (False where the
+        centre was used).
+    """
+    spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
+        points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
+        point_range_max,
+    )
+    n = coords.shape[0]
+    dtype, device = points.dtype, points.device
+    centers = voxel_centers(coords, voxel_size, lo, stride, dtype=dtype)
+    if n == 0 or points.shape[0] == 0:
+        return centers, torch.zeros(n, dtype=torch.bool, device=device)
+
+    # Unique voxel keys (sorted); every coords row maps to its unique key.
+    voxel_keys = _grid_keys(coords, spatial_shape)
+    unique_keys, row_to_unique = torch.unique(voxel_keys, sorted=True, return_inverse=True)
+
+    zyx, inside = _point_voxel_index(points, voxel_size, lo, hi, stride, spatial_shape)
+    point_keys = _grid_keys(torch.cat([points_batch[:, None].long(), zyx], dim=1), spatial_shape)
+    slot = torch.searchsorted(unique_keys, point_keys).clamp_(max=unique_keys.numel() - 1)
+    hit = inside & (unique_keys[slot] == point_keys)
+    slot, xyz = slot[hit], points[hit, :3]
+
+    m = unique_keys.numel()
+    sums = torch.zeros(m, 3, dtype=dtype, device=device).index_add_(0, slot, xyz)
+    counts = torch.zeros(m, dtype=dtype, device=device).index_add_(
+        0, slot, torch.ones_like(slot, dtype=dtype)
+    )
+    counts_rows = counts[row_to_unique]
+    has_points = counts_rows > 0
+    means = sums[row_to_unique] / counts_rows.clamp(min=1)[:, None]
+    centroids = torch.where(has_points[:, None], means, centers)
+    return centroids, has_points
+
+
+def voxel_centroids_reference(
+    points: Tensor,
+    points_batch: Tensor,
+    coords: Tensor,
+    spatial_shape: Sequence[int],
+    batch_size: int,
+    voxel_size: Sequence[float],
+    point_range_min: Sequence[float],
+    stride: Sequence[int] = (1, 1, 1),
+    point_range_max: Optional[Sequence[float]] = None,
+) -> Tuple[Tensor, Tensor]:
+    """Slow per-voxel loop with the same semantics as :func:`voxel_centroids` (for tests)."""
+    spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
+        points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
+        point_range_max,
+    )
+    pts = points[:, :3].tolist()
+    pb = points_batch.tolist()
+    sz, sy, sx = stride
+    d, h, w = spatial_shape
+    import math
+
+    members: dict = {}
+    for (x, y, z), b in zip(pts, pb):
+        if hi is not None and not (x < hi[0] and y < hi[1] and z < hi[2]):
+            continue
+        ix = math.floor((x - lo[0]) / voxel_size[0])
+        iy = math.floor((y - lo[1]) / voxel_size[1])
+        iz = math.floor((z - lo[2]) / voxel_size[2])
+        if ix < 0 or iy < 0 or iz < 0:
+            continue
+        key = (b, iz // sz, iy // sy, ix // sx)
+        if key[1] >= d or key[2] >= h or key[3] >= w:
+            continue
+        members.setdefault(key, []).append((x, y, z))
+    centers = voxel_centers(coords, voxel_size, lo, stride, dtype=points.dtype)
+    out = centers.clone()
+    has = torch.zeros(coords.shape[0], dtype=torch.bool)
+    for i, row in enumerate(coords.tolist()):
+        pts_in = members.get(tuple(row))
+        if pts_in:
+            n = len(pts_in)
+            out[i] = torch.tensor([sum(p[k] for p in pts_in) / n for k in range(3)], dtype=points.dtype)
+            has[i] = True
+    return out, has.to(points.device)
+
+
+def normalize_lidar2img(lidar2img: Tensor, batch_size: Optional[int] = None) -> Tensor:
+    """Validate ``lidar2img`` and return it as ``(B, V, 3, 4)`` (a ``(B, 3, 4)`` input means V = 1)."""
+    if not isinstance(lidar2img, Tensor):
+        raise MSSFError(f"lidar2img: expected a torch.Tensor (B, V, 3, 4), got {type(lidar2img).__name__}")
+    if lidar2img.dim() == 3:
+        lidar2img = lidar2img[:, None]
+    dims = {} if batch_size is None else {"B": batch_size}
+    if lidar2img.dim() != 4 or tuple(lidar2img.shape[2:]) not in ((3, 4), (4, 4)):
+        raise MSSFError(
+            f"lidar2img: expected shape (B, V, 3, 4) or (B, 3, 4), got {tuple(lidar2img.shape)}"
+        )
+    try:
+        check_shape(lidar2img, "lidar2img", ("B", "V", None, 4), dims)
+    except MSSFError as exc:
+        raise MSSFError(f"{exc} (voxels/points have batch_size={batch_size})") from None
+    check_floating(lidar2img, "lidar2img")
+    check_finite(lidar2img, "lidar2img")
+    return lidar2img[:, :, :3, :]
+
+
+def _check_points_to_sensor(points_to_sensor: Tensor, batch_size: int) -> Tensor:
+    check_shape(points_to_sensor, "points_to_sensor", (batch_size, 4, 4))
+    check_floating(points_to_sensor, "points_to_sensor")
+    check_finite(points_to_sensor, "points_to_sensor")
+    m = points_to_sensor.detach().double()
+    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype, device=m.device)
+    if not torch.allclose(m[:, 3], last.expand(m.shape[0], 4), atol=1e-9):
+        raise MSSFError(
+            "points_to_sensor: expected affine 4x4 matrices with last row (0, 0, 0, 1), "
+            f"got last rows {m[:, 3].tolist()}"
+        )
+    lin = m[:, :3, :3]
+    det = torch.linalg.det(lin).abs()
+    scale = lin.abs().amax(dim=(1, 2)).clamp(min=1e-300) ** 3
+    bad = (det <= 1e-12 * scale).nonzero().flatten().tolist()
+    if bad:
+        raise MSSFError(
+            f"points_to_sensor: expected invertible augmentation matrices, got singular matrices for "
+            f"samples {bad} (|det| = {[float(det[i]) for i in bad]})"
+        )
+    return points_to_sensor
+
+
+@dataclass(frozen=True)
+class Projection:
+    """Result of :func:`project_points`.
+
+    Attributes:
+        uv: ``(N, V, 2)`` normalised sampling coordinates ``((u + 0.5) / W, (v + 0.5) / H)``; where
+            the depth is invalid they are set to ``-1`` (outside the image, so sampling reads zeros).
+        depth: ``(N, V)`` depth ``d`` in the camera frame.
+        valid: ``(N, V)`` ``depth > eps`` and the point inside the image (``0 <= uv <= 1``).
+        pixel: ``(N, V, 2)`` OpenCV pixel coordinates ``(u, v)`` (``-1`` where the depth is invalid).
+    """
+
+    uv: Tensor
+    depth: Tensor
+    valid: Tensor
+    pixel: Tensor
+
+
+def project_points(
+    points: Tensor,
+    points_batch: Tensor,
+    lidar2img: Tensor,
+    image_size: Sequence[int],
+    points_to_sensor: Optional[Tensor] = None,
+    eps: float = 1e-5,
+) -> Projection:
+    """Project sensor-frame points into every camera.
+
+    Args:
+        points: ``(N, 3+)`` floating ``x, y, z`` (further columns ignored), in the (possibly
+            augmented) point-cloud frame.
+        points_batch: ``(N,)`` integer batch index.
+        lidar2img: ``(B, V, 3, 4)`` (or ``(B, 3, 4)``, or ``4 x 4`` homogeneous) mapping homogeneous
+            sensor points to ``(u*d, v*d, d)``.
+        image_size: ``(H, W)`` of the image the features were computed from.
+        points_to_sensor: optional ``(B, 4, 4)`` affine map from augmented points back to the sensor
+            frame (the inverse of flip/rotation/scale/translation augmentation).
+        eps: depths ``<= eps`` are invalid (behind or on the camera plane).
+
+    Returns:
+        :class:`Projection` with ``uv (N, V, 2)``, ``depth (N, V)``, ``valid (N, V)``, ``pixel``.
+        Gradients flow to ``points`` (and the matrices) through valid-depth entries only; nothing is
+        NaN.
+    """
+    check_shape(points, "points", ("N", None))
+    check_floating(points, "points")
+    if points.shape[1] < 3:
+        raise MSSFError(f"points: expected shape (N, >=3) with x, y, z first, got {tuple(points.shape)}")
+    check_finite(points[:, :3], "points[:, :3]")
+    check_shape(points_batch, "points_batch", (points.shape[0],))
+    check_dtype(points_batch, "points_batch", _INT_DTYPES)
+    l2i = normalize_lidar2img(lidar2img)
+    batch_size = l2i.shape[0]
+    check_index_range(points_batch, "points_batch", batch_size, "lidar2img.shape[0] (batch size)")
+    try:
+        h, w = (int(s) for s in image_size)
+    except (TypeError, ValueError):
+        raise MSSFError(f"image_size: expected (H, W), got {image_size!r}") from None
+    if h <= 0 or w <= 0:
+        raise MSSFError(f"image_size: expected positive (H, W), got {image_size!r}")
+    if not eps >= 0:
+        raise MSSFError(f"eps: expected a non-negative float, got {eps!r}")
+
+    dtype = points.dtype
+    b = points_batch.long()
+    xyz = points[:, :3]
+    ones = torch.ones_like(xyz[:, :1])
+    hom = torch.cat([xyz, ones], dim=1)  # (N, 4)
+    if points_to_sensor is not None:
+        p2s = _check_points_to_sensor(points_to_sensor, batch_size).to(dtype)
+        hom = torch.einsum("nij,nj->ni", p2s[b], hom)
+    cam = torch.einsum("nvij,nj->nvi", l2i.to(dtype)[b], hom)  # (N, V, 3)
+    depth = cam[..., 2]
+    ok_depth = depth > eps
+    safe_d = torch.where(ok_depth, depth, torch.ones_like(depth))
+    pixel = cam[..., :2] / safe_d[..., None]
+    pixel = torch.where(ok_depth[..., None], pixel, torch.full_like(pixel, -1.0))
+    size = torch.tensor([w, h], dtype=dtype, device=points.device)
+    uv = (pixel + 0.5) / size
+    uv = torch.where(ok_depth[..., None], uv, torch.full_like(uv, -1.0))
+    valid = ok_depth & (uv >= 0).all(dim=-1) & (uv <= 1).all(dim=-1)
+    return Projection(uv=uv, depth=depth, valid=valid, pixel=pixel)
