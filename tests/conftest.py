@@ -1,0 +1,39 @@
+"""Shared test set-up.
+
+* Puts ``examples/`` on ``sys.path`` so tests can import the ``mssf_examples`` package.
+* ``realdata_root`` fixture: the folder of real sensor frames (``<repo>/../shared/realdata``, or the
+  ``MSSF_REALDATA`` environment variable). The data's licences forbid shipping it, so tests that need it
+  skip with a message when it is absent.
+"""
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+_EXAMPLES = str(REPO_ROOT / "examples")
+if _EXAMPLES not in sys.path:
+    sys.path.insert(0, _EXAMPLES)
+
+#: Default location of the real frames (never copied into the repository).
+DEFAULT_REALDATA = REPO_ROOT.parent / "shared" / "realdata"
+
+
+def realdata_path() -> Path:
+    """``$MSSF_REALDATA`` when set, else ``<repo>/../shared/realdata``."""
+    env = os.environ.get("MSSF_REALDATA")
+    return Path(env).expanduser() if env else DEFAULT_REALDATA
+
+
+@pytest.fixture(scope="session")
+def realdata_root() -> Path:
+    """Root of the real frames (``vod/``, ``kitti/``); skips the test when it does not exist."""
+    root = realdata_path()
+    if not root.is_dir():
+        pytest.skip(
+            f"real sensor frames not found at {root} (set MSSF_REALDATA or place them at "
+            f"{DEFAULT_REALDATA}); they are licence-restricted and not part of the repository"
+        )
+    return root
