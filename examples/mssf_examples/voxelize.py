@@ -1,0 +1,294 @@
+"""Pure-torch dynamic voxelisation and PointPillars' pillar feature net (CPU and GPU alike).
+
+* :func:`dynamic_voxelize` groups points by their voxel with one ``torch.unique`` over a linear key
+  (no fixed ``max_points``/``max_voxels`` caps, so nothing is dropped except points outside the range,
+  which the returned ``keep`` mask reports) and averages the point features of every voxel.
+* :class:`PillarFeatureNet` is the pillar feature net of PointPillars (Lang et al., CVPR 2019): every
+  point is decorated with its offset to the mean of its pillar and to the pillar centre, passed
+  through ``Linear - BatchNorm1d - ReLU`` and max-pooled over its pillar.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence, Tuple, Type
+
+import torch
+from torch import Tensor, nn
+
+from mssf_blocks._checks import check_floating, check_positive_int, check_shape
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.sparse import SparseVoxels
+
+__all__ = [
+    "VoxelGrid",
+    "Voxelization",
+    "dynamic_voxelize",
+    "DynamicVoxelizer",
+    "pillar_feature_net",
+    "PillarFeatureNet",
+    "pillars_to_bev",
+]
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """A regular grid over a point-cloud range.
+
+    Attributes:
+        point_cloud_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` metres.
+        voxel_size: ``(x, y, z)`` metres; every extent must be a whole multiple of it.
+    """
+
+    point_cloud_range: Tuple[float, float, float, float, float, float]
+    voxel_size: Tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        pcr = tuple(float(v) for v in self.point_cloud_range)
+        vs = tuple(float(v) for v in self.voxel_size)
+        if len(pcr) != 6:
+            raise MSSFError(f"point_cloud_range: expected 6 values (x0, y0, z0, x1, y1, z1), got {len(pcr)}")
+        if len(vs) != 3 or min(vs) <= 0:
+            raise MSSFError(f"voxel_size: expected 3 positive values, got {self.voxel_size!r}")
+        for axis in range(3):
+            extent = pcr[axis + 3] - pcr[axis]
+            if extent <= 0:
+                raise MSSFError(f"point_cloud_range: expected max > min on axis {axis}, got {pcr!r}")
+            n = extent / vs[axis]
+            if abs(n - round(n)) > 1e-4:
+                raise MSSFError(
+                    f"voxel_size: extent {extent:g} m on axis {'xyz'[axis]} is not a multiple of "
+                    f"voxel_size {vs[axis]:g} (got {n:.4f} voxels)"
+                )
+        object.__setattr__(self, "point_cloud_range", pcr)
+        object.__setattr__(self, "voxel_size", vs)
+
+    @property
+    def grid_size(self) -> Tuple[int, int, int]:
+        """``(nx, ny, nz)``."""
+        return tuple(
+            int(round((self.point_cloud_range[a + 3] - self.point_cloud_range[a]) / self.voxel_size[a]))
+            for a in range(3)
+        )
+
+    @property
+    def spatial_shape(self) -> Tuple[int, int, int]:
+        """``(D, H, W) = (nz, ny, nx)`` (spconv order)."""
+        nx, ny, nz = self.grid_size
+        return (nz, ny, nx)
+
+    @property
+    def point_range_min(self) -> Tuple[float, float, float]:
+        return self.point_cloud_range[:3]
+
+
+@dataclass
+class Voxelization:
+    """Result of :func:`dynamic_voxelize`.
+
+    Attributes:
+        features: ``(N, C)`` mean of the point features of every non-empty voxel.
+        coords: ``(N, 4)`` int32 ``(batch, z, y, x)``, sorted by linear key (batch-major).
+        point_voxel: ``(P_kept,)`` int64 row of ``coords`` of every kept point.
+        keep: ``(P,)`` bool, the points inside the range (the only points that are not used).
+        num_points: ``(N,)`` int64 number of points in every voxel.
+    """
+
+    features: Tensor
+    coords: Tensor
+    point_voxel: Tensor
+    keep: Tensor
+    num_points: Tensor
+
+
+def _check_points(points: Tensor, points_batch: Tensor, batch_size: int) -> None:
+    dims: dict = {}
+    check_shape(points, "points", ("P", None), dims)
+    check_floating(points, "points")
+    if points.shape[1] < 3:
+        raise MSSFError(f"points: expected at least 3 columns (x, y, z), got shape {tuple(points.shape)}")
+    check_shape(points_batch, "points_batch", ("P",), dims)
+    if points_batch.is_floating_point():
+        raise MSSFError(f"points_batch: expected an integer tensor, got dtype {points_batch.dtype}")
+    check_positive_int(batch_size, "batch_size")
+    if points_batch.numel() and (int(points_batch.min()) < 0 or int(points_batch.max()) >= batch_size):
+        raise MSSFError(
+            f"points_batch: expected values in [0, {batch_size}) (batch_size={batch_size}), got values in "
+            f"[{int(points_batch.min())}, {int(points_batch.max())}]"
+        )
+    if points.numel() and not bool(torch.isfinite(points[:, :3]).all()):
+        raise MSSFError("points: expected finite x, y, z, got NaN/inf entries")
+
+
+def _voxel_index(points: Tensor, grid: VoxelGrid) -> Tuple[Tensor, Tensor]:
+    """``(P, 3)`` int64 ``(x, y, z)`` voxel index and ``(P,)`` in-range mask."""
+    lo = torch.tensor(grid.point_cloud_range[:3], dtype=points.dtype, device=points.device)
+    vs = torch.tensor(grid.voxel_size, dtype=points.dtype, device=points.device)
+    idx = torch.floor((points[:, :3] - lo) / vs).long()
+    size = torch.tensor(grid.grid_size, device=points.device)
+    keep = ((idx >= 0) & (idx < size)).all(1)
+    return idx, keep
+
+
+def dynamic_voxelize(points: Tensor, points_batch: Tensor, batch_size: int, grid: VoxelGrid) -> Voxelization:
+    """Group points into voxels and average their features.
+
+    Args:
+        points: ``(P, C)`` points, columns 0..2 metric ``(x, y, z)``.
+        points_batch: ``(P,)`` integer sample index of every point.
+        batch_size: ``B``.
+        grid: the voxel grid; points outside ``[min, max)`` on any axis are not used (see ``keep``).
+
+    Returns:
+        :class:`Voxelization` (voxel features are the mean of the point features, all ``C`` columns).
+    """
+    _check_points(points, points_batch, batch_size)
+    idx, keep = _voxel_index(points, grid)
+    pts, idx, b = points[keep], idx[keep], points_batch[keep].long()
+    nx, ny, nz = grid.grid_size
+    key = ((b * nz + idx[:, 2]) * ny + idx[:, 1]) * nx + idx[:, 0]
+    uniq, inverse, counts = torch.unique(key, sorted=True, return_inverse=True, return_counts=True)
+    n = uniq.numel()
+    feats = pts.new_zeros(n, pts.shape[1]).index_add_(0, inverse, pts) / counts.unsqueeze(1).to(pts.dtype)
+    x = uniq % nx
+    rest = uniq // nx
+    y = rest % ny
+    rest = rest // ny
+    z = rest % nz
+    bb = rest // nz
+    coords = torch.stack([bb, z, y, x], 1).int()
+    return Voxelization(features=feats, coords=coords, point_voxel=inverse, keep=keep, num_points=counts)
+
+
+class DynamicVoxelizer(nn.Module):
+    """Mean-of-points dynamic voxelisation returning :class:`SparseVoxels`.
+
+    Args:
+        point_cloud_range: ``(x0, y0, z0, x1, y1, z1)`` metres.
+        voxel_size: ``(x, y, z)`` metres.
+
+    Shapes:
+        - points ``(P, C)``, points_batch ``(P,)`` -> SparseVoxels with ``(N, C)`` features.
+    """
+
+    def __init__(self, point_cloud_range: Sequence[float], voxel_size: Sequence[float]) -> None:
+        super().__init__()
+        self.grid = VoxelGrid(tuple(point_cloud_range), tuple(voxel_size))
+
+    def forward(self, points: Tensor, points_batch: Tensor, batch_size: int) -> SparseVoxels:
+        vox = dynamic_voxelize(points, points_batch, batch_size, self.grid)
+        return SparseVoxels(
+            features=vox.features,
+            coords=vox.coords,
+            spatial_shape=self.grid.spatial_shape,
+            batch_size=batch_size,
+            voxel_size=self.grid.voxel_size,
+            point_range_min=self.grid.point_range_min,
+        )
+
+    def extra_repr(self) -> str:
+        return f"point_cloud_range={self.grid.point_cloud_range}, voxel_size={self.grid.voxel_size}"
+
+
+def pillar_feature_net(
+    points: Tensor,
+    points_batch: Tensor,
+    batch_size: int,
+    grid: VoxelGrid,
+    linear: nn.Linear,
+    norm: nn.Module,
+) -> Tuple[Tensor, Voxelization]:
+    """Pillar features: decorate points, ``Linear - norm - ReLU``, max over each pillar.
+
+    ``grid`` must have a single z cell (a pillar spans the whole height). Each point becomes
+    ``[point (C), xyz - pillar mean (3), xyz - pillar centre (3)]``.
+
+    Returns:
+        ``(N, C_out)`` pillar features and the :class:`Voxelization` of the pillars.
+    """
+    if grid.grid_size[2] != 1:
+        raise MSSFError(f"grid: a pillar grid needs one z cell, got grid_size {grid.grid_size}")
+    vox = dynamic_voxelize(points, points_batch, batch_size, grid)
+    pts = points[vox.keep]
+    xyz = pts[:, :3]
+    mean = vox.features[vox.point_voxel, :3]
+    vs = torch.tensor(grid.voxel_size, dtype=pts.dtype, device=pts.device)
+    lo = torch.tensor(grid.point_cloud_range[:3], dtype=pts.dtype, device=pts.device)
+    cell = vox.coords[vox.point_voxel][:, [3, 2, 1]].to(pts.dtype)
+    centre = (cell + 0.5) * vs + lo
+    decorated = torch.cat([pts, xyz - mean, xyz - centre], 1)
+    x = torch.relu(norm(linear(decorated)))
+    out = x.new_zeros(vox.coords.shape[0], x.shape[1])
+    out = out.scatter_reduce(0, vox.point_voxel.unsqueeze(1).expand_as(x), x, "amax", include_self=False)
+    return out, vox
+
+
+class PillarFeatureNet(nn.Module):
+    """PointPillars' pillar feature net (one PFN layer: ``Linear - BN - ReLU`` then max).
+
+    Args:
+        in_channels: point feature columns ``C`` (including x, y, z).
+        out_channels: pillar feature channels.
+        point_cloud_range: ``(x0, y0, z0, x1, y1, z1)``.
+        pillar_size: ``(x, y)`` metres (a pillar spans the whole z range).
+        norm_layer: normalisation type over ``(P, C_out)``.
+
+    Shapes:
+        - points ``(P, C)``, points_batch ``(P,)`` -> SparseVoxels ``(N, out_channels)`` on a grid with
+          ``spatial_shape (1, ny, nx)`` and ``voxel_size (px, py, z extent)``.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        out_channels: int,
+        point_cloud_range: Sequence[float],
+        pillar_size: Sequence[float],
+        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__()
+        check_positive_int(in_channels, "in_channels")
+        check_positive_int(out_channels, "out_channels")
+        pcr = tuple(float(v) for v in point_cloud_range)
+        if len(tuple(pillar_size)) != 2:
+            raise MSSFError(f"pillar_size: expected (x, y), got {pillar_size!r}")
+        self.in_channels = in_channels
+        self.grid = VoxelGrid(pcr, (float(pillar_size[0]), float(pillar_size[1]), pcr[5] - pcr[2]))
+        # BN follows, so the bias would be redundant (as in PointPillars).
+        self.linear = nn.Linear(in_channels + 6, out_channels, bias=False, device=device, dtype=dtype)
+        self.norm = norm_layer(out_channels, device=device, dtype=dtype)
+
+    def forward(self, points: Tensor, points_batch: Tensor, batch_size: int) -> SparseVoxels:
+        if points.dim() == 2 and points.shape[1] != self.in_channels:
+            raise MSSFError(f"points: expected {self.in_channels} columns, got shape {tuple(points.shape)}")
+        feats, vox = pillar_feature_net(points, points_batch, batch_size, self.grid, self.linear, self.norm)
+        return SparseVoxels(
+            features=feats,
+            coords=vox.coords,
+            spatial_shape=self.grid.spatial_shape,
+            batch_size=batch_size,
+            voxel_size=self.grid.voxel_size,
+            point_range_min=self.grid.point_range_min,
+        )
+
+    def extra_repr(self) -> str:
+        return (
+            f"in_channels={self.in_channels}, out_channels={self.linear.out_features}, "
+            f"point_cloud_range={self.grid.point_cloud_range}, pillar_size={self.grid.voxel_size[:2]}"
+        )
+
+
+def pillars_to_bev(pillars: SparseVoxels) -> Tensor:
+    """Scatter pillar features into a dense ``(B, C, H, W)`` BEV map (rows = y, columns = x).
+
+    Voxels with the same ``(b, y, x)`` (any z) are summed, so this also collapses a 3D tensor.
+    """
+    _, h, w = pillars.spatial_shape
+    b = pillars.batch_size
+    c = pillars.num_channels
+    co = pillars.coords.long()
+    flat = (co[:, 0] * h + co[:, 2]) * w + co[:, 3]
+    bev = pillars.features.new_zeros(b * h * w, c).index_add_(0, flat, pillars.features)
+    return bev.view(b, h, w, c).permute(0, 3, 1, 2).contiguous()
