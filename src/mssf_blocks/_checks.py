@@ -25,7 +25,7 @@ def _fmt_spec(spec: Sequence[Dim], dims: Mapping[str, int]) -> str:
             parts.append(f"{d}={dims[d]}")
         else:
             parts.append(str(d))
-    return "(" + ", ".join(parts) + ")"
+    return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
 
 
 def check_tensor(x: Any, name: str) -> Tensor:

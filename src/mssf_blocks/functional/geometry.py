@@ -76,35 +76,31 @@ def _grid_keys(coords: Tensor, spatial_shape: Tuple[int, int, int]) -> Tensor:
     return ((c[:, 0] * d + c[:, 1]) * h + c[:, 2]) * w + c[:, 3]
 
 
-def _point_voxel_index(
+def _point_keys(
     points: Tensor,
+    points_batch: Tensor,
     voxel_size: Tuple[float, float, float],
     point_range_min: Tuple[float, float, float],
     point_range_max: Optional[Tuple[float, float, float]],
     stride: Tuple[int, int, int],
     spatial_shape: Tuple[int, int, int],
-) -> Tuple[Tensor, Tensor]:
-    """``(P, 3)`` ``(z, y, x)`` voxel index at ``stride`` of every point, and which points are inside."""
-    xyz = points[:, :3]
-    vs = torch.tensor(voxel_size, dtype=xyz.dtype, device=xyz.device)
-    lo = torch.tensor(point_range_min, dtype=xyz.dtype, device=xyz.device)
-    base = torch.floor((xyz - lo) / vs).long()  # (P, 3) x, y, z at stride 1
-    inside = (base >= 0).all(dim=1)
-    if point_range_max is not None:
-        hi = torch.tensor(point_range_max, dtype=xyz.dtype, device=xyz.device)
-        inside &= (xyz < hi).all(dim=1)
+) -> Tensor:
+    """``(P,)`` int64 key (as :func:`_grid_keys`) of the voxel at ``stride`` holding every point; ``-1``
+    for points outside the range or the grid. Built column by column to keep temporaries at ``O(P)``."""
+    d, h, w = spatial_shape
     sz, sy, sx = stride
-    zyx = torch.stack(
-        [
-            torch.div(base[:, 2], sz, rounding_mode="floor"),
-            torch.div(base[:, 1], sy, rounding_mode="floor"),
-            torch.div(base[:, 0], sx, rounding_mode="floor"),
-        ],
-        dim=1,
-    )
-    shape = torch.tensor(spatial_shape, device=xyz.device)
-    inside &= (zyx < shape).all(dim=1)
-    return zyx, inside
+    key = points_batch.long()
+    inside = torch.ones_like(key, dtype=torch.bool)
+    # Axis order of the key: z, y, x (coords order); columns of points: x, y, z.
+    for col, size, step, s in ((2, d, voxel_size[2], sz), (1, h, voxel_size[1], sy), (0, w, voxel_size[0], sx)):
+        coord = points[:, col]
+        base = torch.floor((coord - point_range_min[col]) / step).long()
+        if point_range_max is not None:
+            inside &= coord < point_range_max[col]
+        idx = base if s == 1 else torch.div(base, s, rounding_mode="floor")
+        inside &= (base >= 0) & (idx < size)
+        key = key * size + idx
+    return torch.where(inside, key, torch.full_like(key, -1))
 
 
 def _check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size,
@@ -155,9 +151,9 @@ def voxel_centroids(
     A point belongs to voxel ``(b, z, y, x)`` at stride ``(sz, sy, sx)`` when its base-grid index
     ``floor((p - point_range_min) / voxel_size)`` divided (floor) by the stride equals ``(x, y, z)`` and
     its batch index is ``b``. Points below ``point_range_min``, at or above ``point_range_max`` (when
-    given; otherwise beyond the grid) are ignored. The join sorts the voxel keys and looks every point
-    up with ``searchsorted``: memory ``O(P + N)``, never a dense ``B x D x H x W`` table. Duplicate
-    coordinate rows all receive the same centroid.
+    given; otherwise beyond the grid) are ignored. The join is one ``torch.unique`` over the voxel keys
+    and the point keys together (a sort): memory ``O(P + N)``, never a dense ``B x D x H x W`` table.
+    Duplicate coordinate rows all receive the same centroid.
 
     Args:
         points: ``(P, 3+)`` floating points, ``x, y, z`` first (extra columns are ignored).
@@ -184,24 +180,22 @@ def voxel_centroids(
     if n == 0 or points.shape[0] == 0:
         return centers, torch.zeros(n, dtype=torch.bool, device=device)
 
-    # Unique voxel keys (sorted); every coords row maps to its unique key.
+    # One sort joins points to voxels: unique over voxel keys and point keys together gives every
+    # row and every point its slot; points accumulate into slots, and only the voxels' slots are
+    # read back (points of no voxel, or outside the range with key -1, land in slots nobody reads).
     voxel_keys = _grid_keys(coords, spatial_shape)
-    unique_keys, row_to_unique = torch.unique(voxel_keys, sorted=True, return_inverse=True)
+    point_keys = _point_keys(points, points_batch, voxel_size, lo, hi, stride, spatial_shape)
+    _, slot = torch.unique(torch.cat([voxel_keys, point_keys]), sorted=True, return_inverse=True)
+    row_slot, point_slot = slot[:n], slot[n:]
 
-    zyx, inside = _point_voxel_index(points, voxel_size, lo, hi, stride, spatial_shape)
-    point_keys = _grid_keys(torch.cat([points_batch[:, None].long(), zyx], dim=1), spatial_shape)
-    slot = torch.searchsorted(unique_keys, point_keys).clamp_(max=unique_keys.numel() - 1)
-    hit = inside & (unique_keys[slot] == point_keys)
-    slot, xyz = slot[hit], points[hit, :3]
-
-    m = unique_keys.numel()
-    sums = torch.zeros(m, 3, dtype=dtype, device=device).index_add_(0, slot, xyz)
+    m = int(slot.max()) + 1
+    sums = torch.zeros(m, 3, dtype=dtype, device=device).index_add_(0, point_slot, points[:, :3])
     counts = torch.zeros(m, dtype=dtype, device=device).index_add_(
-        0, slot, torch.ones_like(slot, dtype=dtype)
+        0, point_slot, torch.ones_like(point_slot, dtype=dtype)
     )
-    counts_rows = counts[row_to_unique]
+    counts_rows = counts[row_slot]
     has_points = counts_rows > 0
-    means = sums[row_to_unique] / counts_rows.clamp(min=1)[:, None]
+    means = sums[row_slot] / counts_rows.clamp(min=1)[:, None]
     centroids = torch.where(has_points[:, None], means, centers)
     return centroids, has_points
 
