@@ -1,0 +1,163 @@
+"""``PillarLift`` and ``HeightEmbedding``: run voxel fusion blocks inside a pillar (BEV) network.
+
+Paper Sec. III-G ("Extend to Pillar"): ``f_vox = BEV(x, y) + HeightEmb(z)`` for every non-empty voxel
+of the raw points voxelised at the BEV grid's x/y resolution; after fusion the voxel features with the
+same ``(x, y)`` are summed back into the BEV map. See :mod:`mssf_blocks.functional.lift` for the pure
+functions and ``docs/pillar.md`` for a walk-through.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence, Tuple, Union
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import check_index_range, check_positive_int, check_shape
+from .errors import MSSFError
+from .functional.lift import (
+    _check_stride2,
+    bev_shape_for,
+    pillar_lift,
+    voxelize_points,
+    voxels_to_bev,
+    voxels_to_bev_sparse,
+)
+from .sparse import SparseVoxels
+
+__all__ = [
+    "HeightEmbedding",
+    "PillarLift",
+    "pillar_lift",
+    "voxels_to_bev",
+    "voxels_to_bev_sparse",
+    "voxelize_points",
+    "bev_shape_for",
+]
+
+
+class HeightEmbedding(nn.Module):
+    """A learnable vector per z index, zero-initialised (so lifting starts as a plain copy of the BEV).
+
+    Args:
+        num_z: number of z indices ``Z`` (the voxel grid's ``D``).
+        channels: ``C``.
+
+    Shapes:
+        - z: ``(N,)`` integer indices in ``[0, Z)``.
+        - output: ``(N, C)``.
+    """
+
+    def __init__(self, num_z: int, channels: int, device=None, dtype=None) -> None:
+        super().__init__()
+        self.num_z = check_positive_int(num_z, "num_z")
+        self.channels = check_positive_int(channels, "channels")
+        self.weight = nn.Parameter(torch.zeros(num_z, channels, device=device, dtype=dtype))
+
+    def forward(self, z: Tensor) -> Tensor:
+        check_shape(z, "z", ("N",))
+        if z.dtype not in (torch.int32, torch.int64):
+            raise MSSFError(f"z: expected an integer tensor of z indices, got dtype {z.dtype}")
+        check_index_range(z, "z", self.num_z, "num_z")
+        return self.weight[z.long()]
+
+    def extra_repr(self) -> str:
+        return f"num_z={self.num_z}, channels={self.channels}"
+
+
+class PillarLift(nn.Module):
+    """Lift a BEV map into the non-empty voxels of a point cloud, and sum them back.
+
+    ``forward(bev, voxels)`` gives the voxels (their coords; their own features are discarded) new
+    features ``bev[b, :, y // sy, x // sx] + HeightEmb(z)``. :meth:`to_bev` sums voxel features with the
+    same ``(b, y // sy, x // sx)`` into a ``(B, C, H_b, W_b)`` map, so ``to_bev(forward(bev, v))``
+    lands on the grid of ``bev``.
+
+    Args:
+        channels: ``C`` of the BEV map.
+        num_z: ``D`` of the voxel grid (number of height embeddings).
+        stride: ``int`` or ``(sy, sx)``: the BEV map's stride relative to the voxel grid's x/y cells
+            (the BEV map must be ``(B, C, ceil(H / sy), ceil(W / sx))`` for a voxel grid ``(D, H, W)``).
+        use_height_embedding: False drops the height term (the paper's plain lift).
+        device, dtype: factory kwargs of the embedding.
+
+    Shapes:
+        - bev: ``(B, C, H_b, W_b)``; voxels: :class:`SparseVoxels` with ``spatial_shape (D, H, W)``.
+        - output: :class:`SparseVoxels` with ``features (N, C)``.
+
+    Example:
+        >>> import torch
+        >>> from mssf_blocks.functional.lift import voxelize_points
+        >>> pts = torch.tensor([[0.1, 0.1, 0.2], [0.1, 0.1, 1.2], [1.5, 0.3, 0.2]])
+        >>> vox = voxelize_points(pts, torch.zeros(3, dtype=torch.long), 1, (0.5, 0.5, 1.0),
+        ...                       (0.0, 0.0, 0.0), (2.0, 1.0, 2.0))
+        >>> lift = PillarLift(channels=1, num_z=2)
+        >>> bev = torch.arange(8.0).reshape(1, 1, 2, 4)
+        >>> lifted = lift(bev, vox)
+        >>> lifted.features.flatten().tolist(), lift.to_bev(lifted).flatten().tolist()
+        ([0.0, 3.0, 0.0], [0.0, 0.0, 0.0, 3.0, 0.0, 0.0, 0.0, 0.0])
+    """
+
+    def __init__(
+        self,
+        channels: int,
+        num_z: int,
+        stride: Union[int, Sequence[int]] = 1,
+        use_height_embedding: bool = True,
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__()
+        self.channels = check_positive_int(channels, "channels")
+        self.num_z = check_positive_int(num_z, "num_z")
+        self.stride = _check_stride2(stride)
+        if not isinstance(use_height_embedding, bool):
+            raise MSSFError(f"use_height_embedding: expected a bool, got {use_height_embedding!r}")
+        self.height_embedding = (
+            HeightEmbedding(num_z, channels, device=device, dtype=dtype) if use_height_embedding else None
+        )
+
+    def bev_shape(self, voxels: SparseVoxels) -> Tuple[int, int]:
+        """``(H_b, W_b)`` of the BEV map that matches ``voxels``' grid at this stride."""
+        return bev_shape_for(voxels.spatial_shape[1:], self.stride)
+
+    def _check_voxels(self, voxels: SparseVoxels) -> None:
+        if not isinstance(voxels, SparseVoxels):
+            raise MSSFError(f"voxels: expected SparseVoxels, got {type(voxels).__name__}")
+        if voxels.spatial_shape[0] != self.num_z:
+            raise MSSFError(
+                f"voxels: expected spatial_shape[0] (D) = num_z = {self.num_z}, got spatial_shape "
+                f"{voxels.spatial_shape}"
+            )
+
+    def forward(self, bev: Tensor, voxels: SparseVoxels) -> SparseVoxels:
+        self._check_voxels(voxels)
+        expected = (voxels.batch_size, self.channels) + self.bev_shape(voxels)
+        check_shape(bev, "bev", ("B", "C", "H_b", "W_b"))
+        if tuple(bev.shape) != expected:
+            raise MSSFError(
+                f"bev: expected shape (B, C, H_b, W_b) = {expected} for voxels with batch_size "
+                f"{voxels.batch_size}, spatial_shape {voxels.spatial_shape} at stride {self.stride}, "
+                f"got {tuple(bev.shape)}"
+            )
+        emb = None if self.height_embedding is None else self.height_embedding.weight
+        feats = pillar_lift(bev, voxels.coords, emb, self.stride)
+        return voxels.replace(features=feats)
+
+    def to_bev(self, voxels: SparseVoxels) -> Tensor:
+        """``(B, C', H_b, W_b)``: voxel features summed per ``(b, y // sy, x // sx)``."""
+        if not isinstance(voxels, SparseVoxels):
+            raise MSSFError(f"voxels: expected SparseVoxels, got {type(voxels).__name__}")
+        return voxels_to_bev(voxels.features, voxels.coords, voxels.batch_size, self.bev_shape(voxels),
+                             self.stride)
+
+    def to_bev_sparse(self, voxels: SparseVoxels) -> Tuple[Tensor, Tensor]:
+        """Occupied pillars only: ``features (M, C')`` and ``coords (M, 3)`` int32 ``(b, y, x)``."""
+        if not isinstance(voxels, SparseVoxels):
+            raise MSSFError(f"voxels: expected SparseVoxels, got {type(voxels).__name__}")
+        return voxels_to_bev_sparse(voxels.features, voxels.coords, voxels.batch_size,
+                                    self.bev_shape(voxels), self.stride)
+
+    def extra_repr(self) -> str:
+        return (f"channels={self.channels}, num_z={self.num_z}, stride={self.stride}, "
+                f"use_height_embedding={self.height_embedding is not None}")
