@@ -62,7 +62,7 @@ def test_pillar_lift_module_matches_loop_and_round_trip(stride):
     occupied = torch.zeros(2, hb, wb, dtype=torch.bool)
     for b, z, y, x in vox.coords.tolist():
         occupied[b, y // stride, x // stride] = True
-    assert bool((~occupied).any()) and float(back.permute(0, 2, 3, 1)[~occupied].abs().sum()) == 0
+    assert bool((~occupied).any()) and float(back.detach().permute(0, 2, 3, 1)[~occupied].abs().sum()) == 0
 
 
 def test_zero_height_embedding_is_plain_copy_and_no_embedding_option():
