@@ -1,0 +1,608 @@
+"""Image samplers of the MSSF fusion blocks: SFF, MSDFF and the MSDFF query initialisation.
+
+Paper: *MSSF*, Sec. III-C ("Voxel-Image Fusion Backbone"). Every voxel of a sparse tensor is projected
+into the cameras (:class:`~mssf_blocks.geometry.VoxelCentroidProjector`, eq. 1-2) and one of the
+operators below turns the multi-scale image features at that spot into a per-voxel image feature
+``f_img`` with as many channels as the voxel feature (eq. 3); the fusion block then adds it,
+``f_fuse = f_vox + f_img`` (eq. 5, :class:`~mssf_blocks.blocks.FusionBlock`).
+
+* :class:`SFF` - simple feature fusion (eq. 6-7): bilinear sample of every level at the projected
+  centroid, concatenation, ``Linear + BatchNorm1d``.
+* :class:`MSDFF` - multi-scale deformable feature fusion (eq. 9-10): Deformable-DETR cross-attention
+  with one query per voxel and the projected centroid as reference point, ``Linear + BatchNorm1d``.
+* :class:`QueryInit` - the first MSDFF block's query (eq. 8): ``Linear_BN(cat(f_vox, f_img^1, p))``.
+
+Conventions shared by all three (``docs/fusion.md`` has the details):
+
+* image features are a sequence of ``L`` levels, each ``(B, C_l, H_l, W_l)`` (one camera) or
+  ``(B, V, C_l, H_l, W_l)``; normalised ``uv`` is relative to the full image (``(u + 0.5) / W``), read
+  with ``align_corners=False`` bilinear sampling and zero padding;
+* a voxel is sampled in every camera where its projection is valid and the per-camera results are
+  averaged; a voxel valid in no camera gets ``f_img = 0`` exactly (no bias, no normalisation shift), so
+  the fusion block passes its voxel feature through unchanged, and it sends no gradient to the image;
+* the ``Linear + BatchNorm1d`` output stage runs on the voxels seen by at least one camera only, so the
+  batch statistics are those of real image features.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import List, Optional, Sequence, Tuple, Type, Union
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import (
+    check_dtype,
+    check_floating,
+    check_index_range,
+    check_positive_int,
+    check_shape,
+)
+from .errors import MSSFError
+from .functional.geometry import normalize_lidar2img
+try:
+    from .functional.sampling import bilinear_sample, camera_mean, ms_deform_sample
+except ImportError:  # DEV-ONLY fallback until functional/sampling.py lands; to be removed
+    def _corners(img, index, xy):
+        h, w = img.shape[-2:]
+        x = xy[..., 0] * w - 0.5
+        y = xy[..., 1] * h - 0.5
+        x0, y0 = x.floor(), y.floor()
+        fx, fy = x - x0, y - y0
+        out, mass = 0, 0
+        for dx in (0, 1):
+            for dy in (0, 1):
+                xi, yi = (x0 + dx).long(), (y0 + dy).long()
+                wt = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
+                inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
+                wt = wt * inside
+                val = img[index, :, yi.clamp(0, h - 1), xi.clamp(0, w - 1)]
+                out = out + val * wt[:, None]
+                mass = mass + wt
+        return out, mass
+
+    def bilinear_sample(image, uv, batch_index, valid=None):
+        if image.dim() == 4:
+            image = image[:, None]
+        n, v = uv.shape[:2]
+        res = []
+        for cam in range(v):
+            val, _ = _corners(image[:, cam], batch_index, uv[:, cam])
+            if valid is not None:
+                val = torch.where(valid[:, cam, None], val, torch.zeros_like(val))
+            res.append(val)
+        return torch.stack(res, 1) if res else image.new_zeros(n, v, image.shape[2])
+
+    def camera_mean(x, valid):
+        cnt = valid.sum(1, keepdim=True).to(x.dtype)
+        s = (x * valid[..., None]).sum(1)
+        return s / cnt.clamp(min=1)
+
+    def ms_deform_sample(values, image_index, locations, weights, method="auto", return_mass=False):
+        q, m, l, p, _ = locations.shape
+        d = values[0].shape[2]
+        out = locations.new_zeros(q, m, d)
+        mass = locations.new_zeros(q, m)
+        for lv, val in enumerate(values):
+            mv = val.shape[1]
+            for h in range(m):
+                img = val[:, h if mv > 1 else 0]
+                for pt in range(p):
+                    s, ms = _corners(img, image_index, locations[:, h, lv, pt])
+                    out[:, h] = out[:, h] + s * weights[:, h, lv, pt, None]
+                    mass[:, h] = mass[:, h] + ms * weights[:, h, lv, pt]
+        return (out, mass) if return_mass else out
+from .geometry import CentroidProjection
+
+__all__ = [
+    "FusionInputs",
+    "SFF",
+    "MSDFF",
+    "QueryInit",
+    "check_image_features",
+    "sample_at_projection",
+]
+
+_INT_DTYPES = (torch.int32, torch.int64)
+_METHODS = ("auto", "reference", "fast")
+
+
+# ---------------------------------------------------------------------------------------------------
+# validation helpers
+# ---------------------------------------------------------------------------------------------------
+def check_image_features(
+    image_features: Sequence[Tensor],
+    name: str = "image_features",
+    num_levels: Optional[int] = None,
+    channels: Optional[Sequence[int]] = None,
+    batch_size: Optional[int] = None,
+    num_cameras: Optional[int] = None,
+) -> List[Tensor]:
+    """Validate multi-scale image features and return them as ``(B, V, C_l, H_l, W_l)`` views.
+
+    Args:
+        image_features: ``L`` levels, each ``(B, C_l, H_l, W_l)`` (V = 1) or ``(B, V, C_l, H_l, W_l)``.
+        name: argument name used in error messages (``image_features[l]`` names a level).
+        num_levels: expected ``L`` (``None``: any ``L >= 1``).
+        channels: expected ``C_l`` of every level.
+        batch_size: expected ``B``.
+        num_cameras: expected ``V``.
+
+    Returns:
+        The levels as 5-d ``(B, V, C_l, H_l, W_l)`` tensors (views, no copy).
+
+    Raises:
+        MSSFError: naming the level, the expected and the received shape.
+    """
+    if isinstance(image_features, Tensor) or not isinstance(image_features, Sequence):
+        raise MSSFError(
+            f"{name}: expected a sequence (list/tuple) of level tensors (B, C_l, H_l, W_l) or "
+            f"(B, V, C_l, H_l, W_l), got {type(image_features).__name__}"
+            + (f" of shape {tuple(image_features.shape)} (wrap a single level in a list)"
+               if isinstance(image_features, Tensor) else "")
+        )
+    if len(image_features) == 0:
+        raise MSSFError(f"{name}: expected at least one level, got an empty sequence")
+    if num_levels is not None and len(image_features) != num_levels:
+        raise MSSFError(f"{name}: expected {num_levels} levels (num_levels), got {len(image_features)}")
+    if channels is not None and len(channels) != len(image_features):
+        raise MSSFError(
+            f"{name}: expected {len(channels)} levels with channels {tuple(channels)}, "
+            f"got {len(image_features)} levels"
+        )
+    dims = {}
+    if batch_size is not None:
+        dims["B"] = int(batch_size)
+    if num_cameras is not None:
+        dims["V"] = int(num_cameras)
+    out = []
+    dtype = None
+    for l, level in enumerate(image_features):
+        lname = f"{name}[{l}]"
+        if not isinstance(level, Tensor):
+            raise MSSFError(f"{lname}: expected a torch.Tensor, got {type(level).__name__}")
+        c = None if channels is None else int(channels[l])
+        if level.dim() == 4:
+            check_shape(level, lname, ("B", c, None, None), dims)
+            if dims.setdefault("V", 1) != 1:
+                raise MSSFError(
+                    f"{lname}: a 4-d level (B, C, H, W) means one camera, but V={dims['V']} "
+                    f"(from lidar2img or another level); pass (B, V, C, H, W), got shape {tuple(level.shape)}"
+                )
+            level = level[:, None]
+        elif level.dim() == 5:
+            check_shape(level, lname, ("B", "V", c, None, None), dims)
+        else:
+            raise MSSFError(
+                f"{lname}: expected shape (B, C_l, H_l, W_l) or (B, V, C_l, H_l, W_l), "
+                f"got shape {tuple(level.shape)}"
+            )
+        check_floating(level, lname)
+        if level.shape[-1] == 0 or level.shape[-2] == 0:
+            raise MSSFError(f"{lname}: expected a non-empty feature map, got shape {tuple(level.shape)}")
+        if dtype is None:
+            dtype = level.dtype
+        elif level.dtype != dtype:
+            raise MSSFError(f"{lname}: expected dtype {dtype} (as {name}[0]), got {level.dtype}")
+        out.append(level)
+    return out
+
+
+def _check_projection(projection: CentroidProjection, batch_size: int, num_cameras: int,
+                      name: str = "projection") -> Tuple[Tensor, Tensor, Tensor]:
+    for attr in ("uv", "valid", "batch_index"):
+        if not hasattr(projection, attr):
+            raise MSSFError(
+                f"{name}: expected a CentroidProjection (with .{attr}), got {type(projection).__name__}"
+            )
+    dims = {"V": num_cameras}
+    uv = check_shape(projection.uv, f"{name}.uv", ("N", "V", 2), dims)
+    check_floating(uv, f"{name}.uv")
+    valid = check_shape(projection.valid, f"{name}.valid", ("N", "V"), dims)
+    check_dtype(valid, f"{name}.valid", (torch.bool,))
+    batch_index = check_shape(projection.batch_index, f"{name}.batch_index", ("N",), dims)
+    check_dtype(batch_index, f"{name}.batch_index", _INT_DTYPES)
+    check_index_range(batch_index, f"{name}.batch_index", batch_size, "image batch size B")
+    return uv, valid, batch_index.long()
+
+
+def _norm(norm_layer: Type[nn.Module], channels: int, factory: dict) -> nn.Module:
+    # Factory kwargs only when given, so norm layers without device/dtype arguments still work.
+    return norm_layer(channels, **factory) if factory else norm_layer(channels)
+
+
+def _factory(device, dtype) -> dict:
+    return {k: v for k, v in (("device", device), ("dtype", dtype)) if v is not None}
+
+
+def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor) -> Tensor:
+    """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
+    rows = visible.nonzero().squeeze(1)
+    y = norm(linear(x[rows]))
+    out = y.new_zeros(x.shape[0], y.shape[1])
+    return out.index_put((rows,), y)
+
+
+def sample_at_projection(image_feature: Tensor, projection: CentroidProjection) -> Tensor:
+    """Bilinear sample of one level at every voxel's projection, averaged over its valid cameras.
+
+    This is ``Sample(F_I,i, c_img)`` of the paper (eq. 6) with the multi-camera mean.
+
+    Args:
+        image_feature: ``(B, C, H, W)`` or ``(B, V, C, H, W)``.
+        projection: :class:`~mssf_blocks.geometry.CentroidProjection` with ``uv (N, V, 2)``,
+            ``valid (N, V)``, ``batch_index (N,)``.
+
+    Returns:
+        ``(N, C)``; zeros (and no gradient into the image) for voxels valid in no camera.
+    """
+    (level,) = check_image_features([image_feature], name="image_feature")
+    uv, valid, batch_index = _check_projection(projection, level.shape[0], level.shape[1])
+    return camera_mean(bilinear_sample(level, uv, batch_index, valid), valid)
+
+
+# ---------------------------------------------------------------------------------------------------
+# inputs of a fusion block
+# ---------------------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class FusionInputs:
+    """The camera side of a fusion block: image features plus what projection needs.
+
+    Attributes:
+        image_features: ``L`` levels, each ``(B, C_l, H_l, W_l)`` or ``(B, V, C_l, H_l, W_l)``.
+        lidar2img: ``(B, V, 3, 4)`` (or ``(B, 3, 4)`` for one camera) sensor-to-pixel matrices.
+        image_size: ``(H, W)`` of the image the features were computed from.
+        points: ``(P, 3+)`` raw points (for voxel centroids).
+        points_batch: ``(P,)`` integer batch index of every point.
+        points_to_sensor: optional ``(B, 4, 4)`` inverse of the point-cloud augmentation.
+
+    Raises:
+        MSSFError: levels with different batch sizes or cameras, ``V`` not matching ``lidar2img``, a
+            level that is not 4-d or 5-d, a bad ``image_size``.
+    """
+
+    image_features: Sequence[Tensor]
+    lidar2img: Tensor
+    image_size: Tuple[int, int]
+    points: Tensor
+    points_batch: Tensor
+    points_to_sensor: Optional[Tensor] = None
+
+    def __post_init__(self) -> None:
+        l2i = normalize_lidar2img(self.lidar2img)
+        check_image_features(
+            self.image_features, "image_features", batch_size=l2i.shape[0], num_cameras=l2i.shape[1]
+        )
+        try:
+            h, w = (int(s) for s in self.image_size)
+        except (TypeError, ValueError):
+            raise MSSFError(f"image_size: expected (H, W), got {self.image_size!r}") from None
+        if h <= 0 or w <= 0:
+            raise MSSFError(f"image_size: expected positive (H, W), got {self.image_size!r}")
+        object.__setattr__(self, "image_size", (h, w))
+        object.__setattr__(self, "image_features", tuple(self.image_features))
+        check_shape(self.points, "points", ("P", None))
+        check_shape(self.points_batch, "points_batch", (self.points.shape[0],))
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.image_features[0].shape[0])
+
+    @property
+    def num_cameras(self) -> int:
+        return int(normalize_lidar2img(self.lidar2img).shape[1])
+
+
+# ---------------------------------------------------------------------------------------------------
+# SFF
+# ---------------------------------------------------------------------------------------------------
+class SFF(nn.Module):
+    """Simple feature fusion (paper eq. 6-7): ``Linear_BN(cat_l Sample(F_l, c_img))``.
+
+    Args:
+        in_channels: ``C_l`` of every image level (``L = len(in_channels)``).
+        out_channels: channels of ``f_img`` (the voxel feature's channels in a fusion block).
+        norm_layer: normalisation applied after the linear layer.
+        device, dtype: factory arguments of the parameters.
+
+    Shapes:
+        - image_features: ``L`` levels ``(B, C_l, H_l, W_l)`` or ``(B, V, C_l, H_l, W_l)``.
+        - projection: ``uv (N, V, 2)``, ``valid (N, V)``, ``batch_index (N,)``.
+        - output: ``(N, out_channels)``; exact zeros for voxels seen by no camera.
+
+    Example:
+        >>> import torch
+        >>> from mssf_blocks.geometry import CentroidProjection
+        >>> sff = SFF([4, 8], 16).eval()
+        >>> feats = [torch.randn(1, 4, 8, 8), torch.randn(1, 8, 4, 4)]
+        >>> proj = CentroidProjection(uv=torch.rand(5, 1, 2), depth=torch.ones(5, 1),
+        ...     valid=torch.ones(5, 1, dtype=torch.bool), centroid=torch.zeros(5, 3),
+        ...     has_points=torch.ones(5, dtype=torch.bool), batch_index=torch.zeros(5, dtype=torch.long))
+        >>> sff(feats, proj).shape
+        torch.Size([5, 16])
+    """
+
+    def __init__(
+        self,
+        in_channels: Sequence[int],
+        out_channels: int,
+        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__()
+        if isinstance(in_channels, int) or not isinstance(in_channels, Sequence) or len(in_channels) == 0:
+            raise MSSFError(f"in_channels: expected a non-empty sequence of ints (one per level), got {in_channels!r}")
+        self.in_channels = tuple(check_positive_int(c, f"in_channels[{i}]") for i, c in enumerate(in_channels))
+        self.out_channels = check_positive_int(out_channels, "out_channels")
+        factory = _factory(device, dtype)
+        self.linear = nn.Linear(sum(self.in_channels), self.out_channels, **factory)
+        self.norm = _norm(norm_layer, self.out_channels, factory)
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.in_channels)
+
+    def sample(self, image_features: Sequence[Tensor], projection: CentroidProjection) -> Tensor:
+        """The raw concatenated samples ``cat_l Sample(F_l, c_img)``, ``(N, sum C_l)``, camera-averaged."""
+        levels = check_image_features(image_features, num_levels=self.num_levels, channels=self.in_channels)
+        uv, valid, batch_index = _check_projection(projection, levels[0].shape[0], levels[0].shape[1])
+        parts = [camera_mean(bilinear_sample(lvl, uv, batch_index, valid), valid) for lvl in levels]
+        return torch.cat(parts, dim=1)
+
+    def forward(self, image_features: Sequence[Tensor], projection: CentroidProjection) -> Tensor:
+        sampled = self.sample(image_features, projection)
+        return _linear_bn_visible(self.linear, self.norm, sampled, projection.valid.any(dim=1))
+
+    def extra_repr(self) -> str:
+        return f"in_channels={self.in_channels}, out_channels={self.out_channels}"
+
+
+# ---------------------------------------------------------------------------------------------------
+# MSDFF
+# ---------------------------------------------------------------------------------------------------
+class MSDFF(nn.Module):
+    """Multi-scale deformable feature fusion (paper eq. 9-10), Deformable-DETR cross-attention.
+
+    For every voxel query ``q`` and every camera where the voxel projects validly to ``c_img``:
+
+    * ``o = sampling_offsets(q)`` viewed ``(M, L, P, 2)``, sampling location
+      ``c_img + o / (W_l, H_l)`` (eq. 9);
+    * ``w = softmax over the L*P slots of attention_weights(q)`` per head;
+    * head ``m`` reads ``sum_{l,p} w * Sample(value_proj_m(F_l), location)``;
+
+    heads are concatenated, averaged over the valid cameras, and ``Linear_BN`` = ``output_proj`` + norm
+    gives ``f_img`` (eq. 10). The value projection is applied *after* sampling (sampling is linear in
+    the values): raw image channels are sampled once per head, then projected with that head's rows of
+    ``value_proj.weight``, plus ``value_proj.bias`` times the in-image bilinear weight mass - exactly
+    what projecting every pixel first would give, at a cost that scales with voxels, not pixels.
+
+    Args:
+        embed_dim: query and output channels ``E`` (the voxel channels); divisible by ``num_heads``.
+        value_channels: channels of the image levels; all levels must have the same (FPN) channels,
+            an int or a sequence of equal ints.
+        num_heads: ``M``.
+        num_levels: ``L``, number of image levels read.
+        num_points: ``P``, sampling points per head and level.
+        norm_layer: normalisation after ``output_proj``.
+        method: ``ms_deform_sample`` implementation: ``"auto"``, ``"reference"`` or ``"fast"``.
+        device, dtype: factory arguments of the parameters.
+
+    Shapes:
+        - query: ``(N, E)``; image_features: ``L`` levels ``(B, [V,] C, H_l, W_l)``;
+          projection: ``uv (N, V, 2)``, ``valid (N, V)``, ``batch_index (N,)``.
+        - output: ``(N, E)``; exact zeros for voxels seen by no camera.
+
+    Parameter names and shapes are those of Deformable DETR's ``MSDeformAttn`` (``sampling_offsets``,
+    ``attention_weights``, ``value_proj``, ``output_proj``), so pretrained weights map across; the norm
+    is ``norm``.
+    """
+
+    def __init__(
+        self,
+        embed_dim: int,
+        value_channels: Union[int, Sequence[int]],
+        num_heads: int = 8,
+        num_levels: int = 4,
+        num_points: int = 4,
+        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        method: str = "auto",
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__()
+        self.embed_dim = check_positive_int(embed_dim, "embed_dim")
+        self.num_heads = check_positive_int(num_heads, "num_heads")
+        self.num_levels = check_positive_int(num_levels, "num_levels")
+        self.num_points = check_positive_int(num_points, "num_points")
+        if self.embed_dim % self.num_heads:
+            raise MSSFError(
+                f"embed_dim: expected a multiple of num_heads={self.num_heads}, got {self.embed_dim}"
+            )
+        if isinstance(value_channels, int):
+            self.value_channels = check_positive_int(value_channels, "value_channels")
+        else:
+            chans = tuple(check_positive_int(c, f"value_channels[{i}]") for i, c in enumerate(value_channels))
+            if len(chans) != self.num_levels or len(set(chans)) != 1:
+                raise MSSFError(
+                    f"value_channels: expected one channel count shared by all {self.num_levels} levels "
+                    f"(FPN outputs; value_proj is shared across levels), got {chans}"
+                )
+            self.value_channels = chans[0]
+        if method not in _METHODS:
+            raise MSSFError(f"method: expected one of {_METHODS}, got {method!r}")
+        self.method = method
+        factory = _factory(device, dtype)
+        m, l, p = self.num_heads, self.num_levels, self.num_points
+        self.sampling_offsets = nn.Linear(self.embed_dim, m * l * p * 2, **factory)
+        self.attention_weights = nn.Linear(self.embed_dim, m * l * p, **factory)
+        self.value_proj = nn.Linear(self.value_channels, self.embed_dim, **factory)
+        self.output_proj = nn.Linear(self.embed_dim, self.embed_dim, **factory)
+        self.norm = _norm(norm_layer, self.embed_dim, factory)
+        self.reset_parameters()
+
+    @property
+    def head_dim(self) -> int:
+        return self.embed_dim // self.num_heads
+
+    def reset_parameters(self) -> None:
+        """Deformable-DETR initialisation.
+
+        Offsets start on a grid: head ``m`` points in direction ``2 pi m / M`` (scaled so the larger of
+        ``|cos|, |sin|`` is 1), point ``p`` at distance ``p + 1`` pixels of every level; attention
+        weights start uniform (zero weight and bias); projections are xavier-uniform with zero bias.
+        """
+        m, l, p = self.num_heads, self.num_levels, self.num_points
+        nn.init.zeros_(self.sampling_offsets.weight)
+        w = self.sampling_offsets.weight
+        thetas = torch.arange(m, dtype=torch.float64) * (2.0 * math.pi / m)
+        grid = torch.stack([thetas.cos(), thetas.sin()], dim=-1)
+        grid = grid / grid.abs().max(dim=-1, keepdim=True).values
+        grid = grid.view(m, 1, 1, 2).repeat(1, l, p, 1)
+        grid = grid * torch.arange(1, p + 1, dtype=torch.float64).view(1, 1, p, 1)
+        with torch.no_grad():
+            self.sampling_offsets.bias.copy_(grid.reshape(-1).to(device=w.device, dtype=w.dtype))
+        nn.init.zeros_(self.attention_weights.weight)
+        nn.init.zeros_(self.attention_weights.bias)
+        for lin in (self.value_proj, self.output_proj):
+            nn.init.xavier_uniform_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
+    def sampling_locations_and_weights(
+        self, query: Tensor, uv: Tensor, level_sizes: Sequence[Tuple[int, int]]
+    ) -> Tuple[Tensor, Tensor]:
+        """Eq. 9 and the softmax: ``(Q, M, L, P, 2)`` locations and ``(Q, M, L, P)`` weights.
+
+        Args:
+            query: ``(Q, E)`` queries (one row per voxel-camera pair).
+            uv: ``(Q, 2)`` normalised reference points.
+            level_sizes: ``(H_l, W_l)`` of every level.
+        """
+        q = query.shape[0]
+        m, l, p = self.num_heads, self.num_levels, self.num_points
+        offsets = self.sampling_offsets(query).view(q, m, l, p, 2)
+        weights = self.attention_weights(query).view(q, m, l * p).softmax(dim=-1).view(q, m, l, p)
+        # Offsets are in pixels of each level: divide by (W_l, H_l) to get normalised units.
+        normalizer = torch.tensor(
+            [[w, h] for h, w in level_sizes], dtype=offsets.dtype, device=offsets.device
+        )
+        locations = uv[:, None, None, None, :] + offsets / normalizer[None, None, :, None, :]
+        return locations, weights
+
+    def forward(
+        self, query: Tensor, image_features: Sequence[Tensor], projection: CentroidProjection
+    ) -> Tensor:
+        levels = check_image_features(
+            image_features, num_levels=self.num_levels, channels=[self.value_channels] * self.num_levels
+        )
+        b, v = levels[0].shape[:2]
+        uv, valid, batch_index = _check_projection(projection, b, v)
+        n = uv.shape[0]
+        check_shape(query, "query", (n, self.embed_dim))
+        check_floating(query, "query")
+        m, e, c = self.num_heads, self.embed_dim, self.value_channels
+
+        # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
+        # depend on the query only, so they are computed per voxel and gathered.
+        n_idx, v_idx = valid.nonzero(as_tuple=True)
+        locations, weights = self.sampling_locations_and_weights(
+            query, uv.new_zeros(n, 2), [tuple(lvl.shape[-2:]) for lvl in levels]
+        )
+        locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
+        weights = weights[n_idx]
+        image_index = batch_index[n_idx] * v + v_idx
+        values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
+        sampled, mass = ms_deform_sample(
+            values, image_index, locations, weights, method=self.method, return_mass=True
+        )  # (Q, M, C), (Q, M)
+        # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
+        # contributes only where the bilinear corners were inside the image (zero padding).
+        w_heads = self.value_proj.weight.view(m, self.head_dim, c)
+        b_heads = self.value_proj.bias.view(m, self.head_dim)
+        heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+        per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
+        attended = camera_mean(per_camera, valid)
+        return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1))
+
+    def extra_repr(self) -> str:
+        return (
+            f"embed_dim={self.embed_dim}, value_channels={self.value_channels}, num_heads={self.num_heads}, "
+            f"num_levels={self.num_levels}, num_points={self.num_points}, method={self.method!r}"
+        )
+
+
+# ---------------------------------------------------------------------------------------------------
+# QueryInit
+# ---------------------------------------------------------------------------------------------------
+class QueryInit(nn.Module):
+    """MSDFF query initialisation (paper eq. 8): ``Linear_BN(cat(f_vox, f_img^1, p))``.
+
+    Args:
+        voxel_channels: ``C_v`` of ``f_vox``.
+        image_channels: ``C_i`` of ``f_img^1`` (the first image level sampled at the centroid).
+        out_channels: query channels (the MSDFF ``embed_dim``).
+        point_cloud_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` used to normalise voxel
+            centres to ``p`` in ``[0, 1]^3``.
+        norm_layer: normalisation after the linear layer.
+        device, dtype: factory arguments of the parameters.
+
+    Shapes:
+        - f_vox ``(N, C_v)``, f_img0 ``(N, C_i)``, centers ``(N, 3)`` metric ``(x, y, z)``.
+        - output ``(N, out_channels)``.
+    """
+
+    def __init__(
+        self,
+        voxel_channels: int,
+        image_channels: int,
+        out_channels: int,
+        point_cloud_range: Sequence[float],
+        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__()
+        self.voxel_channels = check_positive_int(voxel_channels, "voxel_channels")
+        self.image_channels = check_positive_int(image_channels, "image_channels")
+        self.out_channels = check_positive_int(out_channels, "out_channels")
+        if isinstance(point_cloud_range, Tensor):
+            point_cloud_range = point_cloud_range.detach().cpu().tolist()
+        try:
+            pcr = tuple(float(x) for x in point_cloud_range)
+        except (TypeError, ValueError):
+            raise MSSFError(f"point_cloud_range: expected 6 numbers, got {point_cloud_range!r}") from None
+        if len(pcr) != 6 or not all(math.isfinite(x) for x in pcr) or not all(
+            pcr[i + 3] > pcr[i] for i in range(3)
+        ):
+            raise MSSFError(
+                "point_cloud_range: expected 6 finite numbers (x_min, y_min, z_min, x_max, y_max, z_max) "
+                f"with max > min, got {point_cloud_range!r}"
+            )
+        self.point_cloud_range = pcr
+        factory = _factory(device, dtype)
+        self.linear = nn.Linear(self.voxel_channels + self.image_channels + 3, self.out_channels, **factory)
+        self.norm = _norm(norm_layer, self.out_channels, factory)
+
+    def normalized_centers(self, centers: Tensor) -> Tensor:
+        """``p = (centers - min) / (max - min)``, ``(N, 3)``."""
+        lo = centers.new_tensor(self.point_cloud_range[:3])
+        hi = centers.new_tensor(self.point_cloud_range[3:])
+        return (centers - lo) / (hi - lo)
+
+    def forward(self, f_vox: Tensor, f_img0: Tensor, centers: Tensor) -> Tensor:
+        dims = {}
+        check_shape(f_vox, "f_vox", ("N", self.voxel_channels), dims)
+        check_shape(f_img0, "f_img0", ("N", self.image_channels), dims)
+        check_shape(centers, "centers", ("N", 3), dims)
+        for x, name in ((f_vox, "f_vox"), (f_img0, "f_img0"), (centers, "centers")):
+            check_floating(x, name)
+        p = self.normalized_centers(centers.to(f_vox.dtype))
+        return self.norm(self.linear(torch.cat([f_vox, f_img0.to(f_vox.dtype), p], dim=1)))
+
+    def extra_repr(self) -> str:
+        return (
+            f"voxel_channels={self.voxel_channels}, image_channels={self.image_channels}, "
+            f"out_channels={self.out_channels}, point_cloud_range={self.point_cloud_range}"
+        )
