@@ -80,6 +80,7 @@ __all__ = [
     "Frame",
     "FramePaths",
     "KittiFormatDataset",
+    "frames_to_batch",
 ]
 
 PathLike = Union[str, Path]
@@ -737,3 +738,29 @@ class KittiFormatDataset:
     def __repr__(self) -> str:
         return (f"KittiFormatDataset(root={str(self.root)!r}, point_format={self.point_format.name}, "
                 f"sensor={self.sensor!r}, split={self.split!r}, layout={self.layout!r}, frames={len(self)})")
+
+
+def frames_to_batch(frames: Sequence[Frame], dtype: torch.dtype = torch.float32):
+    """Stack frames into the examples' :class:`~mssf_examples.data.RadarCameraBatch` (one camera).
+
+    Points keep their input features (``Frame.points``); images become ``(B, 1, 3, H, W)`` floats in
+    ``[0, 1]``; ``lidar2img`` is ``(B, 1, 3, 4)``; ground truth holds the evaluated classes only
+    (:attr:`Frame.gt_boxes`, :attr:`Frame.gt_labels`). All images must have one size.
+    """
+    from .data import RadarCameraBatch
+
+    frames = list(frames)
+    if not frames:
+        raise MSSFError("frames: expected at least one Frame, got none")
+    sizes = {f.image_size for f in frames}
+    if len(sizes) != 1:
+        raise MSSFError(f"frames: expected one image size to stack, got {sorted(sizes)}")
+    if any(f.image is None for f in frames):
+        raise MSSFError("frames: expected loaded images (KittiFormatDataset(load_image=True))")
+    return RadarCameraBatch(
+        points=[f.points.to(dtype) for f in frames],
+        lidar2img=torch.stack([f.lidar2img for f in frames])[:, None].to(dtype),
+        images=torch.stack([f.image for f in frames])[:, None].to(dtype) / 255.0,
+        gt_boxes=[f.gt_boxes.to(dtype) for f in frames],
+        gt_labels=[f.gt_labels for f in frames],
+    )

@@ -27,6 +27,7 @@ from mssf_examples.kitti_io import (
     PointFormat,
     camera_box_corners_in_sensor,
     camera_boxes_to_sensor,
+    frames_to_batch,
     parse_calibration,
     parse_labels,
     points_in_image,
@@ -422,6 +423,13 @@ def test_vod_5frames_layout_and_splits(tmp_path):
     p2, r0, tr = hand_calib(base / "training/calib/00004.txt")
     np.testing.assert_allclose(frame.lidar2img.numpy(), p2 @ r0 @ tr, rtol=1e-14, atol=1e-12)
     _check_round_trips(frame.calib, seed=5)
+
+    batch = frames_to_batch([train[0], train[1]])
+    assert batch.batch_size == 2 and tuple(batch.images.shape) == (2, 1, 3, 6, 8)
+    np.testing.assert_array_equal(batch.points[1].numpy(), written["00003"])
+    assert batch.gt_labels[0].tolist() == [0, 2]
+    np.testing.assert_allclose(batch.images[0, 0].numpy() * 255, train[0].image.numpy(), atol=1e-4)
+    np.testing.assert_allclose(batch.lidar2img[1, 0].numpy(), train[1].lidar2img.numpy(), rtol=1e-6)
 
     test = KittiFormatDataset(tmp_path / "vod", VOD_RADAR, sensor="radar_5frames", split="test")
     assert test.frame_ids == ["09000"]
