@@ -1,0 +1,179 @@
+"""Fully sparse centre head (VoxelNeXt, Chen et al., CVPR 2023).
+
+Predicts the CenterPoint outputs directly on the non-empty BEV voxels ``(features (M, C), coords (M, 3)
+(b, y, x))`` at the head's stride, with no dense map. Targets: the voxel whose cell centre is nearest to a
+box centre is that box's positive (heatmap 1) and carries its regression (offset from that voxel's
+integer index, which may exceed one cell when the centre itself is empty); the other voxels take the
+dense Gaussian heatmap's value at their cell as the negative down-weighting. Decoding reads the top
+voxel scores of each sample and applies rotated BEV NMS (there is no max-pool over a dense map).
+
+VoxelNeXt's branches are 3x3 submanifold convolutions; ours are per-voxel (1x1) layers so the head has
+no spconv dependency and its receptive field comes from the backbone.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Dict, List, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from mssf_blocks._checks import check_dtype, check_floating, check_shape
+from mssf_blocks.errors import MSSFError
+
+from ..ops.boxes import CENTER_CODE_SIZE, decode_center
+from ..ops.targets import sparse_center_targets
+from .center_head import REGRESSION_BRANCHES
+from .common import BEVGrid, check_decode_args, check_gt_lists, gaussian_focal_loss, select_detections
+
+__all__ = ["SparseCenterHead"]
+
+
+def _branch(cin: int, cout: int, hidden: int, norm_layer, factory: dict) -> nn.Sequential:
+    layers: list = [nn.Linear(cin, hidden, bias=norm_layer is None, **factory)]
+    if norm_layer is not None:
+        layers.append(norm_layer(hidden, **factory))
+    layers += [nn.ReLU(inplace=True), nn.Linear(hidden, cout, **factory)]
+    return nn.Sequential(*layers)
+
+
+class SparseCenterHead(nn.Module):
+    """VoxelNeXt-style sparse centre head.
+
+    Args:
+        in_channels: channels ``C`` of the voxel features.
+        grid: :class:`BEVGrid` of the voxels' BEV indices (``ny x nx`` = sparse spatial shape at the
+            head's stride, cell size = voxel size x stride).
+        num_classes: ``K``.
+        head_channels: hidden width.
+        norm_layer: normalisation after each hidden layer (``nn.BatchNorm1d`` or ``None``).
+        min_overlap, min_radius, cls_weight, reg_weight, code_weights, nms_pre: as
+            :class:`~mssf_examples.heads.center_head.CenterHead`.
+        device, dtype: for the parameters.
+
+    Shape:
+        ``forward(features (M, C), coords (M, 3) int (b, y, x), batch_size) -> dict(hm (M, K),
+        center (M, 2), center_z (M, 1), dim (M, 3), rot (M, 2), coords (M, 3), batch_size)``.
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        grid: BEVGrid,
+        num_classes: int,
+        head_channels: int = 64,
+        norm_layer: Callable[..., nn.Module] | None = nn.BatchNorm1d,
+        min_overlap: float = 0.1,
+        min_radius: int = 2,
+        cls_weight: float = 1.0,
+        reg_weight: float = 2.0,
+        code_weights: Sequence[float] | None = None,
+        nms_pre: int = 500,
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__()
+        if not isinstance(grid, BEVGrid):
+            raise MSSFError(f"grid: expected a BEVGrid, got {type(grid).__name__}")
+        for name, value in (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels)):
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise MSSFError(f"{name}: expected a positive int, got {value!r}")
+        if not 0.0 < min_overlap < 1.0:
+            raise MSSFError(f"min_overlap: expected a value in (0, 1), got {min_overlap}")
+        code_weights = [1.0] * CENTER_CODE_SIZE if code_weights is None else list(map(float, code_weights))
+        if len(code_weights) != CENTER_CODE_SIZE:
+            raise MSSFError(f"code_weights: expected {CENTER_CODE_SIZE} values, got {len(code_weights)}")
+        self.grid, self.in_channels, self.num_classes = grid, in_channels, num_classes
+        self.min_overlap, self.min_radius = min_overlap, min_radius
+        self.cls_weight, self.reg_weight, self.nms_pre = cls_weight, reg_weight, nms_pre
+        factory = {"device": device, "dtype": dtype}
+        self.register_buffer("code_weights", torch.tensor(code_weights, **factory), persistent=False)
+        shared: list = [nn.Linear(in_channels, head_channels, bias=norm_layer is None, **factory)]
+        if norm_layer is not None:
+            shared.append(norm_layer(head_channels, **factory))
+        shared.append(nn.ReLU(inplace=True))
+        self.shared = nn.Sequential(*shared)
+        self.heads = nn.ModuleDict({"hm": _branch(head_channels, num_classes, head_channels, norm_layer, factory)})
+        for name, channels in REGRESSION_BRANCHES:
+            self.heads[name] = _branch(head_channels, channels, head_channels, norm_layer, factory)
+        nn.init.constant_(self.heads["hm"][-1].bias, -2.19)
+
+    def extra_repr(self) -> str:
+        return f"in_channels={self.in_channels}, num_classes={self.num_classes}, grid={self.grid}"
+
+    def forward(self, features: Tensor, coords: Tensor, batch_size: int) -> Dict[str, object]:
+        """Per-voxel heatmap logits and regression from ``features (M, C)`` at ``coords (M, 3)`` (b, y, x)."""
+        dims: dict = {}
+        check_shape(features, "features", ("M", self.in_channels), dims)
+        check_shape(coords, "coords", ("M", 3), dims)
+        check_floating(features, "features")
+        check_dtype(coords, "coords", (torch.int32, torch.int64))
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size <= 0:
+            raise MSSFError(f"batch_size: expected a positive int, got {batch_size!r}")
+        if coords.numel():
+            upper = torch.tensor([batch_size, self.grid.ny, self.grid.nx], device=coords.device)
+            if bool((coords < 0).any()) or bool((coords >= upper).any()):
+                lo, hi = coords.min(0).values.tolist(), coords.max(0).values.tolist()
+                raise MSSFError(
+                    f"coords: expected (b, y, x) in [0, {batch_size}) x [0, {self.grid.ny}) x [0, {self.grid.nx}), "
+                    f"got per-column min {lo} and max {hi}"
+                )
+        x = self.shared(features)
+        out: Dict[str, object] = {name: head(x) for name, head in self.heads.items()}
+        out["coords"] = coords
+        out["batch_size"] = batch_size
+        return out
+
+    def _codes(self, preds: Dict[str, object]) -> Tensor:
+        return torch.cat([preds[name] for name, _ in REGRESSION_BRANCHES], dim=1)  # (M, 8)
+
+    def loss(self, preds: Dict[str, object], gt_boxes: List[Tensor], gt_labels: List[Tensor]) -> Dict[str, Tensor]:
+        """Focal heatmap loss over all voxels and L1 regression at each box's voxel.
+
+        Returns:
+            ``dict(cls, reg)`` scalar tensors (already weighted).
+        """
+        hm, coords, batch_size = preds["hm"], preds["coords"], preds["batch_size"]
+        check_gt_lists(gt_boxes, gt_labels, batch_size, self.num_classes)
+        codes = self._codes(preds)
+        heatmap = torch.zeros_like(hm)
+        pred_rows, target_rows = [], []
+        for b in range(batch_size):
+            rows = torch.nonzero(coords[:, 0] == b).flatten()
+            t = sparse_center_targets(
+                gt_boxes[b].to(device=hm.device, dtype=hm.dtype), gt_labels[b].to(hm.device).long(),
+                coords[rows][:, [2, 1]].long(), self.grid, self.num_classes, self.min_overlap, self.min_radius,
+            )
+            heatmap[rows] = t.heatmap
+            pred_rows.append(codes[rows[t.voxel_index]])
+            target_rows.append(t.regression)
+        cls_loss = gaussian_focal_loss(hm, heatmap)
+        pred, target = torch.cat(pred_rows), torch.cat(target_rows)
+        reg_loss = ((pred - target).abs() * self.code_weights).sum() / max(1, target.shape[0])
+        return {"cls": self.cls_weight * cls_loss, "reg": self.reg_weight * reg_loss}
+
+    @torch.no_grad()
+    def decode(
+        self,
+        preds: Dict[str, object],
+        score_threshold: float = 0.1,
+        nms_iou: float | None = 0.5,
+        max_detections: int = 100,
+    ) -> List[dict]:
+        """Detections per sample: ``dict(boxes (K, 7), scores (K,), labels (K,))``, best first."""
+        check_decode_args(score_threshold, nms_iou, max_detections)
+        hm, coords, batch_size = preds["hm"], preds["coords"], preds["batch_size"]
+        heat = torch.sigmoid(hm)
+        boxes_all = decode_center(
+            self._codes(preds), coords[:, [2, 1]].long(), (self.grid.cell_x, self.grid.cell_y),
+            (self.grid.x_min, self.grid.y_min),
+        )
+        out = []
+        for b in range(batch_size):
+            rows = torch.nonzero(coords[:, 0] == b).flatten()
+            flat = heat[rows].flatten()
+            k = min(self.nms_pre, flat.numel())
+            scores, idx = flat.topk(k)
+            voxel, labels = idx // self.num_classes, idx % self.num_classes
+            out.append(select_detections(boxes_all[rows[voxel]], scores, labels, score_threshold, nms_iou, max_detections))
+        return out
