@@ -1,0 +1,445 @@
+"""KITTI / View-of-Delft style 3D detection evaluation: per-class AP (3D and BEV, rotated IoU) with
+11-point and 40-point interpolation, over the entire annotated area and the driving corridor.
+
+The protocol (see ``docs/evaluation.md`` for the reasoning and the differences to the official kit):
+
+* **Boxes** are ``(x, y, z, dx, dy, dz, yaw)`` in the sensor frame (``z`` the centre, yaw about +z);
+  overlaps are :func:`mssf_examples.ops.iou.box_iou_3d` / :func:`~mssf_examples.ops.iou.box_iou_bev`.
+* **Matching**, per frame and class: predictions in descending score order; each takes the unmatched
+  valid ground truth (GT) of highest IoU and is a true positive (TP) when that IoU is
+  ``>= threshold``. Otherwise, if it overlaps an unmatched *ignored* GT by ``>= threshold``, it
+  consumes that GT and counts as neither TP nor false positive (FP); otherwise it is an FP.
+* **Regions**: a GT whose box centre is outside the region becomes an ignored GT; a prediction whose
+  centre is outside the region is dropped. With ``region=None`` (entire annotated area) every GT and
+  prediction counts. This reproduces how the VoD kit treats its driving corridor (GT outside are
+  "ignored", detections outside never count).
+* **Precision-recall**: all TP/FP predictions of a class across frames, swept by descending score
+  (tied scores enter together, as one threshold); recall = TP / number of valid GT.
+* **AP**: interpolated precision ``p(r) = max{precision_k : recall_k >= r}`` (0 when no point reaches
+  ``r``), averaged over ``r in {0, 0.1, ..., 1}`` (AP11 / R11, KITTI's original and VoD's reported
+  metric) or ``r in {1/40, 2/40, ..., 1}`` (AP40 / R40), times 100.
+
+Classes without any valid GT in a region get AP = NaN, and mAP averages the classes with a defined AP.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from mssf_blocks.errors import MSSFError
+
+from .ops.iou import box_iou_3d, box_iou_bev
+
+__all__ = [
+    "VOD_IOU_THRESHOLDS",
+    "STRICT_IOU_THRESHOLDS",
+    "TJ4D_IOU_THRESHOLDS",
+    "RECALL_POINTS",
+    "DEFAULT_REGIONS",
+    "RegionFn",
+    "corridor_mask",
+    "driving_corridor",
+    "range_region",
+    "match_frame",
+    "precision_recall",
+    "average_precision",
+    "evaluate",
+    "format_table",
+]
+
+#: VoD / paper IoU thresholds (3D and BEV alike).
+VOD_IOU_THRESHOLDS: Dict[str, float] = {"Car": 0.5, "Pedestrian": 0.25, "Cyclist": 0.25}
+#: The paper's stricter thresholds (``mAP_str``, Table "fusion block").
+STRICT_IOU_THRESHOLDS: Dict[str, float] = {"Car": 0.7, "Pedestrian": 0.5, "Cyclist": 0.5}
+#: TJ4DRadSet: VoD thresholds plus trucks at 0.5.
+TJ4D_IOU_THRESHOLDS: Dict[str, float] = {**VOD_IOU_THRESHOLDS, "Truck": 0.5}
+
+#: Recall sample points of the two AP definitions.
+RECALL_POINTS: Dict[str, Tensor] = {
+    "R11": torch.linspace(0.0, 1.0, 11, dtype=torch.float64),
+    "R40": torch.arange(1, 41, dtype=torch.float64) / 40.0,
+}
+
+#: ``region(boxes (K, 7), frame: dict) -> (K,) bool``; ``frame`` is that frame's ground-truth dict, so
+#: a region can read per-frame metadata such as ``frame["lidar2cam"]``.
+RegionFn = Callable[[Tensor, Mapping], Tensor]
+
+_METRICS = {"3D": box_iou_3d, "BEV": box_iou_bev}
+
+
+# ---------------------------------------------------------------------------------------------------
+# Regions
+# ---------------------------------------------------------------------------------------------------
+
+
+def corridor_mask(
+    boxes: Tensor,
+    lidar2cam: Optional[Tensor] = None,
+    half_width: float = 4.0,
+    max_distance: float = 25.0,
+) -> Tensor:
+    """Which boxes lie in the VoD driving corridor ``-4 m <= x_cam <= 4 m, z_cam <= 25 m``.
+
+    The corridor is defined in the (rectified) camera frame: ``x_cam`` to the right, ``z_cam`` forward.
+    The test uses the box centre; the KITTI label location (bottom-face centre) differs from it only
+    along the camera's ``y`` axis, so both give the same answer. The bounds are closed, as in the VoD
+    kit (which ignores ``x < -4 or x > 4 or z > 25``; the paper writes strict inequalities -- the
+    difference has measure zero).
+
+    Args:
+        boxes: ``(K, 7)`` sensor-frame boxes ``(x, y, z, dx, dy, dz, yaw)``.
+        lidar2cam: ``(4, 4)`` or ``(3, 4)`` sensor-to-camera transform (e.g. KITTI's
+            ``R0_rect @ Tr_velo_to_cam``, :attr:`mssf_examples.kitti_io.Calibration.sensor_to_camera`).
+            ``None`` assumes a camera at the sensor origin looking along +x with the sensor's ``y`` to
+            the left (the synthetic scenes): ``x_cam = -y``, ``z_cam = x``, i.e. ``|y| <= 4, x <= 25``.
+        half_width: lateral half-width in metres.
+        max_distance: forward limit in metres.
+
+    Returns:
+        ``(K,)`` bool.
+    """
+    if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
+        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
+        raise MSSFError(f"boxes: expected shape (K, 7), got {got}")
+    centres = boxes[:, :3].to(torch.float64)
+    if lidar2cam is None:
+        x_cam, z_cam = -centres[:, 1], centres[:, 0]
+    else:
+        if not isinstance(lidar2cam, Tensor) or tuple(lidar2cam.shape) not in ((4, 4), (3, 4)):
+            got = tuple(lidar2cam.shape) if isinstance(lidar2cam, Tensor) else type(lidar2cam).__name__
+            raise MSSFError(f"lidar2cam: expected a (4, 4) or (3, 4) tensor, got {got}")
+        m = lidar2cam.to(device=boxes.device, dtype=torch.float64)
+        cam = centres @ m[:3, :3].T + m[:3, 3]
+        x_cam, z_cam = cam[:, 0], cam[:, 2]
+    return (x_cam >= -half_width) & (x_cam <= half_width) & (z_cam <= max_distance)
+
+
+def driving_corridor(boxes: Tensor, frame: Mapping) -> Tensor:
+    """:data:`RegionFn` for the VoD driving corridor; uses ``frame["lidar2cam"]`` when present."""
+    return corridor_mask(boxes, frame.get("lidar2cam"))
+
+
+def range_region(x_min: float = 0.0, x_max: float = 70.0) -> RegionFn:
+    """A :data:`RegionFn` keeping box centres with ``x_min <= x <= x_max`` (TJ4DRadSet: 0-70 m)."""
+
+    def region(boxes: Tensor, frame: Mapping) -> Tensor:
+        return (boxes[:, 0] >= x_min) & (boxes[:, 0] <= x_max)
+
+    return region
+
+
+#: The two VoD regions: entire annotated area and driving corridor.
+DEFAULT_REGIONS: Dict[str, Optional[RegionFn]] = {
+    "entire_area": None,
+    "driving_corridor": driving_corridor,
+}
+
+
+# ---------------------------------------------------------------------------------------------------
+# Matching, precision-recall and AP
+# ---------------------------------------------------------------------------------------------------
+
+
+def match_frame(iou: Tensor, scores: Tensor, gt_ignored: Tensor, threshold: float) -> Tensor:
+    """Greedy matching of one frame's predictions of one class.
+
+    Args:
+        iou: ``(K, G)`` IoU of the predictions with the ground truths.
+        scores: ``(K,)`` prediction scores.
+        gt_ignored: ``(G,)`` bool: ignored GTs (outside the region, or marked ``ignore``).
+        threshold: a match needs ``IoU >= threshold``.
+
+    Returns:
+        ``(K,)`` int8 outcome per prediction: 1 true positive, 0 false positive, -1 ignored (matched an
+        ignored GT).
+    """
+    k, g = iou.shape
+    outcome = torch.zeros(k, dtype=torch.int8)
+    if k == 0:
+        return outcome
+    # Stable sort: equal scores keep input order, so the result is deterministic.
+    order = torch.sort(scores.detach().cpu().to(torch.float64), descending=True, stable=True).indices
+    iou = iou.detach().cpu().to(torch.float64)
+    ignored = gt_ignored.detach().cpu().bool()
+    taken = torch.zeros(g, dtype=torch.bool)
+    for i in order.tolist():
+        row = iou[i]
+        valid_free = ~taken & ~ignored
+        if bool(valid_free.any()):
+            best = torch.where(valid_free, row, torch.full_like(row, -1.0)).argmax()
+            if float(row[best]) >= threshold:
+                taken[best] = True
+                outcome[i] = 1
+                continue
+        ignored_free = ~taken & ignored
+        if bool(ignored_free.any()):
+            best = torch.where(ignored_free, row, torch.full_like(row, -1.0)).argmax()
+            if float(row[best]) >= threshold:
+                taken[best] = True
+                outcome[i] = -1
+    return outcome
+
+
+def precision_recall(scores: Tensor, is_tp: Tensor, num_gt: int) -> Tuple[Tensor, Tensor]:
+    """Precision and recall at every distinct score threshold.
+
+    Args:
+        scores: ``(K,)`` scores of the counted (TP or FP) predictions of one class, all frames.
+        is_tp: ``(K,)`` bool.
+        num_gt: number of valid ground truths (> 0).
+
+    Returns:
+        ``precision (T,)`` and ``recall (T,)`` float64, one entry per distinct score, from the highest
+        score down (predictions with equal scores enter together).
+    """
+    if num_gt <= 0:
+        raise MSSFError(f"num_gt: expected a positive number of ground truths, got {num_gt}")
+    scores = scores.detach().cpu().to(torch.float64)
+    order = torch.sort(scores, descending=True, stable=True).indices
+    scores, tp = scores[order], is_tp.detach().cpu().bool()[order].to(torch.float64)
+    tp_cum = tp.cumsum(0)
+    fp_cum = (1.0 - tp).cumsum(0)
+    if scores.numel() == 0:
+        return scores.new_zeros(0), scores.new_zeros(0)
+    # Last index of every run of equal scores: a threshold cannot split a tie.
+    last = torch.ones_like(scores, dtype=torch.bool)
+    last[:-1] = scores[1:] != scores[:-1]
+    tp_cum, fp_cum = tp_cum[last], fp_cum[last]
+    return tp_cum / (tp_cum + fp_cum), tp_cum / num_gt
+
+
+def average_precision(precision: Tensor, recall: Tensor, recall_points: Tensor | str = "R40") -> float:
+    """Interpolated AP (in percent) of a precision-recall curve.
+
+    ``AP = 100 * mean_r p(r)`` with ``p(r) = max{precision_k : recall_k >= r}`` and 0 when no point of
+    the curve reaches recall ``r``.
+
+    Args:
+        precision: ``(T,)`` precision values.
+        recall: ``(T,)`` recall values (any order).
+        recall_points: ``"R11"``, ``"R40"`` or a 1-d tensor of recall levels.
+
+    Returns:
+        AP in ``[0, 100]``.
+    """
+    if isinstance(recall_points, str):
+        if recall_points not in RECALL_POINTS:
+            raise MSSFError(f"recall_points: expected one of {sorted(RECALL_POINTS)} or a tensor, "
+                            f"got {recall_points!r}")
+        recall_points = RECALL_POINTS[recall_points]
+    if precision.shape != recall.shape or precision.dim() != 1:
+        raise MSSFError(f"precision, recall: expected two 1-d tensors of equal length, got shapes "
+                        f"{tuple(precision.shape)} and {tuple(recall.shape)}")
+    points = recall_points.to(torch.float64)
+    if precision.numel() == 0:
+        return 0.0
+    p = precision.detach().cpu().to(torch.float64)
+    r = recall.detach().cpu().to(torch.float64)
+    # A tiny slack keeps recall 0.3 reached when cumsum / num_gt rounds to 0.29999999999999993.
+    reached = r[None, :] >= points[:, None] - 1e-12
+    interp = torch.where(reached, p[None, :], torch.zeros_like(p)[None, :]).amax(dim=1)
+    return float(interp.mean() * 100.0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Full evaluation
+# ---------------------------------------------------------------------------------------------------
+
+
+def _check_frames(predictions: Sequence[Mapping], ground_truths: Sequence[Mapping]) -> None:
+    if len(predictions) != len(ground_truths):
+        raise MSSFError(f"predictions, ground_truths: expected one entry per frame in both, got "
+                        f"{len(predictions)} and {len(ground_truths)}")
+    for name, frames, keys in (("predictions", predictions, ("boxes", "scores", "labels")),
+                               ("ground_truths", ground_truths, ("boxes", "labels"))):
+        for i, frame in enumerate(frames):
+            for key in keys:
+                if key not in frame:
+                    raise MSSFError(f"{name}[{i}]: missing key {key!r} (expected keys {keys})")
+            boxes = frame["boxes"]
+            if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
+                got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
+                raise MSSFError(f"{name}[{i}]['boxes']: expected shape (K, 7), got {got}")
+            n = boxes.shape[0]
+            extra = ("scores", "labels") if name == "predictions" else ("labels",)
+            if name == "ground_truths" and "ignore" in frame:
+                extra = extra + ("ignore",)
+            for key in extra:
+                v = frame[key]
+                if not isinstance(v, Tensor) or tuple(v.shape) != (n,):
+                    got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
+                    raise MSSFError(f"{name}[{i}][{key!r}]: expected shape ({n},) to match boxes, got {got}")
+
+
+def evaluate(
+    predictions: Sequence[Mapping[str, Tensor]],
+    ground_truths: Sequence[Mapping[str, Tensor]],
+    class_names: Sequence[str],
+    iou_thresholds: Optional[Mapping[str, float]] = None,
+    regions: Optional[Mapping[str, Optional[RegionFn]]] = None,
+) -> Dict[str, Dict[str, Dict[str, float]]]:
+    """Per-class 3D and BEV AP (R11 and R40) per region, and their mean over classes.
+
+    Args:
+        predictions: one dict per frame with ``boxes (K, 7)``, ``scores (K,)``, ``labels (K,)`` (0-based,
+            indexing ``class_names``).
+        ground_truths: one dict per frame with ``boxes (G, 7)``, ``labels (G,)`` and optionally
+            ``ignore (G,)`` bool (GTs that neither count as misses nor turn matching predictions into
+            false positives, e.g. KITTI's neighbouring classes) and any metadata a region reads
+            (e.g. ``lidar2cam``). Labels outside ``[0, len(class_names))`` (e.g. DontCare mapped to -1)
+            are not evaluated.
+        class_names: names of the classes, in label order.
+        iou_thresholds: ``{class name: IoU threshold}`` used for both 3D and BEV; defaults to
+            :data:`VOD_IOU_THRESHOLDS`. Every name in ``class_names`` needs an entry.
+        regions: ``{region name: RegionFn or None}``; ``None`` means the entire annotated area.
+            Defaults to :data:`DEFAULT_REGIONS`.
+
+    Returns:
+        ``results[region][class or "mAP"]`` is a dict with ``AP3D_R11``, ``AP3D_R40``, ``APBEV_R11``,
+        ``APBEV_R40`` (percent; NaN for a class without valid GT in the region), and for classes also
+        ``num_gt`` (valid GTs) and ``num_pred`` (predictions counted in the region).
+    """
+    _check_frames(predictions, ground_truths)
+    names = list(class_names)
+    if not names:
+        raise MSSFError("class_names: expected at least one class name, got none")
+    thresholds = dict(VOD_IOU_THRESHOLDS if iou_thresholds is None else iou_thresholds)
+    missing = [c for c in names if c not in thresholds]
+    if missing:
+        raise MSSFError(f"iou_thresholds: no threshold for classes {missing} (got keys {sorted(thresholds)})")
+    for c in names:
+        if not 0.0 < float(thresholds[c]) <= 1.0:
+            raise MSSFError(f"iou_thresholds[{c!r}]: expected a value in (0, 1], got {thresholds[c]}")
+    regions = dict(DEFAULT_REGIONS if regions is None else regions)
+    if not regions:
+        raise MSSFError("regions: expected at least one region, got none")
+
+    keys = [f"AP{metric}_{rp}" for metric in _METRICS for rp in RECALL_POINTS]
+    results: Dict[str, Dict[str, Dict[str, float]]] = {}
+    for region_name, region in regions.items():
+        if region is not None and not callable(region):
+            raise MSSFError(f"regions[{region_name!r}]: expected a callable or None, got {type(region).__name__}")
+        per_class: Dict[str, Dict[str, float]] = {}
+        for c, cname in enumerate(names):
+            entry: Dict[str, float] = {}
+            num_gt, num_pred = 0, 0
+            for metric, iou_fn in _METRICS.items():
+                all_scores: List[Tensor] = []
+                all_tp: List[Tensor] = []
+                num_gt, num_pred = 0, 0
+                for pred, gt in zip(predictions, ground_truths):
+                    pm = pred["labels"] == c
+                    gm = gt["labels"] == c
+                    p_boxes, p_scores = pred["boxes"][pm], pred["scores"][pm]
+                    g_boxes = gt["boxes"][gm]
+                    g_ignored = gt["ignore"][gm].bool() if "ignore" in gt else torch.zeros(
+                        g_boxes.shape[0], dtype=torch.bool, device=g_boxes.device)
+                    if region is not None:
+                        keep = _region_mask(region, p_boxes, gt, region_name, "predictions")
+                        p_boxes, p_scores = p_boxes[keep], p_scores[keep]
+                        g_ignored = g_ignored | ~_region_mask(region, g_boxes, gt, region_name, "ground_truths")
+                    num_gt += int((~g_ignored).sum())
+                    num_pred += int(p_boxes.shape[0])
+                    if p_boxes.shape[0] == 0:
+                        continue
+                    iou = iou_fn(p_boxes, g_boxes.to(p_boxes.dtype))
+                    outcome = match_frame(iou, p_scores, g_ignored, float(thresholds[cname]))
+                    counted = outcome >= 0
+                    all_scores.append(p_scores.detach().cpu()[counted])
+                    all_tp.append(outcome[counted] == 1)
+                for rp in RECALL_POINTS:
+                    key = f"AP{metric}_{rp}"
+                    if num_gt == 0:
+                        entry[key] = math.nan
+                    elif not all_scores:
+                        entry[key] = 0.0
+                    else:
+                        precision, recall = precision_recall(torch.cat(all_scores), torch.cat(all_tp), num_gt)
+                        entry[key] = average_precision(precision, recall, rp)
+            entry["num_gt"] = num_gt
+            entry["num_pred"] = num_pred
+            per_class[cname] = entry
+        mean: Dict[str, float] = {}
+        for key in keys:
+            values = [per_class[c][key] for c in names if not math.isnan(per_class[c][key])]
+            mean[key] = sum(values) / len(values) if values else math.nan
+        per_class["mAP"] = mean
+        results[region_name] = per_class
+    return results
+
+
+def _region_mask(region: RegionFn, boxes: Tensor, frame: Mapping, region_name: str, what: str) -> Tensor:
+    mask = region(boxes, frame)
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool or tuple(mask.shape) != (boxes.shape[0],):
+        got = (f"{mask.dtype} tensor of shape {tuple(mask.shape)}" if isinstance(mask, Tensor)
+               else type(mask).__name__)
+        raise MSSFError(f"regions[{region_name!r}]: expected a ({boxes.shape[0]},) bool mask for the "
+                        f"{what} boxes, got {got}")
+    return mask.to(boxes.device)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Table
+# ---------------------------------------------------------------------------------------------------
+
+_REGION_TITLES = {"entire_area": "Entire annotated area", "driving_corridor": "Driving corridor"}
+_SHORT = {"Pedestrian": "Ped.", "Cyclist": "Cyc."}
+
+
+def format_table(
+    results: Mapping[str, Mapping] | Mapping[str, Mapping[str, Mapping]],
+    metric: str = "AP3D_R11",
+    regions: Optional[Sequence[str]] = None,
+    digits: int = 2,
+) -> str:
+    """A plain-text table in the paper's layout: one row per method, per region the classes and mAP.
+
+    Args:
+        results: either one :func:`evaluate` result (one row named "method") or ``{method name:
+            evaluate result}``.
+        metric: which AP to show: ``AP3D_R11`` (VoD's reported number), ``AP3D_R40``, ``APBEV_R11``,
+            ``APBEV_R40``.
+        regions: region names to show, in order (default: those of the first method).
+        digits: decimals.
+
+    Returns:
+        The table as a string (NaN shows as ``-``).
+    """
+    if not results:
+        raise MSSFError("results: expected at least one evaluation result, got none")
+    first = next(iter(results.values()))
+    # A single evaluate() result maps region -> class -> dict of floats.
+    single = isinstance(first, Mapping) and "mAP" in first
+    methods = {"method": results} if single else dict(results)
+    reference = next(iter(methods.values()))
+    regions = list(reference) if regions is None else list(regions)
+    for name, res in methods.items():
+        for region in regions:
+            if region not in res:
+                raise MSSFError(f"results[{name!r}]: no region {region!r} (has {sorted(res)})")
+    classes = [c for c in reference[regions[0]] if c != "mAP"] + ["mAP"]
+
+    def cell(value: float) -> str:
+        return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"
+
+    col = max(7, digits + 5)
+    name_w = max(len("Method"), *(len(n) for n in methods))
+    header1 = " " * name_w
+    header2 = "Method".ljust(name_w)
+    for region in regions:
+        title = f"{_REGION_TITLES.get(region, region)} ({metric})"
+        width = len(classes) * (col + 1)
+        header1 += " |" + title.center(width)
+        header2 += " |" + "".join(" " + _SHORT.get(c, c).rjust(col) for c in classes)
+    lines = [header1, header2, "-" * len(header2)]
+    for name, res in methods.items():
+        row = name.ljust(name_w)
+        for region in regions:
+            row += " |" + "".join(" " + cell(res[region].get(c, {}).get(metric, math.nan)).rjust(col)
+                                  for c in classes)
+        lines.append(row)
+    return "\n".join(lines)
