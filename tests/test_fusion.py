@@ -271,7 +271,7 @@ def test_permutation_and_batch_independence(kind):
 # ---------------------------------------------------------------------------------------------------
 # MSDFF
 # ---------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("method", ["auto", "reference"])
+@pytest.mark.parametrize("method", ["auto", "reference", "fast"])
 def test_msdff_sample_then_project_equals_project_then_sample(method):
     gen = torch.Generator().manual_seed(7)
     levels, uv, valid, bidx = scene(gen, chans=(3, 3), sizes=((5, 6), (3, 4)))

@@ -42,58 +42,7 @@ from ._checks import (
 )
 from .errors import MSSFError
 from .functional.geometry import normalize_lidar2img
-try:
-    from .functional.sampling import bilinear_sample, camera_mean, ms_deform_sample
-except ImportError:  # DEV-ONLY fallback until functional/sampling.py lands; to be removed
-    def _corners(img, index, xy):
-        h, w = img.shape[-2:]
-        x = xy[..., 0] * w - 0.5
-        y = xy[..., 1] * h - 0.5
-        x0, y0 = x.floor(), y.floor()
-        fx, fy = x - x0, y - y0
-        out, mass = 0, 0
-        for dx in (0, 1):
-            for dy in (0, 1):
-                xi, yi = (x0 + dx).long(), (y0 + dy).long()
-                wt = (fx if dx else 1 - fx) * (fy if dy else 1 - fy)
-                inside = (xi >= 0) & (xi < w) & (yi >= 0) & (yi < h)
-                wt = wt * inside
-                val = img[index, :, yi.clamp(0, h - 1), xi.clamp(0, w - 1)]
-                out = out + val * wt[:, None]
-                mass = mass + wt
-        return out, mass
-
-    def bilinear_sample(image, uv, batch_index, valid=None):
-        if image.dim() == 4:
-            image = image[:, None]
-        n, v = uv.shape[:2]
-        res = []
-        for cam in range(v):
-            val, _ = _corners(image[:, cam], batch_index, uv[:, cam])
-            if valid is not None:
-                val = torch.where(valid[:, cam, None], val, torch.zeros_like(val))
-            res.append(val)
-        return torch.stack(res, 1) if res else image.new_zeros(n, v, image.shape[2])
-
-    def camera_mean(x, valid):
-        cnt = valid.sum(1, keepdim=True).to(x.dtype)
-        s = (x * valid[..., None]).sum(1)
-        return s / cnt.clamp(min=1)
-
-    def ms_deform_sample(values, image_index, locations, weights, method="auto", return_mass=False):
-        q, m, l, p, _ = locations.shape
-        d = values[0].shape[2]
-        out = locations.new_zeros(q, m, d)
-        mass = locations.new_zeros(q, m)
-        for lv, val in enumerate(values):
-            mv = val.shape[1]
-            for h in range(m):
-                img = val[:, h if mv > 1 else 0]
-                for pt in range(p):
-                    s, ms = _corners(img, image_index, locations[:, h, lv, pt])
-                    out[:, h] = out[:, h] + s * weights[:, h, lv, pt, None]
-                    mass[:, h] = mass[:, h] + ms * weights[:, h, lv, pt]
-        return (out, mass) if return_mass else out
+from .functional.sampling import bilinear_sample, camera_mean, ms_deform_sample
 from .geometry import CentroidProjection
 
 __all__ = [
