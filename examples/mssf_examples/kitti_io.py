@@ -41,7 +41,6 @@ sensor frame when they are needed (e.g. to reproduce the labelled 2D boxes).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple, Union
@@ -591,7 +590,8 @@ class KittiFormatDataset:
       ``image_2``/``label_2`` beside them or one level up (``../shared/realdata/vod`` uses
       ``radar/velodyne``, ``radar/calib``, ``image_2``, ``label_2``).
 
-    ``split="test"`` reads ``testing/`` when it exists. Split files are ``ImageSets/<split>.txt``.
+    ``split="test"`` reads ``testing/`` when it exists. Split files are ``ImageSets/<split>.txt`` beside
+    ``training/`` (or in ``root/ImageSets``, or ``root/lidar/ImageSets`` as in the VoD release).
 
     Args:
         root: dataset root.
@@ -666,7 +666,8 @@ class KittiFormatDataset:
         if self.split is None:
             return available
         cands = []
-        for d in (self.data_dir.parent, self.data_dir, self.root):
+        # the VoD release keeps its split files in lidar/ImageSets only; OpenPCDet copies them per sensor
+        for d in (self.data_dir.parent, self.data_dir, self.root, self.root / "lidar"):
             f = d / "ImageSets" / f"{self.split}.txt"
             if f not in cands:
                 cands.append(f)

@@ -488,6 +488,10 @@ def test_missing_files_raise_clear_errors(tmp_path):
     (base / "image_2" / "00001.png").unlink()
     with pytest.raises(FileNotFoundError, match="image not found"):
         ds.load("00001")
+    # VoD release: split files only in lidar/ImageSets
+    (tmp_path / "lidar" / "ImageSets").mkdir(parents=True)
+    (tmp_path / "lidar" / "ImageSets" / "val.txt").write_text("00001\n")
+    assert KittiFormatDataset(tmp_path, VOD_RADAR, sensor="radar_3frames", split="val").frame_ids == ["00001"]
     with pytest.raises(MSSFError, match="expected 15 or 16 fields"):
         parse_labels("Car 0 0 1 2 3\n")
     with pytest.raises(MSSFError, match="expected 9 values for R0_rect"):

@@ -68,25 +68,25 @@ def test_real_frame_script(realdata_root, tmp_path):
         [sys.executable, str(SCRIPT), "--data-root", str(root), "--frame", "00549", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=300,
     )
-    assert proc.returncode == 0, proc.stderr
     out = proc.stdout
+    assert proc.returncode == 0, f"stdout:\n{out}\nstderr:\n{proc.stderr}"
     png = tmp_path / "real_frame_00549.png"
-    assert png.is_file() and png.stat().st_size > 10_000
+    assert png.is_file() and png.stat().st_size > 10_000, out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     ref = _reference(root, "00549")
-    assert f"frame 00549: {ref['points']} points x 7 features" in out
-    assert f"{ref['in_image']} points project inside the image" in out
-    assert f": {ref['in_range']} points inside" in out
+    assert f"frame 00549: {ref['points']} points x 7 features" in out, out
+    assert f"{ref['in_image']} points project inside the image" in out, out
+    assert f": {ref['in_range']} points inside" in out, out
     for s in (1, 2, 4):
         m = re.search(rf"^stride {s}: voxels=(\d+) valid=(\d+)", out, re.M)
         assert m, out
-        assert (int(m.group(1)), int(m.group(2))) == ref[s], (s, m.group(0), ref[s])
+        assert (int(m.group(1)), int(m.group(2))) == ref[s], (s, m.group(0), ref[s], out)
         # voxels seen by no camera get exact-zero image features (when the fusion modules are there)
         for op in ("sff", "msdff"):
             z = re.search(rf"^stride {s} {op}: .* zero rows (\d+)", out, re.M)
             if z:
-                assert int(z.group(1)) == ref[s][0] - ref[s][1]
+                assert int(z.group(1)) == ref[s][0] - ref[s][1], (s, op, z.group(0), ref[s], out)
     assert ref[1][0] > 100 and 0 < ref[1][1] < ref[1][0]
 
 
