@@ -275,6 +275,7 @@ def _check_frames(predictions: Sequence[Mapping], ground_truths: Sequence[Mappin
                     raise MSSFError(f"{name}[{i}][{key!r}]: expected shape ({n},) to match boxes, got {got}")
 
 
+@torch.no_grad()
 def evaluate(
     predictions: Sequence[Mapping[str, Tensor]],
     ground_truths: Sequence[Mapping[str, Tensor]],
