@@ -1,11 +1,19 @@
 """mssf-blocks: plug-and-play radar-camera fusion blocks from the MSSF paper.
 
 Core dependencies are torch, numpy and einops; spconv, matplotlib and tqdm are optional extras.
+Modules: :class:`SparseVoxels` (the sparse tensor), :class:`VoxelCentroidProjector`, the image samplers
+:class:`SFF` and :class:`MSDFF` with :class:`QueryInit`, :class:`FusionBlock`, :class:`SemanticGuidedHead`,
+:class:`PillarLift` with :class:`HeightEmbedding`; pure functions in :mod:`mssf_blocks.functional`;
+feature-blurring analysis in :mod:`mssf_blocks.diagnostics`; test helpers in :mod:`mssf_blocks.testing`.
 """
 
 from ._version import __version__
+from .blocks import FusionBlock
 from .errors import MSSFError
+from .fusion import MSDFF, SFF, FusionInputs, QueryInit
 from .geometry import CentroidProjection, VoxelCentroidProjector, augmentation_matrix
+from .heads import SemanticGuidedHead, points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
+from .lift import HeightEmbedding, PillarLift
 from .sparse import SparseVoxels
 
 __all__ = [
@@ -15,4 +23,15 @@ __all__ = [
     "VoxelCentroidProjector",
     "CentroidProjection",
     "augmentation_matrix",
+    "SFF",
+    "MSDFF",
+    "QueryInit",
+    "FusionInputs",
+    "FusionBlock",
+    "SemanticGuidedHead",
+    "sigmoid_focal_loss",
+    "points_in_boxes",
+    "voxel_foreground_labels",
+    "HeightEmbedding",
+    "PillarLift",
 ]

@@ -8,6 +8,9 @@ from .geometry import (
     voxel_centroids,
     voxel_centroids_reference,
 )
+from .heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
+from .lift import bev_shape_for, pillar_lift, voxelize_points, voxels_to_bev, voxels_to_bev_sparse
+from .sampling import bilinear_sample, camera_mean, ms_deform_sample, ms_deform_sample_reference
 
 __all__ = [
     "Projection",
@@ -16,4 +19,16 @@ __all__ = [
     "voxel_centers",
     "voxel_centroids",
     "voxel_centroids_reference",
+    "bilinear_sample",
+    "camera_mean",
+    "ms_deform_sample",
+    "ms_deform_sample_reference",
+    "points_in_boxes",
+    "sigmoid_focal_loss",
+    "voxel_foreground_labels",
+    "pillar_lift",
+    "voxels_to_bev",
+    "voxels_to_bev_sparse",
+    "voxelize_points",
+    "bev_shape_for",
 ]
