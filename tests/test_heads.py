@@ -155,6 +155,8 @@ def test_bad_data():
         head(torch.zeros(3, 4))
     with pytest.raises(MSSFError, match="features"):
         head(make_voxels(c=5))
+    with pytest.raises(MSSFError, match="dtype"):
+        head(make_voxels(dtype=torch.float64))
     _, _, logits = head(make_voxels(), return_logits=True)
     with pytest.raises(MSSFError, match="targets"):
         head.loss(logits, torch.ones(5))

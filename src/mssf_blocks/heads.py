@@ -114,6 +114,12 @@ class SemanticGuidedHead(nn.Module):
         if not isinstance(features, Tensor) or features.dim() != 2 or features.shape[1] != self.in_channels:
             got = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
             raise MSSFError(f"features: expected shape (N, C={self.in_channels}), got {got}")
+        weight_dtype = self.classifier.weight.dtype
+        if features.dtype != weight_dtype:
+            raise MSSFError(
+                f"features: expected dtype {weight_dtype} (the head's parameters; convert the head with "
+                f".to(dtype) or the features), got {features.dtype}"
+            )
         n = features.shape[0]
         if n == 0:
             # Zero rows: skip the MLP (BatchNorm cannot normalise an empty batch) but stay on the graph.
