@@ -111,9 +111,9 @@ def pillar_lift(
     check_index_range(bi, "coords[:, 0] (batch index)", b_, "bev.shape[0]")
     check_index_range(yi, f"coords[:, 2] // {sy} (BEV row)", hb, "bev.shape[2]")
     check_index_range(xi, f"coords[:, 3] // {sx} (BEV column)", wb, "bev.shape[3]")
-    # Gather from a (B*H_b*W_b, C) view: one index per voxel, backward is a deterministic index_add.
-    flat = bev.permute(0, 2, 3, 1).reshape(-1, c)
-    out = flat[(bi * hb + yi) * wb + xi]
+    # Advanced indexing reads only N x C values (no channels-last copy of the whole map); its backward
+    # is an accumulating index_put (sums the gradients of voxels sharing a pillar).
+    out = bev[bi, :, yi, xi]
     if height_embedding is not None:
         check_shape(height_embedding, "height_embedding", (None, c))
         check_floating(height_embedding, "height_embedding")
@@ -154,8 +154,13 @@ def voxels_to_bev(
     sy, sx = _check_stride2(stride)
     c = features.shape[1]
     idx = _pillar_index(coords, batch_size, hb, wb, sy, sx)
-    out = features.new_zeros(batch_size * hb * wb, c).index_add(0, idx, features)
-    return out.reshape(batch_size, hb, wb, c).permute(0, 3, 1, 2).contiguous()
+    b = coords[:, 0].long()
+    cell = idx - b * (hb * wb)
+    # Accumulate straight into a (B, H_b*W_b, C) view of the (B, C, H_b, W_b) result: no final
+    # channels-first copy of the whole map.
+    out = features.new_zeros(batch_size, c, hb * wb)
+    out = out.transpose(1, 2).index_put((b, cell), features, accumulate=True).transpose(1, 2)
+    return out.reshape(batch_size, c, hb, wb)
 
 
 def _pillar_index(coords: Tensor, batch_size: int, hb: int, wb: int, sy: int, sx: int) -> Tensor:
