@@ -32,7 +32,7 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
-from .ops.iou import box_iou_3d, box_iou_bev
+from .ops.iou import box_iou_bev_3d
 
 __all__ = [
     "VOD_IOU_THRESHOLDS",
@@ -68,7 +68,7 @@ RECALL_POINTS: Dict[str, Tensor] = {
 #: a region can read per-frame metadata such as ``frame["lidar2cam"]``.
 RegionFn = Callable[[Tensor, Mapping], Tensor]
 
-_METRICS = {"3D": box_iou_3d, "BEV": box_iou_bev}
+_METRICS = ("3D", "BEV")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -320,56 +320,67 @@ def evaluate(
         raise MSSFError("regions: expected at least one region, got none")
 
     keys = [f"AP{metric}_{rp}" for metric in _METRICS for rp in RECALL_POINTS]
-    results: Dict[str, Dict[str, Dict[str, float]]] = {}
     for region_name, region in regions.items():
         if region is not None and not callable(region):
             raise MSSFError(f"regions[{region_name!r}]: expected a callable or None, got {type(region).__name__}")
-        per_class: Dict[str, Dict[str, float]] = {}
-        for c, cname in enumerate(names):
-            entry: Dict[str, float] = {}
-            num_gt, num_pred = 0, 0
-            for metric, iou_fn in _METRICS.items():
-                all_scores: List[Tensor] = []
-                all_tp: List[Tensor] = []
-                num_gt, num_pred = 0, 0
-                for pred, gt in zip(predictions, ground_truths):
-                    pm = pred["labels"] == c
-                    gm = gt["labels"] == c
-                    p_boxes, p_scores = pred["boxes"][pm], pred["scores"][pm]
-                    g_boxes = gt["boxes"][gm]
-                    g_ignored = gt["ignore"][gm].bool() if "ignore" in gt else torch.zeros(
-                        g_boxes.shape[0], dtype=torch.bool, device=g_boxes.device)
-                    if region is not None:
-                        keep = _region_mask(region, p_boxes, gt, region_name, "predictions")
-                        p_boxes, p_scores = p_boxes[keep], p_scores[keep]
-                        g_ignored = g_ignored | ~_region_mask(region, g_boxes, gt, region_name, "ground_truths")
-                    num_gt += int((~g_ignored).sum())
-                    num_pred += int(p_boxes.shape[0])
-                    if p_boxes.shape[0] == 0:
-                        continue
-                    iou = iou_fn(p_boxes, g_boxes.to(p_boxes.dtype))
-                    outcome = match_frame(iou, p_scores, g_ignored, float(thresholds[cname]))
+    results: Dict[str, Dict[str, Dict[str, float]]] = {name: {} for name in regions}
+    for c, cname in enumerate(names):
+        threshold = float(thresholds[cname])
+        # Per region and metric: scores and TP flags of the counted predictions, number of valid GT.
+        scores: Dict[Tuple[str, str], List[Tensor]] = {(r, m): [] for r in regions for m in _METRICS}
+        tps: Dict[Tuple[str, str], List[Tensor]] = {(r, m): [] for r in regions for m in _METRICS}
+        num_gt = {r: 0 for r in regions}
+        num_pred = {r: 0 for r in regions}
+        for pred, gt in zip(predictions, ground_truths):
+            pm = pred["labels"] == c
+            gm = gt["labels"] == c
+            p_boxes, p_scores = pred["boxes"][pm], pred["scores"][pm]
+            g_boxes = gt["boxes"][gm].to(p_boxes.dtype)
+            g_ignored = gt["ignore"][gm].bool() if "ignore" in gt else torch.zeros(
+                g_boxes.shape[0], dtype=torch.bool, device=g_boxes.device)
+            # The overlaps do not depend on the region: compute them once per frame and class.
+            ious = {}
+            if p_boxes.shape[0]:
+                ious["BEV"], ious["3D"] = box_iou_bev_3d(p_boxes, g_boxes)
+            for region_name, region in regions.items():
+                keep = torch.ones(p_boxes.shape[0], dtype=torch.bool, device=p_boxes.device)
+                ignored = g_ignored
+                if region is not None:
+                    keep = _region_mask(region, p_boxes, gt, region_name, "predictions")
+                    ignored = g_ignored | ~_region_mask(region, g_boxes, gt, region_name, "ground_truths")
+                num_gt[region_name] += int((~ignored).sum())
+                num_pred[region_name] += int(keep.sum())
+                if not bool(keep.any()):
+                    continue
+                kept_scores = p_scores[keep]
+                for metric in _METRICS:
+                    outcome = match_frame(ious[metric][keep], kept_scores, ignored, threshold)
                     counted = outcome >= 0
-                    all_scores.append(p_scores.detach().cpu()[counted])
-                    all_tp.append(outcome[counted] == 1)
+                    scores[(region_name, metric)].append(kept_scores.detach().cpu()[counted])
+                    tps[(region_name, metric)].append(outcome[counted] == 1)
+        for region_name in regions:
+            entry: Dict[str, float] = {}
+            for metric in _METRICS:
                 for rp in RECALL_POINTS:
                     key = f"AP{metric}_{rp}"
-                    if num_gt == 0:
+                    if num_gt[region_name] == 0:
                         entry[key] = math.nan
-                    elif not all_scores:
+                    elif not scores[(region_name, metric)]:
                         entry[key] = 0.0
                     else:
-                        precision, recall = precision_recall(torch.cat(all_scores), torch.cat(all_tp), num_gt)
+                        precision, recall = precision_recall(torch.cat(scores[(region_name, metric)]),
+                                                             torch.cat(tps[(region_name, metric)]),
+                                                             num_gt[region_name])
                         entry[key] = average_precision(precision, recall, rp)
-            entry["num_gt"] = num_gt
-            entry["num_pred"] = num_pred
-            per_class[cname] = entry
+            entry["num_gt"] = num_gt[region_name]
+            entry["num_pred"] = num_pred[region_name]
+            results[region_name][cname] = entry
+    for region_name, per_class in results.items():
         mean: Dict[str, float] = {}
         for key in keys:
             values = [per_class[c][key] for c in names if not math.isnan(per_class[c][key])]
             mean[key] = sum(values) / len(values) if values else math.nan
         per_class["mAP"] = mean
-        results[region_name] = per_class
     return results
 
 

@@ -17,6 +17,7 @@ from mssf_examples.ops.iou import (  # noqa: E402
     box_intersection_bev,
     box_iou_3d,
     box_iou_bev,
+    box_iou_bev_3d,
 )
 
 TOL = 1e-6
@@ -72,6 +73,9 @@ def _check_against_shapely(a, b):
     torch.testing.assert_close(box_intersection_bev(a, b), inter_ref, rtol=0, atol=TOL)
     torch.testing.assert_close(box_iou_bev(a, b), bev_ref, rtol=0, atol=TOL)
     torch.testing.assert_close(box_iou_3d(a, b), iou3d_ref, rtol=0, atol=TOL)
+    both_bev, both_3d = box_iou_bev_3d(a, b)
+    torch.testing.assert_close(both_bev, bev_ref, rtol=0, atol=TOL)
+    torch.testing.assert_close(both_3d, iou3d_ref, rtol=0, atol=TOL)
 
 
 def test_corners_are_counter_clockwise_and_match_reference():

@@ -25,6 +25,8 @@ Numerics:
 
 from __future__ import annotations
 
+from typing import Tuple
+
 import torch
 from torch import Tensor
 
@@ -36,6 +38,7 @@ __all__ = [
     "box_intersection_bev",
     "box_iou_bev",
     "box_iou_3d",
+    "box_iou_bev_3d",
     "DEFAULT_CHUNK_SIZE",
 ]
 
@@ -190,6 +193,25 @@ def _ratio(inter: Tensor, union: Tensor) -> Tensor:
                        torch.zeros_like(inter))
 
 
+def _ious(a: Tensor, b: Tensor, chunk_size: int, bev: bool, three_d: bool):
+    inter_bev = box_intersection_bev(a, b, chunk_size).to(torch.float64)
+    a64, b64 = a.to(torch.float64), b.to(torch.float64)
+    out_dtype = torch.promote_types(a.dtype, b.dtype)
+    iou_bev = iou_3d = None
+    if bev:
+        area_a = a64[:, 3] * a64[:, 4]
+        area_b = b64[:, 3] * b64[:, 4]
+        iou_bev = _ratio(inter_bev, area_a[:, None] + area_b[None, :] - inter_bev).to(out_dtype)
+    if three_d:
+        top = torch.minimum(a64[:, None, 2] + 0.5 * a64[:, None, 5], b64[None, :, 2] + 0.5 * b64[None, :, 5])
+        bottom = torch.maximum(a64[:, None, 2] - 0.5 * a64[:, None, 5], b64[None, :, 2] - 0.5 * b64[None, :, 5])
+        inter = inter_bev * (top - bottom).clamp_min(0.0)
+        vol_a = a64[:, 3] * a64[:, 4] * a64[:, 5]
+        vol_b = b64[:, 3] * b64[:, 4] * b64[:, 5]
+        iou_3d = _ratio(inter, vol_a[:, None] + vol_b[None, :] - inter).to(out_dtype)
+    return iou_bev, iou_3d
+
+
 def box_iou_bev(a: Tensor, b: Tensor, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Tensor:
     """Rotated bird's-eye-view IoU of every pair of boxes.
 
@@ -208,12 +230,7 @@ def box_iou_bev(a: Tensor, b: Tensor, chunk_size: int = DEFAULT_CHUNK_SIZE) -> T
         >>> round(float(box_iou_bev(box, turned)), 6)  # 1x1 overlap of two 2x1 boxes
         0.333333
     """
-    inter = box_intersection_bev(a, b, chunk_size).to(torch.float64)
-    a64, b64 = a.to(torch.float64), b.to(torch.float64)
-    area_a = a64[:, 3] * a64[:, 4]
-    area_b = b64[:, 3] * b64[:, 4]
-    union = area_a[:, None] + area_b[None, :] - inter
-    return _ratio(inter, union).to(torch.promote_types(a.dtype, b.dtype))
+    return _ious(a, b, chunk_size, bev=True, three_d=False)[0]
 
 
 def box_iou_3d(a: Tensor, b: Tensor, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Tensor:
@@ -231,12 +248,18 @@ def box_iou_3d(a: Tensor, b: Tensor, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Te
         ``(N, M)`` IoU in ``[0, 1]``, dtype of the inputs (computed in float64). Pairs of zero-volume
         boxes get 0.
     """
-    inter_bev = box_intersection_bev(a, b, chunk_size).to(torch.float64)
-    a64, b64 = a.to(torch.float64), b.to(torch.float64)
-    top = torch.minimum(a64[:, None, 2] + 0.5 * a64[:, None, 5], b64[None, :, 2] + 0.5 * b64[None, :, 5])
-    bottom = torch.maximum(a64[:, None, 2] - 0.5 * a64[:, None, 5], b64[None, :, 2] - 0.5 * b64[None, :, 5])
-    inter = inter_bev * (top - bottom).clamp_min(0.0)
-    vol_a = a64[:, 3] * a64[:, 4] * a64[:, 5]
-    vol_b = b64[:, 3] * b64[:, 4] * b64[:, 5]
-    union = vol_a[:, None] + vol_b[None, :] - inter
-    return _ratio(inter, union).to(torch.promote_types(a.dtype, b.dtype))
+    return _ious(a, b, chunk_size, bev=False, three_d=True)[1]
+
+
+def box_iou_bev_3d(a: Tensor, b: Tensor, chunk_size: int = DEFAULT_CHUNK_SIZE) -> Tuple[Tensor, Tensor]:
+    """``(box_iou_bev(a, b), box_iou_3d(a, b))`` from one shared BEV intersection (half the work).
+
+    Args:
+        a: ``(N, 7)`` boxes.
+        b: ``(M, 7)`` boxes.
+        chunk_size: maximum number of candidate pairs processed at once.
+
+    Returns:
+        ``(N, M)`` BEV IoU and ``(N, M)`` 3D IoU.
+    """
+    return _ious(a, b, chunk_size, bev=True, three_d=True)
