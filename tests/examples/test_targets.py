@@ -127,15 +127,33 @@ def test_sparse_targets_nearest_voxel_and_dense_values():
     gt = torch.tensor([[3.3, 0.2, 0.5, 2.0, 1.0, 1.5, 0.3]], dtype=torch.float64)  # centre cell (6, 8), (u, v) = (6.6, 8.4)
     # Voxels (col, row); the centre cell itself is empty. Cell centres' distances to (6.6, 8.4):
     # (7, 8): (0.9, 0.1) -> 0.82; (6, 9): (0.1, 1.1) -> 1.22; (4, 8): far; (15, 15): outside the window.
-    cells = torch.tensor([[4, 8], [7, 8], [6, 9], [15, 15]])
+    # Heatmap = max(dense Gaussian around cell (6, 8), same Gaussian around the assigned voxel (7, 8)),
+    # both radius 2 (window |d| <= 2), exponent -0.72 * squared cell offset:
+    # (4, 8): max(offset (-2, 0), outside) = exp(-4 * 0.72); (6, 9): max((0, 1), (-1, 1)) = exp(-0.72);
+    # (8, 9): max((2, 1), (1, 1)) = exp(-2 * 0.72); (9, 8): max(outside, (2, 0)) = exp(-4 * 0.72).
+    cells = torch.tensor([[4, 8], [7, 8], [6, 9], [15, 15], [8, 9], [9, 8]])
     t = sparse_center_targets(gt, torch.tensor([0]), cells, GRID, num_classes=1)
     assert t.voxel_index.tolist() == [1]
-    expected = torch.tensor([math.exp(-4 * 0.72), 1.0, math.exp(-1 * 0.72), 0.0], dtype=torch.float64)
+    e = math.exp
+    expected = torch.tensor([e(-4 * 0.72), 1.0, e(-0.72), 0.0, e(-2 * 0.72), e(-4 * 0.72)], dtype=torch.float64)
     torch.testing.assert_close(t.heatmap[:, 0], expected, rtol=0, atol=1e-12)
     # Regression is relative to the assigned voxel's index: offsets (6.6 - 7, 8.4 - 8).
     torch.testing.assert_close(t.regression[0, :2], torch.tensor([-0.4, 0.4], dtype=torch.float64), rtol=0, atol=1e-12)
     none = sparse_center_targets(gt, torch.tensor([0]), torch.zeros(0, 2, dtype=torch.long), GRID, 1)
     assert none.heatmap.shape == (0, 1) and none.voxel_index.numel() == 0
+
+
+def test_sparse_targets_equal_dense_when_the_centre_cell_is_occupied():
+    gt = torch.tensor([[3.3, 0.2, 0.5, 2.0, 1.0, 1.5, 0.3], [6.1, -2.2, 0.0, 3.0, 1.5, 1.5, 1.0]], dtype=torch.float64)
+    labels = torch.tensor([0, 1])
+    gen = torch.Generator().manual_seed(0)
+    flat = torch.randperm(256, generator=gen)[:80]
+    cells = torch.stack([flat % 16, flat // 16], 1)
+    cells = torch.unique(torch.cat([cells, torch.tensor([[6, 8], [12, 3]])]), dim=0)  # both centre cells
+    dense = center_targets(gt, labels, GRID, num_classes=2).heatmap
+    t = sparse_center_targets(gt, labels, cells, GRID, num_classes=2)
+    torch.testing.assert_close(t.heatmap, dense[:, cells[:, 1], cells[:, 0]].T, rtol=0, atol=0)
+    assert cells[t.voxel_index].tolist() == [[6, 8], [12, 3]]
 
 
 def test_bad_labels_raise():

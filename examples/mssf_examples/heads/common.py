@@ -19,6 +19,8 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
+from ..ops.nms import batched_nms_bev
+
 __all__ = [
     "BEVGrid",
     "sigmoid_focal_loss",
@@ -147,9 +149,6 @@ def select_detections(
     Returns:
         ``dict(boxes (K, 7), scores (K,), labels (K,))`` sorted by descending score.
     """
-    # Imported here so the grid and the losses stay usable without the IoU module.
-    from ..ops.nms import batched_nms_bev
-
     keep = torch.nonzero(scores > score_threshold).flatten()
     keep = keep[torch.sort(scores[keep], descending=True, stable=True).indices]
     if nms_pre is not None:

@@ -14,9 +14,12 @@
   in feature-map cells) centred on the cell that contains its centre, ``sigma = (2 r + 1) / 6``, over the
   ``(2 r + 1)^2`` window, combined by element-wise max. Unlike CenterNet we do not zero values below
   ``eps * max`` (they are ``< 1e-6`` of the peak and irrelevant to the loss).
-* **Sparse centre targets** (VoxelNeXt): the heatmap is the dense one read at the non-empty voxels, and
-  the voxel whose cell centre is nearest to a box centre is made the positive (value 1) and carries the
-  regression target, wherever the box centre falls.
+* **Sparse centre targets** (VoxelNeXt): the voxel whose cell centre is nearest to a box centre is the
+  box's positive and carries its regression target, wherever the box centre falls. The heatmap at the
+  voxels is the max of the dense heatmap read at the voxels and the same Gaussian (same radius)
+  centred on the assigned voxel's cell, so the positive has value exactly 1. VoxelNeXt does the same
+  with untruncated Gaussians of the squared distance to the float centre; ours are windowed and
+  integer-centred so that a voxel at the centre's cell gets exactly the dense head's target.
 
 A grid is any object with ``x_min, y_min, cell_x, cell_y, ny, nx`` (e.g.
 :class:`mssf_examples.heads.common.BEVGrid`); cell ``(col, row)`` covers
@@ -281,7 +284,8 @@ class SparseCenterTargets:
     """Sparse (per-voxel) centre-head targets of one sample.
 
     Attributes:
-        heatmap: ``(M, K)`` the dense Gaussian heatmap read at each voxel, with 1 at each box's voxel.
+        heatmap: ``(M, K)`` the dense Gaussian heatmap read at each voxel, max-combined with a Gaussian
+            around each box's voxel (which therefore holds 1).
         voxel_index: ``(G',)`` int64 row (into the sample's voxels) of the voxel assigned to each box.
         regression: ``(G', 8)`` :func:`~mssf_examples.ops.boxes.encode_center` targets at that voxel.
         labels: ``(G',)`` classes; gt_index: ``(G',)`` indices into the input boxes.
@@ -326,7 +330,16 @@ def sparse_center_targets(
     centres = voxel_cells.to(gt_boxes.dtype) + 0.5
     dist2 = (centres[None, :, 0] - u[:, None]) ** 2 + (centres[None, :, 1] - v[:, None]) ** 2  # (G', M)
     nearest = dist2.argmin(dim=1)
-    heatmap[nearest, dense.labels] = 1.0
+    # As VoxelNeXt, a second Gaussian around the assigned voxel, so that when the centre's own cell is
+    # empty the voxels next to the positive are not penalised as full negatives.
+    offsets = (voxel_cells[None, :, :] - voxel_cells[nearest][:, None, :]).to(gt_boxes.dtype)  # (G', M, 2)
+    radius = dense.radius.to(gt_boxes.dtype)[:, None]
+    sigma = (2 * radius + 1) / 6
+    around = torch.exp(-(offsets**2).sum(-1) / (2 * sigma * sigma))
+    around = torch.where((offsets.abs() <= radius[..., None]).all(-1), around, torch.zeros_like(around))
+    for g in range(nearest.numel()):
+        k = int(dense.labels[g])
+        heatmap[:, k] = torch.maximum(heatmap[:, k], around[g])
     regression = encode_center(
         gt_boxes[dense.gt_index], voxel_cells[nearest].long(), (grid.cell_x, grid.cell_y), (grid.x_min, grid.y_min)
     )
