@@ -8,7 +8,6 @@ import torch
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.lift import voxelize_points
 from mssf_blocks.lift import HeightEmbedding, PillarLift
-from mssf_blocks.sparse import SparseVoxels
 from mssf_blocks.testing import assert_close, gradcheck64
 
 

@@ -8,7 +8,7 @@ functions and ``docs/pillar.md`` for a walk-through.
 
 from __future__ import annotations
 
-from typing import Optional, Sequence, Tuple, Union
+from typing import Sequence, Tuple, Union
 
 import torch
 from torch import Tensor, nn

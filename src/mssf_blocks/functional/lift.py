@@ -13,7 +13,6 @@ stride ``(sy, sx)`` of that grid has shape ``(B, C, ceil(H / sy), ceil(W / sx))`
 
 from __future__ import annotations
 
-import math
 from typing import Optional, Sequence, Tuple
 
 import torch
