@@ -75,7 +75,8 @@ def test_center_code_hand_worked_and_round_trip():
 def test_limit_period_ranges():
     a = torch.tensor([-4.0, -math.pi, 0.0, 3.0, 7.0], dtype=torch.float64)
     wrapped = limit_period(a, 0.5, 2 * math.pi)
-    torch.testing.assert_close(wrapped, torch.tensor([-4.0 + 2 * math.pi, -math.pi, 0.0, 3.0, 7.0 - 2 * math.pi], dtype=torch.float64))
+    expected = torch.tensor([-4.0 + 2 * math.pi, -math.pi, 0.0, 3.0, 7.0 - 2 * math.pi], dtype=torch.float64)
+    torch.testing.assert_close(wrapped, expected)
     half = limit_period(a, 0.0, math.pi)
     assert bool(((half >= 0) & (half < math.pi)).all())
 

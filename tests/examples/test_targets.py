@@ -22,7 +22,7 @@ def _box(x, y, dx, dy, yaw=0.0, z=0.0, dz=1.0):
 
 
 def test_nearest_bev_rounds_yaw_to_right_angles():
-    boxes = torch.tensor([_box(0, 0, 4, 2, 0.3), _box(0, 0, 4, 2, 1.2), _box(0, 0, 4, 2, -1.2), _box(0, 0, 4, 2, math.pi - 0.1)])
+    boxes = torch.tensor([_box(0, 0, 4, 2, yaw) for yaw in (0.3, 1.2, -1.2, math.pi - 0.1)])
     expected = torch.tensor([[-2, -1, 2, 1], [-1, -2, 1, 2], [-1, -2, 1, 2], [-2, -1, 2, 1]], dtype=torch.float32)
     torch.testing.assert_close(nearest_bev_boxes(boxes), expected)
 
@@ -61,11 +61,12 @@ def test_anchor_assignment_hand_built():
 
 def test_anchor_assignment_without_ground_truth():
     anchors = torch.tensor([_box(0, 0, 4, 2), _box(3, 0, 4, 2)])
-    t = assign_anchor_targets(anchors, torch.tensor([0, 1]), torch.zeros(0, 7), torch.zeros(0, dtype=torch.long), 0.6, 0.45, 2)
+    no_boxes, no_labels = torch.zeros(0, 7), torch.zeros(0, dtype=torch.long)
+    t = assign_anchor_targets(anchors, torch.tensor([0, 1]), no_boxes, no_labels, 0.6, 0.45, 2)
     assert t.labels.tolist() == [0, 0]
     assert t.matched_gt.tolist() == [-1, -1]
     with pytest.raises(MSSFError, match="matched_thresholds"):
-        assign_anchor_targets(anchors, torch.tensor([0, 1]), torch.zeros(0, 7), torch.zeros(0, dtype=torch.long), [0.6], 0.45, 2)
+        assign_anchor_targets(anchors, torch.tensor([0, 1]), no_boxes, no_labels, [0.6], 0.45, 2)
 
 
 def test_gaussian_radius_hand_worked():
@@ -124,7 +125,8 @@ def test_center_heatmap_border_overlap_and_outside():
 
 
 def test_sparse_targets_nearest_voxel_and_dense_values():
-    gt = torch.tensor([[3.3, 0.2, 0.5, 2.0, 1.0, 1.5, 0.3]], dtype=torch.float64)  # centre cell (6, 8), (u, v) = (6.6, 8.4)
+    # Centre cell (6, 8), (u, v) = (6.6, 8.4).
+    gt = torch.tensor([[3.3, 0.2, 0.5, 2.0, 1.0, 1.5, 0.3]], dtype=torch.float64)
     # Voxels (col, row); the centre cell itself is empty. Cell centres' distances to (6.6, 8.4):
     # (7, 8): (0.9, 0.1) -> 0.82; (6, 9): (0.1, 1.1) -> 1.22; (4, 8): far; (15, 15): outside the window.
     # Heatmap = max(dense Gaussian around cell (6, 8), same Gaussian around the assigned voxel (7, 8)),

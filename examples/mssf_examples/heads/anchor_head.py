@@ -231,7 +231,8 @@ class AnchorHead(nn.Module):
             diff = pred - target
             if not self.encode_angle_by_sincos:
                 # sin-difference: the yaw error is sin(pred - target), blind to a pi flip (dir bin's job).
-                sin_diff = torch.sin(pred[:, 6]) * torch.cos(target[:, 6]) - torch.cos(pred[:, 6]) * torch.sin(target[:, 6])
+                p, q = pred[:, 6], target[:, 6]
+                sin_diff = torch.sin(p) * torch.cos(q) - torch.cos(p) * torch.sin(q)
                 diff = torch.cat([diff[:, :6], sin_diff[:, None]], dim=1)
             reg_loss = reg_loss + (smooth_l1(diff) * self.code_weights).sum() / normaliser
             if self.conv_dir is not None:

@@ -9,7 +9,6 @@ a rotated BEV NMS on top.
 
 from __future__ import annotations
 
-import math
 from typing import Callable, Dict, List, Sequence
 
 import torch
@@ -76,7 +75,8 @@ class CenterHead(nn.Module):
         super().__init__()
         if not isinstance(grid, BEVGrid):
             raise MSSFError(f"grid: expected a BEVGrid, got {type(grid).__name__}")
-        for name, value in (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels)):
+        sizes = (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels))
+        for name, value in sizes:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise MSSFError(f"{name}: expected a positive int, got {value!r}")
         if not 0.0 < min_overlap < 1.0:

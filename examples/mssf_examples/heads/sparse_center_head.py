@@ -75,7 +75,8 @@ class SparseCenterHead(nn.Module):
         super().__init__()
         if not isinstance(grid, BEVGrid):
             raise MSSFError(f"grid: expected a BEVGrid, got {type(grid).__name__}")
-        for name, value in (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels)):
+        sizes = (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels))
+        for name, value in sizes:
             if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
                 raise MSSFError(f"{name}: expected a positive int, got {value!r}")
         if not 0.0 < min_overlap < 1.0:
@@ -175,5 +176,6 @@ class SparseCenterHead(nn.Module):
             k = min(self.nms_pre, flat.numel())
             scores, idx = flat.topk(k)
             voxel, labels = idx // self.num_classes, idx % self.num_classes
-            out.append(select_detections(boxes_all[rows[voxel]], scores, labels, score_threshold, nms_iou, max_detections))
+            boxes = boxes_all[rows[voxel]]
+            out.append(select_detections(boxes, scores, labels, score_threshold, nms_iou, max_detections))
         return out

@@ -94,10 +94,10 @@ def batched_nms_bev(
     """
     _check(boxes, scores, iou_threshold)
     check_shape(labels, "labels", (boxes.shape[0],))
-    keep = [
-        torch.nonzero(labels == c).flatten()[nms_bev(boxes[labels == c], scores[labels == c], iou_threshold, pre_max_size)]
-        for c in torch.unique(labels).tolist()
-    ]
+    keep = []
+    for c in torch.unique(labels).tolist():
+        members = torch.nonzero(labels == c).flatten()
+        keep.append(members[nms_bev(boxes[members], scores[members], iou_threshold, pre_max_size)])
     if not keep:
         return torch.zeros(0, dtype=torch.long, device=boxes.device)
     keep_t = torch.sort(torch.cat(keep)).values  # index order first, so score ties keep it
