@@ -1,0 +1,209 @@
+"""Benchmark: the MSDFF image path, project-every-pixel reference vs sample-then-project (ours).
+
+VoD-like setting: one 1216 x 1936 camera image padded to a multiple of 32 (1216 x 1952), FPN levels
+P2-P6 (strides 4, 8, 16, 32, 64; ``ceil(H / s) x ceil(W / s)``) with 256 channels, batch 1;
+8 heads, 4 points, 5 levels; cases (N = 2,500 voxels, C = 32) and (N = 8,000, C = 64), every voxel
+visible (Q = N queries). Both paths compute the same thing from the same inputs and parameters:
+
+* reference (Deformable DETR's pure-PyTorch formulation): ``value_proj`` (Linear 256 -> C) over every
+  pixel of every level, per-level ``F.grid_sample`` of the per-head values
+  (``ms_deform_sample(method="reference")``, Mv = M, D = C / M), weighted sum, ``output_proj``;
+* fast: ``ms_deform_sample(method="fast", Mv=1, return_mass=True)`` on the raw 256-channel maps, then
+  the per-head value projection (einsum with ``value_proj.weight`` split per head) + ``bias * mass``,
+  then ``output_proj``.
+
+The script checks the two agree (max abs difference printed) and reports, as ratios
+reference / fast (higher is better for us): forward time, forward+backward time and peak extra
+memory of forward+backward; plus time(2x image area) / time(1x) of the fast path (lower is better;
+the 2x image is 1728 x 2752). Backward is w.r.t. the query-side parameters (``sampling_offsets``,
+``attention_weights``), the queries (hence locations and weights), ``value_proj`` and
+``output_proj``; the image features are frozen, as in the paper (the image branch is pre-trained
+and frozen). Features are allocated channels-last, the layout PyTorch's CPU convolutions produce
+fastest; the reference reads them through a free permuted view as well.
+
+Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)``. Peak extra memory:
+rise of the resident-set high-water mark over a call (see ``benchmarks/_common.py``).
+
+Usage: ``python benchmarks/msdff.py [--quick] [--repeats 5] [--json out.json] [--write-docs]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import measure, print_table, reexec_with_mmap_threshold, write_json  # noqa: E402
+
+from mssf_blocks.functional.sampling import ms_deform_sample  # noqa: E402
+
+STRIDES = (4, 8, 16, 32, 64)
+IMAGE_CHANNELS = 256
+HEADS, POINTS = 8, 4
+
+
+class ImagePath(nn.Module):
+    """The parameters of MSDFF's image path (Deformable DETR names) and its two formulations."""
+
+    def __init__(self, embed_dim: int, levels: int = len(STRIDES)) -> None:
+        super().__init__()
+        m, l, p = HEADS, levels, POINTS
+        self.m, self.l, self.p, self.d = m, l, p, embed_dim // m
+        self.sampling_offsets = nn.Linear(embed_dim, m * l * p * 2)
+        self.attention_weights = nn.Linear(embed_dim, m * l * p)
+        self.value_proj = nn.Linear(IMAGE_CHANNELS, embed_dim)
+        self.output_proj = nn.Linear(embed_dim, embed_dim)
+        # Deformable DETR start (direction grid of 1..P pixels per head) plus small query-dependent
+        # offsets and weights, so that points differ between queries as after training.
+        g = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            th = torch.arange(m, dtype=torch.float64) * (2 * math.pi / m)
+            grid = torch.stack([th.cos(), th.sin()], -1)
+            grid = grid / grid.abs().max(-1, keepdim=True).values
+            grid = grid.view(m, 1, 1, 2).repeat(1, l, p, 1) * torch.arange(1, p + 1).view(1, 1, p, 1)
+            self.sampling_offsets.bias.copy_(grid.reshape(-1).float())
+            self.sampling_offsets.weight.normal_(0, 0.5, generator=g)
+            self.attention_weights.weight.normal_(0, 0.1, generator=g)
+
+    def locations_and_weights(self, query, uv, sizes):
+        q = query.shape[0]
+        off = self.sampling_offsets(query).view(q, self.m, self.l, self.p, 2)
+        wt = self.attention_weights(query).view(q, self.m, -1).softmax(-1).view(q, self.m, self.l, self.p)
+        norm = torch.tensor([[w, h] for h, w in sizes], dtype=off.dtype)
+        return uv[:, None, None, None, :] + off / norm[None, None, :, None, :], wt
+
+    def reference(self, query, uv, feats):
+        loc, wt = self.locations_and_weights(query, uv, [f.shape[-2:] for f in feats])
+        values = []
+        for f in feats:  # every pixel of every level goes through value_proj
+            h, w = f.shape[-2:]
+            v = self.value_proj(f.permute(0, 2, 3, 1))  # (1, h, w, E)
+            values.append(v.view(1, h, w, self.m, self.d).permute(0, 3, 4, 1, 2))  # (1, M, d, h, w)
+        img_index = torch.zeros(query.shape[0], dtype=torch.long)
+        out = ms_deform_sample(values, img_index, loc, wt, method="reference")  # (Q, M, d)
+        return self.output_proj(out.reshape(query.shape[0], -1))
+
+    def fast(self, query, uv, feats):
+        loc, wt = self.locations_and_weights(query, uv, [f.shape[-2:] for f in feats])
+        values = [f.view(1, 1, IMAGE_CHANNELS, *f.shape[-2:]) for f in feats]  # views, Mv = 1
+        img_index = torch.zeros(query.shape[0], dtype=torch.long)
+        sampled, mass = ms_deform_sample(values, img_index, loc, wt, method="fast", return_mass=True)
+        w_heads = self.value_proj.weight.view(self.m, self.d, IMAGE_CHANNELS)
+        b_heads = self.value_proj.bias.view(self.m, self.d)
+        heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+        return self.output_proj(heads.reshape(query.shape[0], -1))
+
+
+def make_features(height: int, width: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    feats = []
+    for s in STRIDES:
+        f = torch.randn(1, IMAGE_CHANNELS, -(-height // s), -(-width // s), generator=g)
+        feats.append(f.contiguous(memory_format=torch.channels_last))  # frozen: no requires_grad
+    return feats
+
+
+def run_case(n: int, c: int, feats, feats2x, repeats: int, seed: int = 0):
+    torch.manual_seed(seed)
+    path = ImagePath(c)
+    query = torch.randn(n, c, requires_grad=True)
+    uv = torch.rand(n, 2)
+    grad_out = torch.randn(n, c)
+    params = [query] + [p for p in path.parameters()]
+
+    def fwd(kind, fs):
+        def f():
+            with torch.no_grad():
+                return getattr(path, kind)(query, uv, fs)
+        return f
+
+    def fwd_bwd(kind, fs):
+        def f():
+            out = getattr(path, kind)(query, uv, fs)
+            return torch.autograd.grad(out, params, grad_out)
+        return f
+
+    # Agreement of outputs and of every gradient.
+    out_r, out_f = path.reference(query, uv, feats), path.fast(query, uv, feats)
+    diff = (out_r - out_f).abs().max().item()
+    g_r = torch.autograd.grad(out_r, params, grad_out)
+    g_f = torch.autograd.grad(out_f, params, grad_out)
+    gdiff = max(((a - b).abs().max() / b.abs().max().clamp(min=1e-12)).item() for a, b in zip(g_r, g_f))
+    del out_r, out_f, g_r, g_f
+
+    t_rf, _ = measure(fwd("reference", feats), repeats)
+    t_ff, _ = measure(fwd("fast", feats), repeats)
+    t_rb, m_rb = measure(fwd_bwd("reference", feats), repeats)
+    t_fb, m_fb = measure(fwd_bwd("fast", feats), repeats)
+    t_ff2, _ = measure(fwd("fast", feats2x), repeats)
+    t_fb2, _ = measure(fwd_bwd("fast", feats2x), repeats)
+    return {
+        "N": n,
+        "C": c,
+        "max |out diff|": diff,
+        "max rel grad diff": gdiff,
+        "ref fwd ms": 1e3 * t_rf,
+        "fast fwd ms": 1e3 * t_ff,
+        "fwd speed-up": t_rf / t_ff,
+        "ref fwd+bwd ms": 1e3 * t_rb,
+        "fast fwd+bwd ms": 1e3 * t_fb,
+        "fwd+bwd speed-up": t_rb / t_fb,
+        "ref peak MiB": m_rb,
+        "fast peak MiB": m_fb,
+        "peak mem ratio": m_rb / max(m_fb, 1e-3),
+        "fast fwd 2x/1x": t_ff2 / t_ff,
+        "fast fwd+bwd 2x/1x": t_fb2 / t_fb,
+    }
+
+
+COLUMNS = [
+    "N",
+    "C",
+    "max |out diff|",
+    "max rel grad diff",
+    "ref fwd ms",
+    "fast fwd ms",
+    "fwd speed-up",
+    "ref fwd+bwd ms",
+    "fast fwd+bwd ms",
+    "fwd+bwd speed-up",
+    "ref peak MiB",
+    "fast peak MiB",
+    "peak mem ratio",
+    "fast fwd 2x/1x",
+    "fast fwd+bwd 2x/1x",
+]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="608 x 976 image, N = 1,000 / 3,000, 3 repeats")
+    ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--json", default=None, help="write the results to this JSON file")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    reexec_with_mmap_threshold()
+    torch.set_num_threads(args.threads)
+    if args.quick:
+        size, size2x, cases, repeats = (608, 976), (864, 1376), [(1000, 32), (3000, 64)], 3
+    else:
+        size, size2x, cases, repeats = (1216, 1952), (1728, 2752), [(2500, 32), (8000, 64)], 5
+    repeats = args.repeats or repeats
+    feats, feats2x = make_features(*size), make_features(*size2x, seed=1)
+    print(f"image {size[0]} x {size[1]} (2x area: {size2x[0]} x {size2x[1]}), levels "
+          f"{[tuple(f.shape[-2:]) for f in feats]}, {IMAGE_CHANNELS} ch, M={HEADS}, P={POINTS}, "
+          f"threads={torch.get_num_threads()}, repeats={repeats}")
+    rows = [run_case(n, c, feats, feats2x, repeats) for n, c in cases]
+    print_table(rows, COLUMNS)
+    if args.json:
+        write_json(args.json, {"image": size, "image_2x": size2x, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
