@@ -128,7 +128,7 @@ def test_points_within_range(scenes):
 def test_object_points_lie_near_their_box_surface(scenes):
     cfg = SceneConfig()
     sigma_ang = math.radians(max(cfg.azimuth_noise, cfg.elevation_noise))
-    inside, near_surface, total = 0, 0, 0
+    inside, total, depths = 0, 0, []
     for s in scenes:
         p = s.points.numpy().astype(np.float64)
         src, own = s.point_source.numpy(), s.point_object_index.numpy()
@@ -145,11 +145,13 @@ def test_object_points_lie_near_their_box_surface(scenes):
                     rx, ry = q[0] - b[0], q[1] - b[1]
                     lx = rx * math.cos(b[6]) + ry * math.sin(b[6])
                     ly = -rx * math.sin(b[6]) + ry * math.cos(b[6])
-                    depth = min(b[3] / 2 - abs(lx), b[4] / 2 - abs(ly))
-                    near_surface += depth <= 0.35 + margin
+                    depths.append(min(b[3] / 2 - abs(lx), b[4] / 2 - abs(ly)))
     assert total > 200
     assert inside / total >= 0.95, inside / total
-    assert near_surface / total >= 0.95, near_surface / total
+    # surface, not volume: returns come from at most 0.35 m inside the skin, plus noise
+    # (measured: median 0.14 m, 90 % 0.30 m; returns three times deeper give 0.21 m / 0.60 m)
+    assert np.median(depths) <= 0.18, np.median(depths)
+    assert np.quantile(depths, 0.9) <= 0.4, np.quantile(depths, 0.9)
 
 
 def test_doppler_static_zero_moving_radial_projection(scenes):
@@ -216,7 +218,7 @@ def test_lighting_dark_darker_dazzle_brighter():
 
 
 def test_lighting_shares_follow_probabilities():
-    cfg = SceneConfig(num_objects=(1, 1), num_clutter=(0, 0), noise_points=0.0)
+    cfg = SceneConfig(num_objects=(1, 1), num_clutter=(0, 0), noise_points=0.0, image_size=(16, 24))
     got = [generate_scene(s, cfg).lighting for s in range(200)]
     share = {k: got.count(k) / len(got) for k in ("normal", "dark", "dazzle")}
     assert abs(share["normal"] - 0.6) < 0.12 and abs(share["dark"] - 0.15) < 0.08 and abs(share["dazzle"] - 0.25) < 0.1
