@@ -271,13 +271,18 @@ def test_permutation_and_batch_independence(kind):
 # ---------------------------------------------------------------------------------------------------
 # MSDFF
 # ---------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("method", ["auto", "reference", "fast"])
-def test_msdff_sample_then_project_equals_project_then_sample(method):
+@pytest.mark.parametrize(
+    "method,value_projection",
+    [("auto", "after_sampling"), ("reference", "after_sampling"), ("fast", "after_sampling"),
+     ("fast", "before_sampling"), ("reference", "before_sampling")],
+)
+def test_msdff_sample_then_project_equals_project_then_sample(method, value_projection):
     gen = torch.Generator().manual_seed(7)
     levels, uv, valid, bidx = scene(gen, chans=(3, 3), sizes=((5, 6), (3, 4)))
     uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside (mass < 1)
     valid[3] = True
-    mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64).eval()
+    mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method,
+                value_projection=value_projection, dtype=D64).eval()
     randomize_msdff(mod, gen)
     query = torch.randn(7, 8, generator=gen, dtype=D64)
     want, off, _ = reference_msdff(mod, query, levels, uv, valid, bidx)
@@ -300,12 +305,13 @@ def test_msdff_default_init_matches_reference():
     assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
 
 
-def test_msdff_gradcheck():
+@pytest.mark.parametrize("value_projection", ["after_sampling", "before_sampling"])
+def test_msdff_gradcheck(value_projection):
     # Eval-mode BN (a fixed affine map) with random running statistics; sampling offsets and attention
     # weights are randomised so the gradient w.r.t. the query goes through locations and softmax.
     gen = torch.Generator().manual_seed(9)
     levels, uv, valid, bidx = scene(gen, n=4, chans=(2, 2), sizes=((4, 5), (2, 3)))
-    mod = MSDFF(4, 2, num_heads=2, num_levels=2, num_points=2, dtype=D64).eval()
+    mod = MSDFF(4, 2, num_heads=2, num_levels=2, num_points=2, value_projection=value_projection, dtype=D64).eval()
     randomize_msdff(mod, gen, scale=0.3)
     query = torch.randn(4, 4, generator=gen, dtype=D64)
 
@@ -448,3 +454,5 @@ def test_bad_inputs_name_the_argument():
         MSDFF(10, 4, num_heads=4)
     with pytest.raises(MSSFError, match="method"):
         MSDFF(8, 4, method="cuda")
+    with pytest.raises(MSSFError, match="value_projection"):
+        MSDFF(8, 4, value_projection="never")

@@ -56,6 +56,7 @@ __all__ = [
 
 _INT_DTYPES = (torch.int32, torch.int64)
 _METHODS = ("auto", "reference", "fast")
+_VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -337,6 +338,11 @@ class MSDFF(nn.Module):
         num_points: ``P``, sampling points per head and level.
         norm_layer: normalisation after ``output_proj``.
         method: ``ms_deform_sample`` implementation: ``"auto"``, ``"reference"`` or ``"fast"``.
+        value_projection: ``"after_sampling"`` (default; cost ``O(N * M * L * P * C)``, independent of
+            the image size) or ``"before_sampling"`` (Deformable DETR's order: ``value_proj`` on every
+            pixel, then sample ``E / M`` channels per head; cost ``O(pixels * C * E + N * M * L * P * E / M)``).
+            Both give the same result (tested); the second is faster when ``C`` is large and the number
+            of voxels is not much smaller than the number of pixels (``docs/fusion.md`` has numbers).
         device, dtype: factory arguments of the parameters.
 
     Shapes:
@@ -358,6 +364,7 @@ class MSDFF(nn.Module):
         num_points: int = 4,
         norm_layer: Type[nn.Module] = nn.BatchNorm1d,
         method: str = "auto",
+        value_projection: str = "after_sampling",
         device=None,
         dtype=None,
     ) -> None:
@@ -383,6 +390,9 @@ class MSDFF(nn.Module):
         if method not in _METHODS:
             raise MSSFError(f"method: expected one of {_METHODS}, got {method!r}")
         self.method = method
+        if value_projection not in _VALUE_PROJECTIONS:
+            raise MSSFError(f"value_projection: expected one of {_VALUE_PROJECTIONS}, got {value_projection!r}")
+        self.value_projection = value_projection
         factory = _factory(device, dtype)
         m, l, p = self.num_heads, self.num_levels, self.num_points
         self.sampling_offsets = nn.Linear(self.embed_dim, m * l * p * 2, **factory)
@@ -462,15 +472,23 @@ class MSDFF(nn.Module):
         locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
         weights = weights[n_idx]
         image_index = batch_index[n_idx] * v + v_idx
-        values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
-        sampled, mass = ms_deform_sample(
-            values, image_index, locations, weights, method=self.method, return_mass=True
-        )  # (Q, M, C), (Q, M)
-        # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
-        # contributes only where the bilinear corners were inside the image (zero padding).
-        w_heads = self.value_proj.weight.view(m, self.head_dim, c)
-        b_heads = self.value_proj.bias.view(m, self.head_dim)
-        heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+        if self.value_projection == "after_sampling":
+            values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
+            sampled, mass = ms_deform_sample(
+                values, image_index, locations, weights, method=self.method, return_mass=True
+            )  # (Q, M, C), (Q, M)
+            # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
+            # contributes only where the bilinear corners were inside the image (zero padding).
+            w_heads = self.value_proj.weight.view(m, self.head_dim, c)
+            b_heads = self.value_proj.bias.view(m, self.head_dim)
+            heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+        else:
+            values = []
+            for lvl in levels:
+                h, w = lvl.shape[-2:]
+                projected = self.value_proj(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1))  # (I, H, W, E)
+                values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
+            heads = ms_deform_sample(values, image_index, locations, weights, method=self.method)
         per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
         attended = camera_mean(per_camera, valid)
         return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1))
@@ -478,7 +496,8 @@ class MSDFF(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"embed_dim={self.embed_dim}, value_channels={self.value_channels}, num_heads={self.num_heads}, "
-            f"num_levels={self.num_levels}, num_points={self.num_points}, method={self.method!r}"
+            f"num_levels={self.num_levels}, num_points={self.num_points}, method={self.method!r}, "
+            f"value_projection={self.value_projection!r}"
         )
 
 
