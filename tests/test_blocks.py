@@ -36,7 +36,9 @@ def make_scene(seed=0, b=2, c=8, v=2, image_channels=6, num_points=60, stride=(1
     gen = torch.Generator().manual_seed(seed)
     lo = torch.tensor(RANGE_MIN)
     extent = torch.tensor([10.0, 8.0, 2.0])
-    pts = torch.rand(num_points, 3, generator=gen) * extent * torch.tensor([0.9, 1.0, 1.0]) + lo + torch.tensor([1.0, 0, 0])
+    # x in [1, 10) m (in front of the cameras), y and z over the whole range
+    pts = torch.rand(num_points, 3, generator=gen) * extent * torch.tensor([0.9, 1.0, 1.0])
+    pts = pts + lo + torch.tensor([1.0, 0, 0])
     pb = torch.randint(0, b, (num_points,), generator=gen)
     cell = torch.tensor(VOXEL_SIZE) * torch.tensor(stride[::-1], dtype=torch.float32)
     idx = ((pts - lo) / cell).floor().long()

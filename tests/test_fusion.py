@@ -153,7 +153,8 @@ def test_sff_gradcheck_train_mode():
 
 def test_sff_pixel_hit_every_level():
     gen = torch.Generator().manual_seed(2)
-    levels = [torch.randn(2, 1, 3, 8, 12, generator=gen, dtype=D64), torch.randn(2, 1, 5, 4, 6, generator=gen, dtype=D64)]
+    levels = [torch.randn(2, 1, 3, 8, 12, generator=gen, dtype=D64),
+              torch.randn(2, 1, 5, 4, 6, generator=gen, dtype=D64)]
     sff = SFF([3, 5], 4, dtype=D64)
     for l, lvl in enumerate(levels):
         hl, wl = lvl.shape[-2:]
@@ -216,7 +217,10 @@ def test_empty_and_batch_without_voxels(kind):
     gen = torch.Generator().manual_seed(5)
     levels = [torch.randn(2, 1, 4, 5, 6, generator=gen, dtype=D64, requires_grad=True),
               torch.randn(2, 1, 4, 3, 3, generator=gen, dtype=D64, requires_grad=True)]
-    mod = SFF([4, 4], 8, dtype=D64) if kind == "sff" else MSDFF(8, 4, num_heads=2, num_levels=2, num_points=2, dtype=D64)
+    if kind == "sff":
+        mod = SFF([4, 4], 8, dtype=D64)
+    else:
+        mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=2, dtype=D64)
     mod.train()
 
     def run(n, bidx):
@@ -388,7 +392,8 @@ def test_msdff_offsets_are_in_level_pixels():
         mod.output_proj.weight.copy_(torch.eye(2))
     # reference at pixel (1, 1) of level 0 = (0.5, 0.5) of level 1 -> +1 pixel: (2, 1) and (1.5, 0.5).
     uv = torch.tensor([[[1.5 / 6, 1.5 / 4]]], dtype=D64)
-    out = mod(torch.zeros(1, 2, dtype=D64), levels, make_projection(uv, torch.ones(1, 1, dtype=torch.bool), torch.zeros(1, dtype=torch.long)))
+    proj = make_projection(uv, torch.ones(1, 1, dtype=torch.bool), torch.zeros(1, dtype=torch.long))
+    out = mod(torch.zeros(1, 2, dtype=D64), levels, proj)
     # level 0: pixel (x=2, y=1) of arange(24).view(4, 6) = 8; level 1: the reference is at pixel
     # (0.25, 0.25), moved to (1.25, 0.25) of arange(6).view(2, 3) = 3 y + x = 2 (all corners inside).
     want = torch.tensor(0.5 * 8.0 + 0.5 * 2.0, dtype=D64)
