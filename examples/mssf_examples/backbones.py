@@ -29,7 +29,11 @@ import spconv.pytorch as spconv
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.sparse import SparseVoxels
 
+from .spconv_compat import enable_cpu_backward
 from .voxelize import PillarFeatureNet, VoxelGrid, dynamic_voxelize
+
+# spconv's CPU backward needs this on CPU-only torch builds (see spconv_compat).
+enable_cpu_backward()
 
 __all__ = [
     "BackboneOutput",
@@ -48,26 +52,6 @@ __all__ = [
 FUSION_TYPES = ("msdff", "sff")
 
 
-def _patch_spconv_cpu_stream() -> None:
-    """Let spconv's CPU backward run with a CPU-only torch build.
-
-    spconv 2.x asks ``torch.cuda.current_stream()`` in some CPU code paths (e.g. the backward of a
-    strided ``SparseConv3d``), which raises "Torch not compiled with CUDA enabled" on CPU-only torch
-    (spconv issue #366). The CPU kernels ignore the stream, so without CUDA we hand them 0.
-    """
-    if torch.cuda.is_available():
-        return
-    from spconv.pytorch import cppcore, ops
-
-    def get_current_stream() -> int:
-        return 0
-
-    for mod in (cppcore, ops):
-        if getattr(mod, "get_current_stream", None) is not None:
-            mod.get_current_stream = get_current_stream
-
-
-_patch_spconv_cpu_stream()
 FUSION_POSITIONS = ("before_residual", "after_residual")
 
 

@@ -1,0 +1,257 @@
+"""MSSF detectors: SECOND, CenterPoint, VoxelNeXt and PointPillars with multi-stage fusion blocks.
+
+Each detector is ``image branch (or precomputed features) -> voxelisation / pillarisation -> backbone
+with n fusion blocks and the semantic-guided head -> neck -> detection head``. In training mode
+``forward(batch)`` returns the losses (``L = L_seg + L_det``, paper eq. 11 with unit weights); in eval
+mode it returns per-sample detections.
+
+    >>> from mssf_examples.presets import TINY
+    >>> model = build_detector("centerpoint", TINY, num_fusion_blocks=2)  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from typing import Dict, List, Optional, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.functional.geometry import voxel_centroids
+from mssf_blocks.fusion import FusionInputs
+
+from .backbones import (
+    BackboneOutput,
+    CenterPointBackbone,
+    PointPillarsBackbone,
+    SECONDBackbone,
+    VoxelNeXtBackbone,
+)
+from .data import RadarCameraBatch
+from .heads import AnchorHead, BEVGrid, CenterHead, SparseCenterHead
+from .image_branch import ImageBranch
+from .presets import DetectorPreset
+from .voxelize import DynamicVoxelizer, VoxelGrid
+
+__all__ = ["BEVBackbone2D", "MSSFDetector", "build_detector", "DETECTOR_NAMES", "IMAGE_FEATURE_SOURCES"]
+
+DETECTOR_NAMES = ("second", "centerpoint", "voxelnext", "pointpillars")
+IMAGE_FEATURE_SOURCES = ("backbone", "precomputed")
+
+
+def _bn2d(c: int) -> nn.Module:
+    return nn.BatchNorm2d(c, eps=1e-3, momentum=0.01)
+
+
+class BEVBackbone2D(nn.Module):
+    """OpenPCDet's ``BaseBEVBackbone`` with two blocks (strides 1, 2) and upsampling to stride 1.
+
+    Shapes:
+        - bev ``(B, C_in, H, W)`` -> ``(B, sum(upsample_filters), H, W)`` (``H, W`` even).
+    """
+
+    def __init__(self, in_channels: int, layer_nums: Sequence[int], filters: Sequence[int], upsample_filters: Sequence[int]):
+        super().__init__()
+        self.blocks, self.deblocks = nn.ModuleList(), nn.ModuleList()
+        cin = in_channels
+        for i, (n, c, u) in enumerate(zip(layer_nums, filters, upsample_filters)):
+            s = 1 if i == 0 else 2
+            layers = [nn.ZeroPad2d(1), nn.Conv2d(cin, c, 3, stride=s, bias=False), _bn2d(c), nn.ReLU()]
+            for _ in range(n):
+                layers += [nn.Conv2d(c, c, 3, padding=1, bias=False), _bn2d(c), nn.ReLU()]
+            self.blocks.append(nn.Sequential(*layers))
+            self.deblocks.append(nn.Sequential(nn.ConvTranspose2d(c, u, s, stride=s, bias=False), _bn2d(u), nn.ReLU()))
+            cin = c
+        self.out_channels = sum(upsample_filters)
+
+    def forward(self, x: Tensor) -> Tensor:
+        ups = []
+        for block, deblock in zip(self.blocks, self.deblocks):
+            x = block(x)
+            ups.append(deblock(x))
+        h, w = ups[0].shape[-2:]
+        return torch.cat([u[..., :h, :w] for u in ups], 1)
+
+
+def _anchor_thresholds(class_names: Sequence[str]):
+    # OpenPCDet KITTI: cars (and trucks) 0.6 / 0.45, pedestrians and cyclists 0.5 / 0.35.
+    big = [n.lower() in ("car", "truck") for n in class_names]
+    return tuple(0.6 if b else 0.5 for b in big), tuple(0.45 if b else 0.35 for b in big)
+
+
+class MSSFDetector(nn.Module):
+    """One of the four example detectors with ``n`` fusion blocks (``n = 0``: radar only).
+
+    Args:
+        name: ``"second"``, ``"centerpoint"``, ``"voxelnext"`` or ``"pointpillars"``.
+        preset: a :class:`~mssf_examples.presets.DetectorPreset`.
+        num_fusion_blocks: ``n`` (0..4; 0..3 for PointPillars, which has three 2D blocks).
+        fusion: ``"msdff"`` or ``"sff"``.
+        fusion_position: ``"before_residual"`` or ``"after_residual"``.
+        image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
+            ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
+        score_threshold, nms_iou, max_detections: decoding settings in eval mode.
+
+    ``forward(batch: RadarCameraBatch)`` returns, in training mode, a dict of scalar losses with
+    ``"loss"`` the total (``det_*`` from the head, ``seg`` from the semantic-guided head when ``n > 0``)
+    and, in eval mode, a list of ``B`` dicts ``boxes (K, 7)``, ``scores (K,)``, ``labels (K,)``.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        preset: DetectorPreset,
+        num_fusion_blocks: int = 2,
+        fusion: str = "msdff",
+        fusion_position: str = "before_residual",
+        image_features: str = "backbone",
+        score_threshold: float = 0.1,
+        nms_iou: Optional[float] = 0.5,
+        max_detections: int = 100,
+    ) -> None:
+        super().__init__()
+        if name not in DETECTOR_NAMES:
+            raise MSSFError(f"name: expected one of {DETECTOR_NAMES}, got {name!r}")
+        if image_features not in IMAGE_FEATURE_SOURCES:
+            raise MSSFError(f"image_features: expected one of {IMAGE_FEATURE_SOURCES}, got {image_features!r}")
+        if not isinstance(preset, DetectorPreset):
+            raise MSSFError(f"preset: expected a DetectorPreset, got {type(preset).__name__}")
+        self.name, self.preset, self.image_feature_source = name, preset, image_features
+        self.num_fusion_blocks = num_fusion_blocks
+        self.score_threshold, self.nms_iou, self.max_detections = score_threshold, nms_iou, max_detections
+        p = preset
+        c_in = p.num_point_features
+        image_channels = [p.fpn_channels] * p.num_image_levels
+        fusion_kwargs = dict(
+            num_fusion_blocks=num_fusion_blocks, fusion=fusion, fusion_position=fusion_position,
+            image_channels=image_channels, msdff_heads=p.msdff_heads, msdff_points=p.msdff_points,
+            seg_hidden=p.seg_hidden,
+        )
+        self.image_branch = None
+        if num_fusion_blocks and image_features == "backbone":
+            self.image_branch = ImageBranch(p.image_depth, p.image_base_channels, p.fpn_channels, p.num_image_levels,
+                                            frozen=p.freeze_image_branch)
+        self.voxelizer = None
+        self.neck = None
+        x0, y0, _, x1, y1, _ = p.point_cloud_range
+        if name == "pointpillars":
+            grid = VoxelGrid(p.pillar_range, (p.pillar_size[0], p.pillar_size[1], p.pillar_range[5] - p.pillar_range[2]))
+            self.backbone = PointPillarsBackbone(
+                c_in, grid, lift_z_size=p.lift_z_size, pfn_channels=p.pfn_channels,
+                layer_nums=p.pillar_layer_nums, num_filters=p.pillar_filters,
+                num_upsample_filters=p.pillar_upsample_filters, **fusion_kwargs,
+            )
+            px0, py0, _, px1, py1, _ = p.pillar_range
+            bev_grid = BEVGrid(px0, py0, px1, py1, *self.backbone.bev_shape)
+            matched, unmatched = _anchor_thresholds(p.class_names)
+            self.head = AnchorHead(self.backbone.bev_channels, bev_grid, p.anchor_sizes, p.anchor_z_centers,
+                                   matched_thresholds=matched, unmatched_thresholds=unmatched)
+        else:
+            grid = VoxelGrid(p.point_cloud_range, p.voxel_size)
+            self.voxelizer = DynamicVoxelizer(p.point_cloud_range, p.voxel_size)
+            if name == "voxelnext":
+                self.backbone = VoxelNeXtBackbone(c_in, grid, channels=p.voxelnext_channels, out_channels=p.voxelnext_out,
+                                                  **fusion_kwargs)
+                bev_grid = BEVGrid(x0, y0, x1, y1, *self.backbone.bev_shape)
+                self.head = SparseCenterHead(self.backbone.bev_channels, bev_grid, p.num_classes, head_channels=p.head_channels)
+            else:
+                if name == "second":
+                    self.backbone = SECONDBackbone(c_in, grid, channels=p.second_channels, out_channels=p.second_out,
+                                                   **fusion_kwargs)
+                else:
+                    self.backbone = CenterPointBackbone(c_in, grid, channels=p.centerpoint_channels,
+                                                        out_channels=p.centerpoint_out, **fusion_kwargs)
+                self.neck = BEVBackbone2D(self.backbone.bev_channels, p.bev_layer_nums, p.bev_filters, p.bev_upsample_filters)
+                bev_grid = BEVGrid(x0, y0, x1, y1, *self.backbone.bev_shape)
+                if name == "second":
+                    matched, unmatched = _anchor_thresholds(p.class_names)
+                    self.head = AnchorHead(self.neck.out_channels, bev_grid, p.anchor_sizes, p.anchor_z_centers,
+                                           matched_thresholds=matched, unmatched_thresholds=unmatched)
+                else:
+                    self.head = CenterHead(self.neck.out_channels, bev_grid, p.num_classes, head_channels=p.head_channels)
+        self.bev_grid = bev_grid
+
+    # -- pieces -------------------------------------------------------------------------------------
+    def _image_features(self, batch: RadarCameraBatch) -> List[Tensor]:
+        if self.image_feature_source == "precomputed":
+            feats = batch.image_features
+            if feats is None:
+                raise MSSFError("batch.image_features: required with image_features='precomputed', got None")
+            p = self.preset
+            if len(feats) != p.num_image_levels or any(f.shape[2] != p.fpn_channels for f in feats):
+                raise MSSFError(
+                    f"batch.image_features: expected {p.num_image_levels} levels of {p.fpn_channels} channels, "
+                    f"got {[tuple(f.shape) for f in feats]}"
+                )
+            return list(feats)
+        if batch.images is None:
+            raise MSSFError("batch.images: required with image_features='backbone', got None")
+        return self.image_branch(batch.images)
+
+    def extract(self, batch: RadarCameraBatch):
+        """Run everything up to the head: returns ``(head predictions, BackboneOutput, points, points_batch)``."""
+        if not isinstance(batch, RadarCameraBatch):
+            raise MSSFError(f"batch: expected a RadarCameraBatch, got {type(batch).__name__}")
+        if batch.num_point_features != self.preset.num_point_features:
+            raise MSSFError(
+                f"batch.points: expected {self.preset.num_point_features} columns {self.preset.point_features}, "
+                f"got {batch.num_point_features}"
+            )
+        pts, pb = batch.flat_points()
+        b = batch.batch_size
+        fusion_inputs = None
+        if self.num_fusion_blocks:
+            fusion_inputs = FusionInputs(self._image_features(batch), batch.lidar2img, batch.image_size, pts, pb,
+                                         batch.points_to_sensor)
+        if self.name == "pointpillars":
+            out = self.backbone(pts, pb, b, fusion_inputs)
+            preds = self.head(out.bev)
+        else:
+            out = self.backbone(self.voxelizer(pts, pb, b), fusion_inputs)
+            if self.name == "voxelnext":
+                feats, coords = out.sparse_bev
+                preds = self.head(feats, coords, b)
+            else:
+                preds = self.head(self.neck(out.bev))
+        return preds, out, pts, pb
+
+    def seg_loss(self, out: BackboneOutput, pts: Tensor, pb: Tensor, gt_boxes: List[Tensor]) -> Tensor:
+        """``L_seg``: focal loss of the semantic head on the centroids of the last fusion block's voxels."""
+        v = out.seg_voxels
+        centroids, _ = voxel_centroids(pts, pb, v.coords, v.spatial_shape, v.batch_size, v.voxel_size,
+                                       v.point_range_min, v.stride)
+        return self.backbone.seg_head.loss_from_boxes(out.seg_logits, centroids.to(out.seg_logits.dtype), v.batch_index,
+                                                      [g.to(centroids) for g in gt_boxes])
+
+    def forward(self, batch: RadarCameraBatch):
+        preds, out, pts, pb = self.extract(batch)
+        if not self.training:
+            return self.head.decode(preds, self.score_threshold, self.nms_iou, self.max_detections)
+        if batch.gt_boxes is None:
+            raise MSSFError("batch.gt_boxes: required in training mode, got None")
+        losses: Dict[str, Tensor] = {f"det_{k}": v for k, v in self.head.loss(preds, batch.gt_boxes, batch.gt_labels).items()}
+        if out.seg_logits is not None:
+            losses["seg"] = self.seg_loss(out, pts, pb, batch.gt_boxes)
+        losses["loss"] = sum(losses.values())
+        return losses
+
+    def extra_repr(self) -> str:
+        return (f"name={self.name!r}, preset={self.preset.name!r}, num_fusion_blocks={self.num_fusion_blocks}, "
+                f"image_features={self.image_feature_source!r}")
+
+
+def build_detector(
+    name: str,
+    preset: DetectorPreset,
+    num_fusion_blocks: int = 2,
+    fusion: str = "msdff",
+    fusion_position: str = "before_residual",
+    image_features: str = "backbone",
+    **kwargs,
+) -> MSSFDetector:
+    """Build ``"second" | "centerpoint" | "voxelnext" | "pointpillars"`` for ``preset``.
+
+    ``num_fusion_blocks=0`` gives the radar-only baseline (no image branch, no semantic head).
+    ``kwargs`` go to :class:`MSSFDetector` (``score_threshold``, ``nms_iou``, ``max_detections``).
+    """
+    return MSSFDetector(name, preset, num_fusion_blocks, fusion, fusion_position, image_features, **kwargs)

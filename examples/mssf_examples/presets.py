@@ -1,0 +1,180 @@
+"""Dataset presets for the example detectors (paper Sec. "Implementation Details").
+
+* :data:`VOD` — View-of-Delft, 5-scan radar: range ``0 < x < 51.2, -25.6 < y < 25.6, -3 < z < 2`` m,
+  point features ``[x, y, z, RCS, v_r, v_rc, t]``, classes car / pedestrian / cyclist.
+* :data:`TJ4D` — TJ4DRadSet, single scan: voxel range ``0 < x < 70.4, -40 < y < 40, -4 < z < 2``,
+  pillar range ``0 < x < 69.12, -39.68 < y < 39.68, -4 < z < 2``, features ``[x, y, z, v_rc, Power]``,
+  classes car / pedestrian / cyclist / truck.
+* Both: voxel size ``(0.05, 0.05, 0.125)`` m, pillar size ``(0.16, 0.16)`` m; PointPillars anchors as the
+  paper states (VoD: car (3.9, 1.6, 1.56), pedestrian (0.8, 0.6, 1.73), cyclist (1.76, 0.6, 1.73); TJ4D:
+  car (1.84, 4.56, 1.70), pedestrian (0.6, 0.8, 1.69), cyclist (0.78, 1.77, 1.60), truck
+  (2.66, 10.76, 3.47) printed as ``(w, l, h)`` and stored here as ``(dx, dy, dz) = (l, w, h)``, see
+  :mod:`mssf_examples.heads.anchor_head`); VoxelNeXt channels doubled; MSDFF, ``n = 2`` by default.
+* :data:`TINY` — a coarse grid, small images and few channels for CPU tests (not from the paper).
+
+Values that the paper does not state are marked "not from the paper" in the field docs (network
+widths follow the OpenPCDet KITTI configurations of the base detectors).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Tuple
+
+from .heads.anchor_head import TJ4D_ANCHOR_SIZES, VOD_ANCHOR_SIZES
+
+__all__ = ["DetectorPreset", "VOD", "TJ4D", "TINY", "tiny_preset"]
+
+Range6 = Tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True)
+class DetectorPreset:
+    """Everything a detector needs to know about a dataset, plus the network widths.
+
+    Attributes:
+        name: preset name.
+        point_cloud_range: voxel-based range ``(x0, y0, z0, x1, y1, z1)`` metres.
+        voxel_size: ``(x, y, z)`` voxel size.
+        pillar_range: pillar-based range (TJ4D uses a different one, divisible by the pillar size).
+        pillar_size: ``(x, y)`` pillar size.
+        point_features: names of the point columns (``x, y, z`` first).
+        class_names: detection classes (label ``k`` is ``class_names[k]``).
+        anchor_sizes: ``(dx, dy, dz)`` per class (anchor head).
+        anchor_z_centers: anchor box-centre ``z`` per class. Not from the paper: OpenPCDet's KITTI
+            anchor bottoms (car -1.78, others -0.6) plus half the anchor height.
+        image_size: ``(H, W)`` of the network's image input.
+        image_depth, image_base_channels, fpn_channels, num_image_levels, freeze_image_branch: the
+            image branch (paper: ResNet-50 + FPN, 256 channels, frozen).
+        second_channels, second_out: SECOND sparse backbone (stem, stage 1-4) and ``conv_out``.
+        centerpoint_channels, centerpoint_out: CenterPoint sparse backbone.
+        voxelnext_channels, voxelnext_out: VoxelNeXt (paper: doubled) stem + 6 stages, BEV channels.
+        bev_layer_nums, bev_filters, bev_upsample_filters: 2D BEV backbone of SECOND / CenterPoint
+            (strides 1, 2; upsample 1, 2). Not from the paper (OpenPCDet KITTI).
+        pfn_channels, pillar_layer_nums, pillar_filters, pillar_upsample_filters: PointPillars.
+        lift_z_size: z size of the voxels the pillar fusion lifts the BEV into (not from the paper:
+            the voxel preset's z size).
+        head_channels: hidden width of the centre heads.
+        msdff_heads, msdff_points: MSDFF attention heads and points per level (Deformable DETR: 8, 4).
+        seg_hidden: hidden widths of the semantic-guided head (not from the paper).
+    """
+
+    name: str
+    point_cloud_range: Range6
+    voxel_size: Tuple[float, float, float]
+    pillar_range: Range6
+    pillar_size: Tuple[float, float]
+    point_features: Tuple[str, ...]
+    class_names: Tuple[str, ...]
+    anchor_sizes: Tuple[Tuple[float, float, float], ...]
+    anchor_z_centers: Tuple[float, ...]
+    image_size: Tuple[int, int]
+    image_depth: int = 50
+    image_base_channels: int = 64
+    fpn_channels: int = 256
+    num_image_levels: int = 4
+    freeze_image_branch: bool = True
+    second_channels: Tuple[int, ...] = (16, 16, 32, 64, 64)
+    second_out: int = 128
+    centerpoint_channels: Tuple[int, ...] = (16, 16, 32, 64, 128)
+    centerpoint_out: int = 128
+    voxelnext_channels: Tuple[int, ...] = (32, 32, 64, 128, 256, 256, 256)
+    voxelnext_out: int = 256
+    bev_layer_nums: Tuple[int, int] = (5, 5)
+    bev_filters: Tuple[int, int] = (128, 256)
+    bev_upsample_filters: Tuple[int, int] = (256, 256)
+    pfn_channels: int = 64
+    pillar_layer_nums: Tuple[int, int, int] = (3, 5, 5)
+    pillar_filters: Tuple[int, int, int] = (64, 128, 256)
+    pillar_upsample_filters: Tuple[int, int, int] = (128, 128, 128)
+    lift_z_size: float = 0.125
+    head_channels: int = 64
+    msdff_heads: int = 8
+    msdff_points: int = 4
+    seg_hidden: Tuple[int, ...] = (256, 256)
+
+    @property
+    def num_point_features(self) -> int:
+        return len(self.point_features)
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.class_names)
+
+
+def _z_centres(sizes, bottoms):
+    return tuple(round(b + s[2] / 2, 4) for s, b in zip(sizes, bottoms))
+
+
+#: View-of-Delft (5 radar scans).
+VOD = DetectorPreset(
+    name="vod",
+    point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0),
+    voxel_size=(0.05, 0.05, 0.125),
+    pillar_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0),
+    pillar_size=(0.16, 0.16),
+    point_features=("x", "y", "z", "RCS", "v_r", "v_rc", "t"),
+    class_names=("Car", "Pedestrian", "Cyclist"),
+    anchor_sizes=tuple(VOD_ANCHOR_SIZES),
+    anchor_z_centers=_z_centres(VOD_ANCHOR_SIZES, (-1.78, -0.6, -0.6)),
+    image_size=(1216, 1936),
+)
+
+#: TJ4DRadSet (single radar scan).
+TJ4D = DetectorPreset(
+    name="tj4d",
+    point_cloud_range=(0.0, -40.0, -4.0, 70.4, 40.0, 2.0),
+    voxel_size=(0.05, 0.05, 0.125),
+    pillar_range=(0.0, -39.68, -4.0, 69.12, 39.68, 2.0),
+    pillar_size=(0.16, 0.16),
+    point_features=("x", "y", "z", "v_rc", "Power"),
+    class_names=("Car", "Pedestrian", "Cyclist", "Truck"),
+    anchor_sizes=tuple(TJ4D_ANCHOR_SIZES),
+    anchor_z_centers=_z_centres(TJ4D_ANCHOR_SIZES, (-1.78, -0.6, -0.6, -1.78)),
+    image_size=(640, 1280),
+)
+
+
+def tiny_preset(base: DetectorPreset = VOD, **changes) -> DetectorPreset:
+    """A CPU-test-sized preset with ``base``'s features, classes and anchors (not from the paper).
+
+    12.8 m x 12.8 m x 5 m, voxels ``(0.2, 0.2, 0.125)`` (64 x 64 x 40), pillars ``(0.2, 0.2)``,
+    ``32 x 64`` images, ResNet-18 with 4 base channels, 8-channel FPN and a few channels everywhere.
+    """
+    z0, z1 = base.point_cloud_range[2], base.point_cloud_range[5]
+    fields = dict(
+        name=f"tiny-{base.name}",
+        point_cloud_range=(0.0, -6.4, z0, 12.8, 6.4, z1),
+        voxel_size=(0.2, 0.2, base.voxel_size[2]),
+        pillar_range=(0.0, -6.4, z0, 12.8, 6.4, z1),
+        pillar_size=(0.2, 0.2),
+        image_size=(32, 64),
+        image_depth=18,
+        image_base_channels=4,
+        fpn_channels=8,
+        freeze_image_branch=False,
+        second_channels=(8, 8, 8, 16, 16),
+        second_out=16,
+        centerpoint_channels=(8, 8, 8, 16, 16),
+        centerpoint_out=16,
+        voxelnext_channels=(8, 8, 8, 16, 16, 16, 16),
+        voxelnext_out=16,
+        bev_layer_nums=(1, 1),
+        bev_filters=(16, 16),
+        bev_upsample_filters=(16, 16),
+        pfn_channels=8,
+        pillar_layer_nums=(1, 1, 1),
+        pillar_filters=(8, 16, 16),
+        pillar_upsample_filters=(8, 8, 8),
+        lift_z_size=0.5,
+        head_channels=16,
+        msdff_heads=2,
+        msdff_points=2,
+        seg_hidden=(16,),
+    )
+    fields.update(changes)
+    return replace(base, **fields)
+
+
+#: CPU-test preset (VoD features and classes).
+TINY = tiny_preset(VOD)
