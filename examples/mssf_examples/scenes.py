@@ -30,7 +30,7 @@ Everything is generated with numpy from one integer seed, so a scene is a pure f
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -576,8 +576,8 @@ def _radar(rng: np.random.Generator, cfg: SceneConfig, objects: List[_Item], clu
                 base = _surface_points(rng, it.box, g)
                 gk = rng.integers(0, ns, g)
                 base[:, :2] -= (gk * cfg.scan_period)[:, None] * it.velocity[None]
-                rng_ = np.linalg.norm(base, axis=1, keepdims=True)
-                gp = base * (1.0 + rng.uniform(0.8, 5.0, (g, 1)) / rng_)
+                dist = np.linalg.norm(base, axis=1, keepdims=True)
+                gp = base * (1.0 + rng.uniform(0.8, 5.0, (g, 1)) / dist)
                 add(gp, np.repeat(it.velocity[None], g, 0), it.rcs_mean - 6 + rng.normal(0, cfg.rcs_noise, g), gk,
                     np.full(g, 1), np.full(g, i), np.full(g, i), np.full(g, micro))
 
@@ -632,7 +632,7 @@ def _radar(rng: np.random.Generator, cfg: SceneConfig, objects: List[_Item], clu
     in_range = ((meas[:, 0] >= x0) & (meas[:, 0] < x1) & (meas[:, 1] >= y0) & (meas[:, 1] < y1)
                 & (meas[:, 2] >= z0) & (meas[:, 2] < z1) & (np.abs(az) <= half_fov))
     keep &= in_range
-    pts = np.concatenate([meas, rcs_[:, None], v_r[:, None], v_rc[:, None], -k[:, None].astype(np.float64)], 1)
+    pts = np.concatenate([meas, rcs_[:, None], v_r[:, None], v_rc[:, None], (-k)[:, None].astype(np.float64)], 1)  # int negation: t = +0.0, not -0.0
     return dict(points=pts[keep], source=source[keep], owner=own[keep])
 
 
@@ -686,8 +686,7 @@ class _Canvas:
             return None
         return slice(t, b + 1), slice(l, r + 1)
 
-    def quad(self, corners: np.ndarray, colour: np.ndarray, item: int, texture_amp: float = 0.05,
-             bias: float = 0.0) -> None:
+    def quad(self, corners: np.ndarray, colour: np.ndarray, item: int, texture_amp: float = 0.05) -> None:
         """Fill a planar convex quad ``(4, 3)`` (sensor frame) with per-pixel depth from its plane."""
         cam = self.to_cam(corners)
         normal = np.cross(cam[1] - cam[0], cam[2] - cam[0])
@@ -708,7 +707,7 @@ class _Canvas:
             inside &= (((x1 - x0) * sign) * (py - y0) - ((y1 - y0) * sign) * (px - x0)) >= 0
         rx, ry = self.ray_x[xs][None], self.ray_y[ys][:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
-            z = offset / (normal[0] * rx + normal[1] * ry + normal[2]) + bias
+            z = offset / (normal[0] * rx + normal[1] * ry + normal[2])
         self._write(win, inside & (z > 0), z, colour, item, texture_amp)
 
     def sprite(self, win, mask: np.ndarray, colours: np.ndarray, depth: float, item: int, texture_amp=0.05):
@@ -779,7 +778,7 @@ def _render_box(cv: _Canvas, box: np.ndarray, colour: np.ndarray, item: int, tex
             cv.quad(_face_quad(box, face, a, (-1.0, -0.45), 0.02), tyre, item, 0.0)
 
 
-def _render_person(cv: _Canvas, it: _Item, item: int, rng: np.random.Generator) -> None:
+def _render_person(cv: _Canvas, it: _Item, item: int) -> None:
     """Pedestrian (label 1) or cyclist (label 2) as a flat cut-out at the box centre's depth."""
     box = it.box
     uv, depth = cv.project(box_corners(box)[0])
@@ -789,7 +788,8 @@ def _render_person(cv: _Canvas, it: _Item, item: int, rng: np.random.Generator) 
     ys, xs = win
     px, py = np.meshgrid(np.arange(xs.start, xs.stop, dtype=np.float64), np.arange(ys.start, ys.stop, dtype=np.float64))
     bottom = box[:3] - np.array([0, 0, box[5] / 2])
-    (ub, vb), dc = cv.project(bottom[None])[0][0], float(cv.to_cam(box[None, :3])[0, 2])
+    ub, vb = cv.project(bottom[None])[0][0]
+    dc = float(cv.to_cam(box[None, :3])[0, 2])  # one depth for the whole cut-out
     sx, sy = cv.k[0, 0] / dc, cv.k[1, 1] / dc  # pixels per metre at the object's depth
     hscale = box[5] / 1.73
 
@@ -822,8 +822,8 @@ def _render_person(cv: _Canvas, it: _Item, item: int, rng: np.random.Generator) 
         head = np.array([math.cos(box[6]), math.sin(box[6]), 0.0])
         view = box[:3] / np.linalg.norm(box[:3])
         squash = max(abs(float(np.cross(head, view)[2])), 0.25)
-        wheel_uv, _ = cv.project(np.stack([bottom + head * 0.55 * box[3] / 1.76 * 1.0 + [0, 0, 0.34],
-                                           bottom - head * 0.55 * box[3] / 1.76 + [0, 0, 0.34]]))
+        axle = head * 0.55 * box[3] / 1.76
+        wheel_uv, _ = cv.project(np.stack([bottom + axle + [0, 0, 0.34], bottom - axle + [0, 0, 0.34]]))
         for wu, wv in wheel_uv:
             d2 = ((px - wu) / max(0.34 * sx * squash, 0.5)) ** 2 + ((py - wv) / max(0.34 * sy, 0.5)) ** 2
             paint((d2 <= 1.0) & (d2 >= 0.55), np.array([0.04, 0.04, 0.04]))
@@ -870,7 +870,7 @@ def _render(rng: np.random.Generator, cfg: SceneConfig, objects: List[_Item], cl
         if it.label == 0:
             _render_box(cv, it.box, it.colour, i, 0.05, True, rng)
         else:
-            _render_person(cv, it, i, rng)
+            _render_person(cv, it, i)
     for j, it in enumerate(clutter):
         _render_box(cv, it.box, it.colour, len(objects) + j, 0.12, False, rng)
     img = cv.rgb
@@ -1029,6 +1029,7 @@ class SyntheticDataset(torch.utils.data.Dataset):
         return self.num_scenes
 
     def seed_of(self, index: int) -> int:
+        """The :func:`generate_scene` seed of scene ``index``."""
         return scene_seed(self.seed, self.split, index)
 
     def __getitem__(self, index: int) -> Scene:

@@ -86,6 +86,18 @@ def test_shapes_dtypes_and_channels(scenes):
     assert np.mean([s.clutter_boxes.shape[0] for s in scenes]) >= 4
 
 
+def test_empty_and_small_configurations():
+    s = generate_scene(1, SceneConfig(num_objects=(0, 0), num_clutter=(0, 0), noise_points=0.0))
+    assert s.points.shape == (0, 7) and s.gt_boxes.shape == (0, 7) and s.gt_boxes_2d.shape == (0, 4)
+    assert s.blurred_point_mask.shape == (0,) and (s.instance_map == -1).all()
+    s = generate_scene(1, SceneConfig(num_objects=(0, 0), num_clutter=(3, 3)))
+    assert s.points.shape[0] > 0 and not s.blurred_point_mask.any()  # no 2D boxes, nothing is blurred
+    s = generate_scene(1, SceneConfig(num_scans=1, image_size=(64, 100)))
+    assert s.image.shape == (3, 64, 100) and (s.points[:, 6] == 0).all()
+    assert not torch.signbit(s.points[:, 6]).any()  # t is +0.0, not -0.0
+    assert (s.gt_boxes_2d[:, 2] <= 99).all() and (s.gt_boxes_2d[:, 3] <= 63).all()
+
+
 def test_determinism():
     a, b, c = generate_scene(7), generate_scene(7), generate_scene(8)
     for f in fields(Scene):
