@@ -1,0 +1,102 @@
+"""Benchmark: per-frame CPU forward time of the four example detectors, radar-only vs. fusion.
+
+A VoD-sized frame: 2,500 radar points from 5 scans (time index t in 0..4) inside the camera's field of
+view on the VoD preset grid (voxels 0.05 x 0.05 x 0.125 m over x 0-51.2, y -25.6-25.6, z -3-2; pillars
+0.16 m), one 1216 x 1936 camera. Image features are precomputed (the paper freezes the image branch):
+four FPN levels of 256 channels at strides 4-32, random values. Every detector runs in eval mode
+(``torch.no_grad``, batch of one frame, decoding included) with ``n = 0`` (radar only) and ``n = 2``
+fusion blocks (MSDFF by default), in this process on the same frame; the script reports the median
+time of each and the fusion overhead ratio ``t(n=2) / t(n=0)`` (target: at most 1.30).
+
+Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 5] [--threads 1] [--fusion msdff]
+[--detectors second centerpoint voxelnext pointpillars] [--json out.json]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+import torch
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from _common import measure, print_table, write_json  # noqa: E402
+from mssf_examples.data import RadarCameraBatch  # noqa: E402
+from mssf_examples.detectors import build_detector  # noqa: E402
+from mssf_examples.presets import VOD  # noqa: E402
+
+IMAGE_H, IMAGE_W = VOD.image_size
+FOCAL = 1260.0  # roughly VoD's camera
+
+
+def vod_frame(num_points: int, seed: int = 0) -> RadarCameraBatch:
+    """One frame: radar points in the camera's view, a pinhole camera at the origin looking along +x."""
+    g = torch.Generator().manual_seed(seed)
+    x = 1.0 + torch.rand(num_points, generator=g) ** 0.7 * 49.0  # denser near the sensor
+    half_fov = math.atan((IMAGE_W / 2) / FOCAL)
+    y = (torch.rand(num_points, generator=g) * 2 - 1) * x * math.tan(half_fov) * 0.95
+    y = y.clamp(-25.5, 25.5)
+    z = torch.rand(num_points, generator=g) * 4.0 - 2.5
+    feats = torch.stack([
+        torch.randn(num_points, generator=g) * 5,  # RCS
+        torch.randn(num_points, generator=g),  # v_r
+        torch.randn(num_points, generator=g),  # v_rc
+        torch.randint(0, 5, (num_points,), generator=g).float(),  # scan index t
+    ], 1)
+    points = torch.cat([torch.stack([x, y, z], 1), feats], 1)
+    l2i = torch.zeros(1, 1, 3, 4)
+    l2i[0, 0, 0, 1], l2i[0, 0, 1, 2], l2i[0, 0, 2, 0] = -FOCAL, -FOCAL, 1.0
+    l2i[0, 0, 0, 0], l2i[0, 0, 1, 0] = IMAGE_W / 2, IMAGE_H / 2
+    levels = [torch.randn(1, 1, VOD.fpn_channels, math.ceil(IMAGE_H / s), math.ceil(IMAGE_W / s), generator=g)
+              for s in (4, 8, 16, 32)]
+    return RadarCameraBatch(points=[points], lidar2img=l2i, image_features=levels, image_size=(IMAGE_H, IMAGE_W))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=2500)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--fusion", default="msdff", choices=["msdff", "sff"])
+    ap.add_argument("--detectors", nargs="+", default=["second", "centerpoint", "voxelnext", "pointpillars"])
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    frame = vod_frame(args.points)
+    rows = []
+    for name in args.detectors:
+        times = {}
+        voxels = {}
+        for n in (0, 2):
+            torch.manual_seed(0)
+            model = build_detector(name, VOD, num_fusion_blocks=n, fusion=args.fusion, image_features="precomputed").eval()
+
+            def run(model=model):
+                with torch.no_grad():
+                    return model(frame)
+
+            times[n], _ = measure(run, repeats=args.repeats)
+            if n == 2:
+                with torch.no_grad():
+                    _, out, _, _ = model.extract(frame)
+                voxels = [s.num_voxels for s in out.stages[:2]]
+        rows.append({
+            "detector": name,
+            "radar-only n=0 (s)": times[0],
+            f"fusion n=2 {args.fusion} (s)": times[2],
+            "overhead ratio n=2/n=0": times[2] / times[0],
+            "voxels in fusion blocks": "/".join(map(str, voxels)),
+        })
+        print(f"{name}: n=0 {times[0]:.3f} s, n=2 {times[2]:.3f} s, ratio {times[2] / times[0]:.3f}", flush=True)
+    print(f"\n{args.points} points, threads={args.threads}, repeats={args.repeats} (median), torch {torch.__version__}\n")
+    print_table(rows, list(rows[0].keys()))
+    if args.json:
+        write_json(args.json, {"points": args.points, "threads": args.threads, "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
