@@ -64,8 +64,8 @@ def bilinear_sample(image: Tensor, uv: Tensor, batch_index: Tensor, valid: Optio
         MSSFError: on wrong shapes/dtypes, out-of-range ``batch_index`` or non-finite valid ``uv``.
 
     Example:
-        >>> img = torch.arange(6.0).view(1, 1, 2, 3)  # (B, C, H, W)
-        >>> uv = torch.tensor([[[0.5 / 3, 0.5 / 2]], [[2.5 / 3, 1.5 / 2]]])  # centres of pixels (0,0), (1,2)
+        >>> img = torch.arange(6.0, dtype=torch.float64).view(1, 1, 2, 3)  # (B, C, H, W)
+        >>> uv = torch.tensor([[[0.5 / 3, 0.5 / 2]], [[2.5 / 3, 1.5 / 2]]], dtype=torch.float64)  # centres of pixels (0,0), (1,2)
         >>> bilinear_sample(img, uv, torch.tensor([0, 0])).flatten().tolist()
         [0.0, 5.0]
     """
