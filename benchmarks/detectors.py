@@ -5,10 +5,12 @@ view on the VoD preset grid (voxels 0.05 x 0.05 x 0.125 m over x 0-51.2, y -25.6
 0.16 m), one 1216 x 1936 camera. Image features are precomputed (the paper freezes the image branch):
 four FPN levels of 256 channels at strides 4-32, random values. Every detector runs in eval mode
 (``torch.no_grad``, batch of one frame, decoding included) with ``n = 0`` (radar only) and ``n = 2``
-fusion blocks (MSDFF by default), in this process on the same frame; the script reports the median
-time of each and the fusion overhead ratio ``t(n=2) / t(n=0)`` (target: at most 1.30).
+fusion blocks (MSDFF, the paper's default, and SFF), in this process on the same frame. The configurations
+of one detector are timed in interleaved rounds (one call of each per round, after a warm-up call),
+so a load change on the shared machine hits all of them alike; the script reports the median time of
+each and the fusion overhead ratio ``t(n=2) / t(n=0)`` (target: at most 1.30).
 
-Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 5] [--threads 1] [--fusion msdff]
+Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 7] [--threads 1]
 [--detectors second centerpoint voxelnext pointpillars] [--json out.json]``
 """
 
@@ -17,14 +19,16 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import statistics
 import sys
+import time
 
 import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples"))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from _common import measure, print_table, write_json  # noqa: E402
+from _common import print_table, write_json  # noqa: E402
 from mssf_examples.data import RadarCameraBatch  # noqa: E402
 from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.presets import VOD  # noqa: E402
@@ -59,40 +63,41 @@ def vod_frame(num_points: int, seed: int = 0) -> RadarCameraBatch:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=2500)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--fusion", default="msdff", choices=["msdff", "sff"])
     ap.add_argument("--detectors", nargs="+", default=["second", "centerpoint", "voxelnext", "pointpillars"])
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     frame = vod_frame(args.points)
+    configs = [("n=0", 0, "msdff"), ("n=2 msdff", 2, "msdff"), ("n=2 sff", 2, "sff")]
     rows = []
     for name in args.detectors:
-        times = {}
-        voxels = {}
-        for n in (0, 2):
+        models = {}
+        for label, n, fusion in configs:
             torch.manual_seed(0)
-            model = build_detector(name, VOD, num_fusion_blocks=n, fusion=args.fusion, image_features="precomputed").eval()
-
-            def run(model=model):
-                with torch.no_grad():
-                    return model(frame)
-
-            times[n], _ = measure(run, repeats=args.repeats)
-            if n == 2:
-                with torch.no_grad():
-                    _, out, _, _ = model.extract(frame)
-                voxels = [s.num_voxels for s in out.stages[:2]]
-        rows.append({
-            "detector": name,
-            "radar-only n=0 (s)": times[0],
-            f"fusion n=2 {args.fusion} (s)": times[2],
-            "overhead ratio n=2/n=0": times[2] / times[0],
-            "voxels in fusion blocks": "/".join(map(str, voxels)),
-        })
-        print(f"{name}: n=0 {times[0]:.3f} s, n=2 {times[2]:.3f} s, ratio {times[2] / times[0]:.3f}", flush=True)
-    print(f"\n{args.points} points, threads={args.threads}, repeats={args.repeats} (median), torch {torch.__version__}\n")
+            models[label] = build_detector(name, VOD, num_fusion_blocks=n, fusion=fusion,
+                                           image_features="precomputed").eval()
+        times = {label: [] for label in models}
+        with torch.no_grad():
+            for label, model in models.items():
+                model(frame)  # warm-up (spconv index tuning, allocator)
+            for _ in range(args.repeats):
+                for label, model in models.items():
+                    t0 = time.perf_counter()
+                    model(frame)
+                    times[label].append(time.perf_counter() - t0)
+            _, out, _, _ = models["n=2 msdff"].extract(frame)
+        med = {label: statistics.median(t) for label, t in times.items()}
+        row = {"detector": name}
+        row.update({f"{label} (s)": med[label] for label in models})
+        row["ratio msdff"] = med["n=2 msdff"] / med["n=0"]
+        row["ratio sff"] = med["n=2 sff"] / med["n=0"]
+        row["voxels in fusion blocks"] = "/".join(str(s.num_voxels) for s in out.stages[:2])
+        rows.append(row)
+        print(", ".join(f"{k}: {v:.3f}" if isinstance(v, float) else f"{k}: {v}" for k, v in row.items()), flush=True)
+    print(f"\n{args.points} points, threads={args.threads}, {args.repeats} interleaved rounds (median), "
+          f"MSDFF value projection {VOD.msdff_value_projection!r}, torch {torch.__version__}\n")
     print_table(rows, list(rows[0].keys()))
     if args.json:
         write_json(args.json, {"points": args.points, "threads": args.threads, "rows": rows})

@@ -136,12 +136,14 @@ def _check_fusion_args(num_fusion_blocks: int, max_blocks: int, fusion: str, fus
         raise MSSFError(f"fusion_position: expected one of {FUSION_POSITIONS}, got {fusion_position!r}")
 
 
-def _make_fusion(kind: str, channels: int, image_channels: Sequence[int], msdff_heads: int, msdff_points: int):
+def _make_fusion(kind: str, channels: int, image_channels: Sequence[int], msdff_heads: int, msdff_points: int,
+                 value_projection: str = "after_sampling"):
     from mssf_blocks.fusion import MSDFF, SFF
 
     if kind == "sff":
         return SFF(list(image_channels), channels)
-    return MSDFF(channels, list(image_channels), num_heads=msdff_heads, num_levels=len(image_channels), num_points=msdff_points)
+    return MSDFF(channels, list(image_channels), num_heads=msdff_heads, num_levels=len(image_channels),
+                 num_points=msdff_points, value_projection=value_projection)
 
 
 class SparseFusionBackbone(nn.Module):
@@ -161,6 +163,8 @@ class SparseFusionBackbone(nn.Module):
             the paper's default) or ``"after_residual"``.
         image_channels: ``C_l`` of every image level (needed when ``num_fusion_blocks > 0``).
         msdff_heads, msdff_points: MSDFF heads and sampling points per level.
+        msdff_value_projection: MSDFF's ``value_projection`` (``"after_sampling"`` or
+            ``"before_sampling"``; equal results, different cost, see :class:`mssf_blocks.fusion.MSDFF`).
         seg_hidden: hidden widths of the semantic-guided head (``None`` disables the head).
         z_pad: extra empty z layers on top of the grid (OpenPCDet's ``+1`` so ``41`` z cells downsample
             ``41 -> 21 -> 11 -> 5 -> 2``).
@@ -178,6 +182,7 @@ class SparseFusionBackbone(nn.Module):
         image_channels: Optional[Sequence[int]] = None,
         msdff_heads: int = 8,
         msdff_points: int = 4,
+        msdff_value_projection: str = "after_sampling",
         seg_hidden: Optional[Sequence[int]] = (256, 256),
         z_pad: int = 0,
     ) -> None:
@@ -218,7 +223,8 @@ class SparseFusionBackbone(nn.Module):
                 if fusion == "msdff" and i == 0:
                     query_init = QueryInit(spec.channels, image_channels[0], spec.channels, grid.point_cloud_range)
                 stage = FusionBlock(
-                    _make_fusion(fusion, spec.channels, image_channels, msdff_heads, msdff_points),
+                    _make_fusion(fusion, spec.channels, image_channels, msdff_heads, msdff_points,
+                                 msdff_value_projection),
                     downsample=down,
                     blocks=blocks,
                     position=fusion_position,
@@ -445,7 +451,8 @@ class PointPillarsBackbone(nn.Module):
         pfn_channels: PFN output channels (64).
         layer_nums, layer_strides, num_filters: the 2D blocks (OpenPCDet: 3/5/5, 2/2/2, 64/128/256).
         upsample_strides, num_upsample_filters: the deblocks (1/2/4, 128/128/128).
-        num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points, seg_hidden:
+        num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
+        msdff_value_projection, seg_hidden:
             as :class:`SparseFusionBackbone` (at most 3 fusion blocks).
     """
 
@@ -466,6 +473,7 @@ class PointPillarsBackbone(nn.Module):
         image_channels: Optional[Sequence[int]] = None,
         msdff_heads: int = 8,
         msdff_points: int = 4,
+        msdff_value_projection: str = "after_sampling",
         seg_hidden: Optional[Sequence[int]] = (256, 256),
     ) -> None:
         super().__init__()
@@ -507,7 +515,8 @@ class PointPillarsBackbone(nn.Module):
                 query_init = None
                 if fusion == "msdff" and i == 0:
                     query_init = QueryInit(c, image_channels[0], c, pcr)
-                self.fusions.append(FusionBlock(_make_fusion(fusion, c, image_channels, msdff_heads, msdff_points),
+                self.fusions.append(FusionBlock(_make_fusion(fusion, c, image_channels, msdff_heads, msdff_points,
+                                                             msdff_value_projection),
                                                 query_init=query_init, position="before_residual"))
             cin = c
         self.bev_channels = sum(num_upsample_filters)

@@ -125,7 +125,7 @@ class MSSFDetector(nn.Module):
         fusion_kwargs = dict(
             num_fusion_blocks=num_fusion_blocks, fusion=fusion, fusion_position=fusion_position,
             image_channels=image_channels, msdff_heads=p.msdff_heads, msdff_points=p.msdff_points,
-            seg_hidden=p.seg_hidden,
+            msdff_value_projection=p.msdff_value_projection, seg_hidden=p.seg_hidden,
         )
         self.image_branch = None
         if num_fusion_blocks and image_features == "backbone":
