@@ -30,11 +30,12 @@ class RadarCameraBatch:
             v_r, v_rc, t for VoD). ``C_in`` must be equal across samples.
         lidar2img: ``(B, V, 3, 4)`` projection of homogeneous *un-augmented* sensor-frame points to
             ``(u*d, v*d, d)`` (OpenCV pixels of ``images``).
-        images: ``(B, V, 3, H, W)`` float images, or ``None`` when ``image_features`` are given.
+        images: ``(B, V, 3, H, W)`` float images, or ``None`` (precomputed ``image_features``, or a
+            radar-only detector).
         image_features: optional precomputed image features, a sequence of ``L`` levels, each
             ``(B, V, C_l, H_l, W_l)`` (e.g. from a frozen image branch, as in the paper).
         image_size: ``(H, W)`` of the image the features/projection refer to; inferred from ``images``
-            when omitted.
+            when omitted, required with ``image_features`` alone.
         points_to_sensor: optional ``(B, 4, 4)`` inverse of the point augmentation (maps augmented
             points back to the frame ``lidar2img`` expects); ``None`` means no augmentation.
         gt_boxes: optional list of ``B`` tensors ``(G_b, 7)`` in the augmented sensor frame.
@@ -75,11 +76,10 @@ class RadarCameraBatch:
                 raise MSSFError("image_features: expected at least one level, got an empty sequence")
             for i, f in enumerate(self.image_features):
                 check_shape(f, f"image_features[{i}]", (b, v, None, None, None))
-        if self.images is None and self.image_features is None:
-            raise MSSFError("images / image_features: expected at least one of them, got neither")
-        if self.image_size is None:
-            raise MSSFError("image_size: required when images is None (the size the projection refers to)")
-        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+        if self.image_features is not None and self.image_size is None:
+            raise MSSFError("image_size: required with image_features and no images (the size lidar2img refers to)")
+        if self.image_size is not None:
+            self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
         if self.points_to_sensor is not None:
             check_shape(self.points_to_sensor, "points_to_sensor", (b, 4, 4))
         if (self.gt_boxes is None) != (self.gt_labels is None):

@@ -201,6 +201,8 @@ class MSSFDetector(nn.Module):
         b = batch.batch_size
         fusion_inputs = None
         if self.num_fusion_blocks:
+            if batch.image_size is None:
+                raise MSSFError("batch.image_size: required by the fusion blocks (give images or image_size)")
             fusion_inputs = FusionInputs(self._image_features(batch), batch.lidar2img, batch.image_size, pts, pb,
                                          batch.points_to_sensor)
         if self.name == "pointpillars":

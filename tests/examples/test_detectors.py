@@ -131,6 +131,31 @@ def test_bad_arguments(batch):
         build_detector("second", TINY, num_fusion_blocks=0)(bad)
 
 
+def test_batch_validation_and_radar_only_without_images(batch):
+    with pytest.raises(MSSFError, match="points"):
+        RadarCameraBatch(points=[], lidar2img=batch.lidar2img)
+    with pytest.raises(MSSFError, match=r"points\[1\]"):
+        RadarCameraBatch(points=[batch.points[0], batch.points[1][:, :5]], lidar2img=batch.lidar2img)
+    with pytest.raises(MSSFError, match="lidar2img"):
+        RadarCameraBatch(points=batch.points, lidar2img=batch.lidar2img[:1])
+    with pytest.raises(MSSFError, match="gt_labels"):
+        RadarCameraBatch(points=batch.points, lidar2img=batch.lidar2img, gt_boxes=batch.gt_boxes,
+                         gt_labels=[batch.gt_labels[0], batch.gt_labels[1][:2]])
+    with pytest.raises(MSSFError, match="image_size"):
+        RadarCameraBatch(points=batch.points, lidar2img=batch.lidar2img, images=batch.images, image_size=(16, 16))
+    with pytest.raises(MSSFError, match="image_size"):
+        RadarCameraBatch(points=batch.points, lidar2img=batch.lidar2img, image_features=[torch.zeros(2, 1, 8, 8, 16)])
+    radar = RadarCameraBatch(points=batch.points, lidar2img=batch.lidar2img)
+    pts, pb = radar.flat_points()
+    assert pts.shape == (sum(p.shape[0] for p in batch.points), 7)
+    assert pb.tolist() == [0] * batch.points[0].shape[0] + [1] * batch.points[1].shape[0]
+    model = build_detector("pointpillars", TINY, num_fusion_blocks=0, score_threshold=0.0).eval()
+    with torch.no_grad():
+        assert len(model(radar)) == 2
+    with pytest.raises(MSSFError, match="images"):
+        build_detector("pointpillars", TINY, num_fusion_blocks=1)(radar)
+
+
 def test_presets_follow_the_paper():
     assert VOD.point_cloud_range == (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)
     assert VOD.point_features == ("x", "y", "z", "RCS", "v_r", "v_rc", "t")
