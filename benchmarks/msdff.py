@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -41,7 +42,7 @@ from torch import nn
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import measure, print_table, reexec_with_mmap_threshold, write_json  # noqa: E402
 
-from mssf_blocks.functional.sampling import ms_deform_sample  # noqa: E402
+from mssf_blocks.functional.sampling import ms_deform_sample, ms_deform_sample_project  # noqa: E402
 
 STRIDES = (4, 8, 16, 32, 64)
 IMAGE_CHANNELS = 256
@@ -100,6 +101,18 @@ class ImagePath(nn.Module):
         return self.output_proj(heads.reshape(query.shape[0], -1))
 
 
+    def fused(self, query, uv, feats, chunk_size=1024):
+        loc, wt = self.locations_and_weights(query, uv, [f.shape[-2:] for f in feats])
+        values = [f.view(1, 1, IMAGE_CHANNELS, *f.shape[-2:]) for f in feats]
+        img_index = torch.zeros(query.shape[0], dtype=torch.long)
+        heads = ms_deform_sample_project(
+            values, img_index, loc, wt,
+            self.value_proj.weight.view(self.m, self.d, IMAGE_CHANNELS), self.value_proj.bias.view(self.m, self.d),
+            chunk_size=chunk_size,
+        )
+        return self.output_proj(heads.reshape(query.shape[0], -1))
+
+
 def make_features(height: int, width: int, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     feats = []
@@ -109,82 +122,83 @@ def make_features(height: int, width: int, seed: int = 0):
     return feats
 
 
-def run_case(n: int, c: int, feats, feats2x, repeats: int, seed: int = 0):
+def run_case(n: int, c: int, feats, feats2x, repeats: int, chunk_size: int, seed: int = 0):
     torch.manual_seed(seed)
     path = ImagePath(c)
     query = torch.randn(n, c, requires_grad=True)
-    uv = torch.rand(n, 2)
+    uv = torch.rand(n, 2)  # voxels spread uniformly over the image: the worst case for locality
     grad_out = torch.randn(n, c)
     params = [query] + [p for p in path.parameters()]
+    kinds = {
+        "reference": path.reference,
+        "fast": path.fast,
+        "fused": lambda q, u, f: path.fused(q, u, f, chunk_size=chunk_size),
+    }
 
     def fwd(kind, fs):
         def f():
             with torch.no_grad():
-                return getattr(path, kind)(query, uv, fs)
+                return kinds[kind](query, uv, fs)
         return f
 
     def fwd_bwd(kind, fs):
         def f():
-            out = getattr(path, kind)(query, uv, fs)
-            return torch.autograd.grad(out, params, grad_out)
+            return torch.autograd.grad(kinds[kind](query, uv, fs), params, grad_out)
         return f
 
-    # Agreement of outputs and of every gradient.
-    out_r, out_f = path.reference(query, uv, feats), path.fast(query, uv, feats)
-    diff = (out_r - out_f).abs().max().item()
+    # Agreement of outputs and of every gradient with the reference.
+    out_r = path.reference(query, uv, feats)
     g_r = torch.autograd.grad(out_r, params, grad_out)
-    g_f = torch.autograd.grad(out_f, params, grad_out)
-    gdiff = max(((a - b).abs().max() / b.abs().max().clamp(min=1e-12)).item() for a, b in zip(g_r, g_f))
-    del out_r, out_f, g_r, g_f
+    row = {"N": n, "C": c}
+    for kind in ("fast", "fused"):
+        out_k = kinds[kind](query, uv, feats)
+        g_k = torch.autograd.grad(out_k, params, grad_out)
+        row[f"{kind} max|out diff|"] = (out_r - out_k).abs().max().item()
+        row[f"{kind} max rel grad diff"] = max(
+            ((a - b).abs().max() / b.abs().max().clamp(min=1e-12)).item() for a, b in zip(g_k, g_r)
+        )
+        del out_k, g_k
+    del out_r, g_r
 
-    t_rf, _ = measure(fwd("reference", feats), repeats)
-    t_ff, _ = measure(fwd("fast", feats), repeats)
-    t_rb, m_rb = measure(fwd_bwd("reference", feats), repeats)
-    t_fb, m_fb = measure(fwd_bwd("fast", feats), repeats)
-    t_ff2, _ = measure(fwd("fast", feats2x), repeats)
-    t_fb2, _ = measure(fwd_bwd("fast", feats2x), repeats)
-    return {
-        "N": n,
-        "C": c,
-        "max |out diff|": diff,
-        "max rel grad diff": gdiff,
-        "ref fwd ms": 1e3 * t_rf,
-        "fast fwd ms": 1e3 * t_ff,
-        "fwd speed-up": t_rf / t_ff,
-        "ref fwd+bwd ms": 1e3 * t_rb,
-        "fast fwd+bwd ms": 1e3 * t_fb,
-        "fwd+bwd speed-up": t_rb / t_fb,
-        "ref peak MiB": m_rb,
-        "fast peak MiB": m_fb,
-        "peak mem ratio": m_rb / max(m_fb, 1e-3),
-        "fast fwd 2x/1x": t_ff2 / t_ff,
-        "fast fwd+bwd 2x/1x": t_fb2 / t_fb,
-    }
+    res = {}
+    for kind in kinds:
+        res[kind, "fwd"] = measure(fwd(kind, feats), repeats)
+        res[kind, "fwdbwd"] = measure(fwd_bwd(kind, feats), repeats)
+    for kind in ("fast", "fused"):
+        res[kind, "fwd2x"] = measure(fwd(kind, feats2x), repeats)
+        res[kind, "fwdbwd2x"] = measure(fwd_bwd(kind, feats2x), repeats)
+    res["reference", "fwd2x"] = measure(fwd("reference", feats2x), max(1, repeats // 2))
+    for kind in kinds:
+        row[f"{kind} fwd ms"] = 1e3 * res[kind, "fwd"][0]
+        row[f"{kind} fwd+bwd ms"] = 1e3 * res[kind, "fwdbwd"][0]
+        row[f"{kind} fwd MiB"] = res[kind, "fwd"][1]
+        row[f"{kind} fwd+bwd MiB"] = res[kind, "fwdbwd"][1]
+    for kind in ("fast", "fused"):
+        row[f"{kind} fwd speed-up"] = res["reference", "fwd"][0] / res[kind, "fwd"][0]
+        row[f"{kind} fwd+bwd speed-up"] = res["reference", "fwdbwd"][0] / res[kind, "fwdbwd"][0]
+        row[f"{kind} fwd mem ratio"] = res["reference", "fwd"][1] / max(res[kind, "fwd"][1], 1e-3)
+        row[f"{kind} fwd+bwd mem ratio"] = res["reference", "fwdbwd"][1] / max(res[kind, "fwdbwd"][1], 1e-3)
+        row[f"{kind} 2x-area fwd"] = res[kind, "fwd2x"][0] / res[kind, "fwd"][0]
+        row[f"{kind} 2x-area fwd+bwd"] = res[kind, "fwdbwd2x"][0] / res[kind, "fwdbwd"][0]
+    row["reference 2x-area fwd"] = res["reference", "fwd2x"][0] / res["reference", "fwd"][0]
+    return row
 
 
-COLUMNS = [
-    "N",
-    "C",
-    "max |out diff|",
-    "max rel grad diff",
-    "ref fwd ms",
-    "fast fwd ms",
-    "fwd speed-up",
-    "ref fwd+bwd ms",
-    "fast fwd+bwd ms",
-    "fwd+bwd speed-up",
-    "ref peak MiB",
-    "fast peak MiB",
-    "peak mem ratio",
-    "fast fwd 2x/1x",
-    "fast fwd+bwd 2x/1x",
-]
+TIMES = ["N", "C"] + [f"{k} {w}" for w in ("fwd ms", "fwd+bwd ms") for k in ("reference", "fast", "fused")]
+MEMORY = ["N", "C"] + [f"{k} {w}" for w in ("fwd MiB", "fwd+bwd MiB") for k in ("reference", "fast", "fused")]
+RATIOS = ["N", "C"] + [
+    f"{k} {w}"
+    for k in ("fast", "fused")
+    for w in ("fwd speed-up", "fwd+bwd speed-up", "fwd mem ratio", "fwd+bwd mem ratio", "2x-area fwd", "2x-area fwd+bwd")
+] + ["reference 2x-area fwd"]
+AGREEMENT = ["N", "C"] + [f"{k} {w}" for k in ("fast", "fused") for w in ("max|out diff|", "max rel grad diff")]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="608 x 976 image, N = 1,000 / 3,000, 3 repeats")
     ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--chunk-size", type=int, default=256, help="queries per chunk of the fused path")
     ap.add_argument("--json", default=None, help="write the results to this JSON file")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -196,13 +210,21 @@ def main() -> None:
         size, size2x, cases, repeats = (1216, 1952), (1728, 2752), [(2500, 32), (8000, 64)], 5
     repeats = args.repeats or repeats
     feats, feats2x = make_features(*size), make_features(*size2x, seed=1)
+    load = os.getloadavg()
     print(f"image {size[0]} x {size[1]} (2x area: {size2x[0]} x {size2x[1]}), levels "
           f"{[tuple(f.shape[-2:]) for f in feats]}, {IMAGE_CHANNELS} ch, M={HEADS}, P={POINTS}, "
-          f"threads={torch.get_num_threads()}, repeats={repeats}")
-    rows = [run_case(n, c, feats, feats2x, repeats) for n, c in cases]
-    print_table(rows, COLUMNS)
+          f"threads={torch.get_num_threads()}, repeats={repeats}, fused chunk={args.chunk_size}, "
+          f"load average before={load[0]:.1f}")
+    rows = [run_case(n, c, feats, feats2x, repeats, args.chunk_size) for n, c in cases]
+    print(f"load average after={os.getloadavg()[0]:.1f}")
+    tables = {}
+    for title, cols in (("agreement with the reference", AGREEMENT), ("median time (ms)", TIMES),
+                        ("peak extra memory (MiB)", MEMORY), ("ratios", RATIOS)):
+        print(f"\n{title}")
+        tables[title] = print_table(rows, cols)
     if args.json:
-        write_json(args.json, {"image": size, "image_2x": size2x, "rows": rows})
+        write_json(args.json, {"image": size, "image_2x": size2x, "threads": torch.get_num_threads(),
+                               "load_average": load, "rows": rows})
 
 
 if __name__ == "__main__":

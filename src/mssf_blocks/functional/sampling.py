@@ -26,12 +26,19 @@ from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
 import torch.nn.functional as F
+from torch.utils.checkpoint import checkpoint
 from torch import Tensor
 
 from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape, check_tensor
 from ..errors import MSSFError
 
-__all__ = ["bilinear_sample", "camera_mean", "ms_deform_sample", "ms_deform_sample_reference"]
+__all__ = [
+    "bilinear_sample",
+    "camera_mean",
+    "ms_deform_sample",
+    "ms_deform_sample_reference",
+    "ms_deform_sample_project",
+]
 
 _INT_DTYPES = (torch.int32, torch.int64)
 _METHODS = ("auto", "reference", "fast")
@@ -246,6 +253,12 @@ def _pixel_coordinate(loc: Tensor, size: Tensor) -> Tensor:
     return ((2.0 * loc - 1.0 + 1.0) * size - 1.0) / 2.0
 
 
+def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
+    # int32 rows halve the index memory and are read natively by embedding_bag.
+    rows = max(v.shape[0] * mv * v.shape[-2] * v.shape[-1] for v in values)
+    return torch.int32 if rows + 2 * max(v.shape[-1] for v in values) < 2**31 else torch.int64
+
+
 def _ms_deform_sample_fast(
     values: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor, return_mass: bool
 ) -> Union[Tensor, Tuple[Tensor, Tensor]]:
@@ -266,23 +279,34 @@ def _ms_deform_sample_fast(
     y0 = y.detach().floor()
     fx = x - x0  # carries d/dx; floor is piecewise constant
     fy = y - y0
-    # Corner k = 2 * dy + dx; out-of-image corners get weight 0 and a safe (clamped) index.
-    offs = torch.tensor([0.0, 1.0], dtype=x.dtype, device=dev)
-    xs = x0[..., None] + offs  # (L, M, Q, P, 2)
-    ys = y0[..., None] + offs
-    last_x = (size_w - 1)[..., None]
-    last_y = (size_h - 1)[..., None]
-    wx = torch.stack((1.0 - fx, fx), -1) * ((xs >= 0) & (xs <= last_x))
-    wy = torch.stack((1.0 - fy, fy), -1) * ((ys >= 0) & (ys <= last_y))
-    psw = (wy * wts[..., None])[..., :, None] * wx[..., None, :]  # (L, M, Q, P, 2, 2)
-    mass = psw.sum((0, 3, 4, 5)).t() if return_mass else None  # (Q, M)
+    # Per-axis corner weights, zero where the corner is outside the map (zero padding); the attention
+    # weight is folded into the y factors so that each corner weight is one product.
+    ax0 = (1.0 - fx) * ((x0 >= 0) & (x0 <= size_w - 1))
+    ax1 = fx * ((x0 >= -1) & (x0 <= size_w - 2))
+    ay0 = (1.0 - fy) * ((y0 >= 0) & (y0 <= size_h - 1)) * wts
+    ay1 = fy * ((y0 >= -1) & (y0 <= size_h - 2)) * wts
+    # Corner-major inside each (head, query) bag, (L, M, Q, 4, P): the order within a bag is free and
+    # this layout stacks in blocks of P instead of interleaving single elements.
+    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), -2)  # (L, M, Q, 4, P)
+    mass = ((ay0 + ay1) * (ax0 + ax1)).sum((0, 3)).t() if return_mass else None  # (Q, M)
 
-    xi = torch.minimum(xs.clamp(min=0), last_x).long()
-    yi = torch.minimum(ys.clamp(min=0), last_y).long()
-    # Row of a corner in level l's table (I * Mv * H_l * W_l, D): ((image * Mv + head) * H_l + y) * W_l + x.
-    heads = torch.arange(m, device=dev)[:, None] if mv > 1 else torch.zeros((m, 1), dtype=torch.long, device=dev)
-    plane = (image_index.long()[None, :] * mv + heads).view(1, m, q, 1, 1)
-    rows = ((plane * hs[..., None] + yi)[..., :, None] * ws[..., None, None] + xi[..., None, :])
+    # Row of the top-left corner in level l's table (I * Mv * H_l * W_l, D):
+    #   ((image * Mv + head) * H_l + y0) * W_l + x0, computed on points (4x fewer than corners) after
+    # clamping x0, y0 to [-1, size] so that huge coordinates cannot overflow; the corners add
+    # (0, 1, W_l, W_l + 1). A corner outside the map has weight 0 and any row inside the table will
+    # do, hence the final clamp to the table.
+    idt = _index_dtype(values, mv)
+    heads = torch.arange(m, device=dev, dtype=idt)[:, None] if mv > 1 else torch.zeros((m, 1), dtype=idt, device=dev)
+    plane = (image_index.to(idt)[None, :] * mv + heads).view(1, m, q, 1)
+    x0i = torch.minimum(x0.clamp(min=-1.0), size_w).to(idt)
+    y0i = torch.minimum(y0.clamp(min=-1.0), size_h).to(idt)
+    hs_i, ws_i = hs.to(idt), ws.to(idt)
+    base = (plane * hs_i + y0i) * ws_i + x0i  # (L, M, Q, P)
+    corner_offsets = torch.stack([torch.zeros_like(ws_i), torch.ones_like(ws_i), ws_i, ws_i + 1], -2)  # (L,1,1,4,1)
+    last_row = torch.tensor(
+        [v.shape[0] * mv * v.shape[-2] * v.shape[-1] - 1 for v in values], device=dev, dtype=idt
+    ).view(num_levels, 1, 1, 1, 1)
+    rows = torch.clamp(base[..., None, :] + corner_offsets, min=torch.zeros_like(last_row), max=last_row)
 
     out = None
     for lvl, val in enumerate(values):
@@ -354,3 +378,81 @@ def ms_deform_sample(
     if method == "reference":
         return ms_deform_sample_reference(levels, image_index, locations, weights, return_mass=return_mass)
     return _ms_deform_sample_fast(levels, image_index, locations, weights, return_mass)
+
+
+def _sample_project_level(
+    locations: Tensor, weights: Tensor, image_index: Tensor, proj_weight: Tensor, proj_bias: Optional[Tensor], value: Tensor
+) -> Tensor:
+    """One level of :func:`ms_deform_sample_project` for ``locations (Q, M, 1, P, 2)``."""
+    sampled, mass = _ms_deform_sample_fast([value], image_index, locations, weights, True)
+    # sampled is a (Q, M, D) view of head-major (M, Q, D) memory: the per-head bmm reads it in place.
+    out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (Q, M, d)
+    if proj_bias is not None:
+        out = out + mass[..., None] * proj_bias
+    return out
+
+
+def ms_deform_sample_project(
+    values: Sequence[Tensor],
+    image_index: Tensor,
+    locations: Tensor,
+    weights: Tensor,
+    proj_weight: Tensor,
+    proj_bias: Optional[Tensor] = None,
+    chunk_size: Optional[int] = 512,
+) -> Tensor:
+    """:func:`ms_deform_sample` followed by a per-head linear projection, in chunks of queries.
+
+    ``out[q, m] = proj_weight[m] @ sampled[q, m] + mass[q, m] * proj_bias[m]`` where
+    ``sampled, mass = ms_deform_sample(..., method="fast", return_mass=True)``: MSDFF's value
+    projection applied after sampling (exact, since sampling is linear and the bias only enters where
+    bilinear corners fall inside the image). Queries are processed ``chunk_size`` at a time and, when
+    gradients are needed, each (chunk, level) block is recomputed in backward (activation
+    checkpointing), so memory is ``O(chunk_size * M * (D + L * P))`` instead of ``O(Q * M * L * P * D)``
+    at the price of one more sampling pass in backward.
+
+    Args:
+        values, image_index, locations, weights: as :func:`ms_deform_sample` (``Mv`` 1 or ``M``).
+        proj_weight: ``(M, d, D)`` per-head projection (e.g. ``value_proj.weight.view(M, d, D)``).
+        proj_bias: ``(M, d)`` per-head bias or ``None``.
+        chunk_size: queries per chunk; ``None`` processes all queries at once (no recomputation).
+
+    Returns:
+        ``(Q, M, d)``.
+
+    Example:
+        >>> val = [torch.ones(1, 1, 2, 2, 2)]  # I = Mv = 1, D = 2, a 2x2 map of ones
+        >>> loc = torch.tensor([0.0, 0.0]).view(1, 1, 1, 1, 2)  # image corner: 1/4 of the mass inside
+        >>> w, b = torch.ones(1, 1, 2), torch.full((1, 1), 10.0)
+        >>> ms_deform_sample_project(val, torch.tensor([0]), loc, torch.ones(1, 1, 1, 1), w, b).item()
+        3.0
+    """
+    levels, dims = _check_deform_inputs(values, image_index, locations, weights)
+    check_shape(proj_weight, "proj_weight", ("M", None, "D"), dims)
+    check_dtype(proj_weight, "proj_weight", (levels[0].dtype,), hint=" (must match values)")
+    if proj_bias is not None:
+        check_shape(proj_bias, "proj_bias", ("M", proj_weight.shape[1]), dims)
+        check_dtype(proj_bias, "proj_bias", (levels[0].dtype,), hint=" (must match values)")
+    if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1):
+        raise MSSFError(f"chunk_size: expected a positive int or None, got {chunk_size!r}")
+    q = dims["Q"]
+    step = q if chunk_size is None else chunk_size
+    needs_grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in [locations, weights, proj_weight, proj_bias, *levels]
+    )
+    # One (chunk, level) block at a time: only its corners and one (M, chunk, D) sampled block are
+    # alive; with gradients, each block is recomputed in backward instead of stored.
+    parts = []
+    for start in range(0, max(q, 1), max(step, 1)):
+        sl = slice(start, start + step)
+        acc = None
+        for lvl, val in enumerate(levels):
+            args = (locations[sl, :, lvl : lvl + 1], weights[sl, :, lvl : lvl + 1], image_index[sl],
+                    proj_weight, proj_bias, val)
+            if needs_grad and chunk_size is not None:
+                part = checkpoint(_sample_project_level, *args, use_reentrant=False)
+            else:
+                part = _sample_project_level(*args)
+            acc = part if acc is None else acc + part
+        parts.append(acc)
+    return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
