@@ -28,7 +28,7 @@ import platform
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import torch
 
@@ -246,11 +246,11 @@ def _finite(x):
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--detector", choices=DETECTOR_NAMES, default="pointpillars")
-    ap.add_argument("--steps", type=int, default=None, help="training steps per model (default 300)")
+    ap.add_argument("--steps", type=int, default=None, help="training steps per model (default 500)")
     ap.add_argument("--epochs", type=float, default=None, help="alternative to --steps: passes over the train split")
     ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--lr", type=float, default=3e-3, help="one-cycle peak learning rate")
-    ap.add_argument("--train-scenes", type=int, default=None, help="default 240")
+    ap.add_argument("--train-scenes", type=int, default=None, help="default 400")
     ap.add_argument("--val-scenes", type=int, default=None, help="default 80")
     ap.add_argument("--seed", type=int, default=0, help="scene seed and torch seed")
     ap.add_argument("--fusion-blocks", type=int, default=1, help="n of the fusion model")
@@ -269,11 +269,11 @@ def parse_args(argv=None):
         args.train_scenes = args.train_scenes or 4
         args.val_scenes = args.val_scenes or 4
         args.figure_scenes = min(args.figure_scenes, 2)
-    args.train_scenes = args.train_scenes or 240
+    args.train_scenes = args.train_scenes or 400
     args.val_scenes = args.val_scenes or 80
     if args.steps is None:
         per_epoch = max(args.train_scenes // args.batch_size, 1)
-        args.steps = max(1, round(args.epochs * per_epoch)) if args.epochs is not None else 300
+        args.steps = max(1, round(args.epochs * per_epoch)) if args.epochs is not None else 500
     for name in ("steps", "batch_size", "train_scenes", "val_scenes", "threads"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')}: expected a positive int, got {getattr(args, name)}")
@@ -343,7 +343,7 @@ def main(argv=None) -> int:
     seg, pooled, scores = semantic_scores(fusion_model, val_scenes, args.batch_size)
     figures = {"bev": "bev_val_scenes.png", "blur_curves": "blur_curves.png"}
     plot_bev(args.out / figures["bev"], val_scenes[:k], {m: p[:k] for m, p in preds_by_model.items()},
-             seg[:k], 0.3, preset.pillar_range)
+             seg[:k], 0.15, preset.pillar_range)
     curves = None
     if pooled.n_fore2d > 0:
         curves = blur_curves(scores, pooled)
@@ -383,7 +383,7 @@ def main(argv=None) -> int:
         "figures": figures,
     }
     (args.out / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1))
-    print(f"\nfusion - radar-only mAP (AP3D_R11): " + ", ".join(f"{r} {g:+.2f}" for r, g in gap.items()))
+    print("\nfusion - radar-only mAP (AP3D_R11): " + ", ".join(f"{r} {g:+.2f}" for r, g in gap.items()))
     print(f"total {metrics['timings']['total_seconds']:.0f} s; wrote {args.out}/metrics.json and "
           f"{', '.join(figures.values())}")
     return 0
