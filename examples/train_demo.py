@@ -285,8 +285,19 @@ def parse_args(argv=None):
 def main(argv=None) -> int:
     args = parse_args(argv)
     enable_cpu_backward()  # spconv 2.3 cannot run backward on CPU-only torch without it
+    # Process-wide settings: restore them afterwards so that calling main() (e.g. from tests) leaks nothing.
+    saved = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(),
+             torch.is_deterministic_algorithms_warn_only_enabled())
     torch.set_num_threads(args.threads)
     torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(saved[0])
+        torch.use_deterministic_algorithms(saved[1], warn_only=saved[2])
+
+
+def _run(args) -> int:
     t_start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
 
