@@ -72,7 +72,8 @@ def bilinear_sample(image: Tensor, uv: Tensor, batch_index: Tensor, valid: Optio
 
     Example:
         >>> img = torch.arange(6.0, dtype=torch.float64).view(1, 1, 2, 3)  # (B, C, H, W)
-        >>> uv = torch.tensor([[[0.5 / 3, 0.5 / 2]], [[2.5 / 3, 1.5 / 2]]], dtype=torch.float64)  # centres of pixels (0,0), (1,2)
+        >>> # centres of pixels (y, x) = (0, 0) and (1, 2)
+        >>> uv = torch.tensor([[[0.5 / 3, 0.5 / 2]], [[2.5 / 3, 1.5 / 2]]], dtype=torch.float64)
         >>> bilinear_sample(img, uv, torch.tensor([0, 0])).flatten().tolist()
         [0.0, 5.0]
     """
@@ -104,15 +105,20 @@ def bilinear_sample(image: Tensor, uv: Tensor, batch_index: Tensor, valid: Optio
     if n == 0 or c == 0:
         return out + 0 * uv.sum() if uv.requires_grad else out
     grid = 2.0 * uv - 1.0  # grid_sample's [-1, 1] convention
+    # Group the voxels by image once; one grid_sample per (image, camera) over the points of that
+    # image (O(points) work, no per-voxel Python loop), then one gather back to the input order.
+    order = torch.argsort(batch_index, stable=True)
+    inverse = torch.argsort(order)
+    counts = torch.bincount(batch_index, minlength=b).tolist()
     rows = []
     for cam in range(v):
-        cam_out = image.new_zeros(n, c)
-        for bi in range(b):
-            # One grid_sample per (image, camera) over the points of that image: O(points) work and
-            # no per-voxel Python loop.
-            sel = (batch_index == bi).nonzero(as_tuple=True)[0]
-            if sel.numel() == 0:
+        chunks = []
+        start = 0
+        for bi, cnt in enumerate(counts):
+            if cnt == 0:
                 continue
+            sel = order[start : start + cnt]
+            start += cnt
             s = F.grid_sample(
                 image[bi, cam][None],
                 grid[sel, cam][None, :, None, :],
@@ -120,8 +126,8 @@ def bilinear_sample(image: Tensor, uv: Tensor, batch_index: Tensor, valid: Optio
                 padding_mode="zeros",
                 align_corners=False,
             )  # (1, C, n_i, 1)
-            cam_out = cam_out.index_copy(0, sel, s[0, :, :, 0].t())
-        rows.append(cam_out)
+            chunks.append(s[0, :, :, 0].t())
+        rows.append(torch.cat(chunks, 0)[inverse])
     out = torch.stack(rows, 1)
     if valid is not None:
         # Exact zeros even if the image holds inf/NaN near the replaced point; no gradient either.
@@ -381,7 +387,12 @@ def ms_deform_sample(
 
 
 def _sample_project_level(
-    locations: Tensor, weights: Tensor, image_index: Tensor, proj_weight: Tensor, proj_bias: Optional[Tensor], value: Tensor
+    locations: Tensor,
+    weights: Tensor,
+    image_index: Tensor,
+    proj_weight: Tensor,
+    proj_bias: Optional[Tensor],
+    value: Tensor,
 ) -> Tensor:
     """One level of :func:`ms_deform_sample_project` for ``locations (Q, M, 1, P, 2)``."""
     sampled, mass = _ms_deform_sample_fast([value], image_index, locations, weights, True)
