@@ -290,13 +290,13 @@ class _OrdinaryStage(nn.Module):
 
 def _second_stages(channels: Sequence[int], residual: bool) -> List[_StageSpec]:
     c1, c2, c3, c4 = channels
-    n = 2 if residual else None
     return [
+        # VoxelBackBone8x: one SubM in conv1; VoxelResBackBone8x: two residual blocks
         _StageSpec(c1, None, 2 if residual else 1, residual),
         _StageSpec(c2, dict(stride=2, padding=1), 2, residual),
         _StageSpec(c3, dict(stride=2, padding=1), 2, residual),
-        # no z padding here: with 41 z cells 11 -> 5 (OpenPCDet's VoxelBackBone8x)
-        _StageSpec(c4, dict(stride=2, padding=(0, 1, 1)), 2 if n is None else n, residual),
+        # no z padding here: with 41 z cells 11 -> 5 (OpenPCDet's layout)
+        _StageSpec(c4, dict(stride=2, padding=(0, 1, 1)), 2, residual),
     ]
 
 
