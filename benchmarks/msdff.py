@@ -212,7 +212,7 @@ def main() -> None:
     if args.quick:
         size, size2x, cases, repeats = (608, 976), (864, 1376), [(1000, 32), (3000, 64)], 3
     else:
-        size, size2x, cases, repeats = (1216, 1952), (1728, 2752), [(2500, 32), (8000, 64)], 3
+        size, size2x, cases, repeats = (1216, 1952), (1728, 2752), [(500, 32), (2500, 32), (8000, 64)], 3
     repeats = args.repeats or repeats
     feats, feats2x = make_features(*size), make_features(*size2x, seed=1)
     load = os.getloadavg()
