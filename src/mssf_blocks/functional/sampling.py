@@ -363,7 +363,9 @@ def ms_deform_sample(
 
     Returns:
         ``(Q, M, D)`` sampled values, and ``(Q, M)`` mass if ``return_mass``. Differentiable w.r.t.
-        ``values``, ``locations`` and ``weights``.
+        ``values``, ``locations`` and ``weights``. The fast path returns a transposed view of
+        head-major ``(M, Q, D)`` memory (use ``reshape``, not ``view``, to flatten it); a per-head
+        ``einsum``/``bmm`` reads it without a copy.
 
     Raises:
         MSSFError: naming the argument on mismatched levels (``I``, ``Mv``, ``D``, dtype), shapes,
