@@ -10,7 +10,13 @@ from .geometry import (
 )
 from .heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import bev_shape_for, pillar_lift, voxelize_points, voxels_to_bev, voxels_to_bev_sparse
-from .sampling import bilinear_sample, camera_mean, ms_deform_sample, ms_deform_sample_reference
+from .sampling import (
+    bilinear_sample,
+    camera_mean,
+    ms_deform_sample,
+    ms_deform_sample_project,
+    ms_deform_sample_reference,
+)
 
 __all__ = [
     "Projection",
@@ -23,6 +29,7 @@ __all__ = [
     "camera_mean",
     "ms_deform_sample",
     "ms_deform_sample_reference",
+    "ms_deform_sample_project",
     "points_in_boxes",
     "sigmoid_focal_loss",
     "voxel_foreground_labels",
