@@ -17,45 +17,21 @@ Usage: ``python benchmarks/centroids.py [--frames 8] [--points 40000] [--repeats
 from __future__ import annotations
 
 import argparse
-import gc
 import json
-import os
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
 
 from mssf_blocks.functional.geometry import voxel_centers, voxel_centroids
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import measure, reexec_with_mmap_threshold  # noqa: E402
+
 VOXEL = (0.05, 0.05, 0.125)
 LO = (0.0, -25.6, -3.0)
 HI = (51.2, 25.6, 2.0)
 BASE_SHAPE = (41, 1024, 1024)  # ceil(5 / 0.125) = 40 -> OpenPCDet pads z to 41
-
-
-def _proc_kb(field: str) -> int:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1])
-    raise RuntimeError(f"{field} not in /proc/self/status")
-
-
-def measure(fn, repeats: int):
-    """Median wall time over ``repeats`` runs (after one warm-up) and peak extra RSS in MiB."""
-    fn()
-    times, peaks = [], []
-    for _ in range(repeats):
-        gc.collect()
-        Path("/proc/self/clear_refs").write_text("5")  # reset VmHWM to the current RSS
-        before = _proc_kb("VmRSS")
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-        peaks.append((_proc_kb("VmHWM") - before) / 1024.0)
-        del out
-    return statistics.median(times), max(peaks)
 
 
 def make_frames(frames: int, points: int, seed: int = 0):
@@ -103,9 +79,7 @@ def dense_table_centroids(points, batch, coords, shape, frames, stride):
 
 
 def main(argv=None) -> int:
-    if os.environ.get("MALLOC_MMAP_THRESHOLD_") != "65536":
-        env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
-        os.execve(sys.executable, [sys.executable, *sys.argv], env)
+    reexec_with_mmap_threshold()
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--points", type=int, default=40_000)
