@@ -1,0 +1,453 @@
+"""Train and evaluate the MSSF example detectors on a View-of-Delft or TJ4DRadSet download.
+
+Run from the repository root (``examples/`` must be on the import path)::
+
+    PYTHONPATH=examples python -m mssf_examples train --dataset vod --data-root /data/view_of_delft \\
+        --detector pointpillars --out outputs/vod_pointpillars
+    PYTHONPATH=examples python -m mssf_examples eval --checkpoint outputs/vod_pointpillars/checkpoint.pt \\
+        --data-root /data/view_of_delft --split val --out outputs/vod_pointpillars/val
+
+``train`` reads the ``--split`` frames with :class:`~mssf_examples.kitti_io.KittiFormatDataset`, trains
+with :func:`mssf_examples.training.train_detector` and writes ``<out>/checkpoint.pt`` and
+``<out>/config.json``; with ``--val-split`` it then evaluates like ``eval`` into ``<out>/eval_<split>/``.
+``eval`` writes ``<out>/predictions/<frame id>.txt`` (KITTI format, score last; an empty file for a frame
+without detections) for every frame and, when the split has labels, prints the VoD-protocol table
+(entire annotated area and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and writes
+``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import torch
+import torch.nn.functional as F
+
+from mssf_blocks.errors import MSSFError
+
+from .detectors import DETECTOR_NAMES, build_detector
+from .evaluation import DEFAULT_REGIONS, TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
+from .kitti_export import kitti_lines, write_kitti_file
+from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch
+from .presets import TJ4D, VOD, DetectorPreset, tiny_preset
+from .training import batch_order, load_checkpoint, predict, save_checkpoint, train_detector
+
+__all__ = ["DatasetSpec", "DATASETS", "cli_tiny_preset", "build_parser", "main"]
+
+PROG = "python -m mssf_examples"
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """What ``--dataset`` selects."""
+
+    point_format: PointFormat
+    preset: DetectorPreset
+    default_sensor: Optional[str]
+    iou_thresholds: Dict[str, float]
+
+    @property
+    def class_names(self) -> Tuple[str, ...]:
+        return self.preset.class_names
+
+
+#: ``vod``: VoD release layout, radar (5 scans by default, as in the paper), classes Car / Pedestrian /
+#: Cyclist. ``tj4d``: KITTI layout (``training/`` under the root), classes Car / Pedestrian / Cyclist / Truck.
+DATASETS: Dict[str, DatasetSpec] = {
+    "vod": DatasetSpec(VOD_RADAR, VOD, "radar_5frames", VOD_IOU_THRESHOLDS),
+    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS),
+}
+
+
+def cli_tiny_preset(base: DetectorPreset, image_size: Tuple[int, int]) -> DetectorPreset:
+    """:func:`~mssf_examples.presets.tiny_preset` widths over ``base``'s full range (CPU smoke runs).
+
+    Voxels ``(0.4, 0.4, base z)`` and pillars ``(0.32, 0.32)`` m, which divide both datasets' ranges
+    (VoD 128 x 128 / 160 x 160 cells, TJ4D 176 x 200 / 216 x 248). Not from the paper.
+    """
+    return tiny_preset(base, name=f"tiny-{base.name}", point_cloud_range=base.point_cloud_range,
+                       pillar_range=base.pillar_range, voxel_size=(0.4, 0.4, base.voxel_size[2]),
+                       pillar_size=(0.32, 0.32), image_size=tuple(int(s) for s in image_size))
+
+
+# --------------------------------------------------------------------------------------------------
+# Arguments
+# --------------------------------------------------------------------------------------------------
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive int, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive int, got {v}")
+    return v
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an int >= 0, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an int >= 0, got {v}")
+    return v
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {v}")
+    return v
+
+
+def _unit_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {v}")
+    return v
+
+
+def _sensor(text: str) -> Optional[str]:
+    return None if text.lower() in ("none", "") else text
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data-root", type=Path, help="dataset root (the folder holding radar_5frames/ for VoD, "
+                                                  "training/ for TJ4DRadSet)")
+    p.add_argument("--sensor", type=_sensor, default=argparse.SUPPRESS,
+                   help="sensor sub-folder (VoD: radar, radar_3frames, radar_5frames [default]; 'none' for a "
+                        "root holding training/ directly, the TJ4DRadSet default)")
+    p.add_argument("--batch-size", type=_positive_int, default=argparse.SUPPRESS, help="frames per batch (default 4)")
+    p.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--workers", type=_non_negative_int, default=0,
+                   help="data-loading worker processes (default 0: load in the main process)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=PROG, description="Train / evaluate MSSF example detectors on KITTI-format "
+                                 "radar + camera datasets (View-of-Delft, TJ4DRadSet).")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="{train,eval}")
+
+    t = sub.add_parser("train", help="train a detector, save a checkpoint", description="Train a detector on "
+                       "the --split frames and save <out>/checkpoint.pt and <out>/config.json.")
+    t.add_argument("--dataset", choices=tuple(DATASETS), required=True)
+    _common(t)
+    t.add_argument("--split", default="train", help="ImageSets split to train on (default train)")
+    t.add_argument("--val-split", default=None, help="also evaluate this split after training (e.g. val)")
+    t.add_argument("--detector", choices=DETECTOR_NAMES, default="pointpillars")
+    t.add_argument("--fusion-blocks", type=_non_negative_int, default=2,
+                   help="n fusion blocks (paper default 2; 0 = radar only)")
+    t.add_argument("--fusion", choices=("msdff", "sff"), default="msdff")
+    t.add_argument("--preset", choices=("paper", "tiny"), default="paper",
+                   help="paper: the dataset's paper preset; tiny: few channels and coarse voxels for CPU smoke runs")
+    t.add_argument("--train-image-branch", action="store_true",
+                   help="train the image branch (the paper's is pre-trained and frozen)")
+    t.add_argument("--image-weights", type=Path, default=None,
+                   help="state_dict of mssf_examples.image_branch.ImageBranch to start the image branch from")
+    t.add_argument("--image-scale", type=_positive_float, default=1.0,
+                   help="resize images by this factor before the image branch (lidar2img is scaled to match)")
+    t.add_argument("--epochs", type=_positive_float, default=80.0, help="passes over the split (default 80)")
+    t.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (overrides --epochs)")
+    t.add_argument("--lr", type=_positive_float, default=3e-3, help="one-cycle peak learning rate (default 3e-3)")
+    t.add_argument("--seed", type=_non_negative_int, default=0, help="initialisation and data-order seed")
+    t.add_argument("--score-threshold", type=_unit_float, default=0.1, help="detections kept in eval (default 0.1)")
+    t.add_argument("--out", type=Path, required=True, help="output folder")
+
+    e = sub.add_parser("eval", help="write KITTI prediction files and VoD-protocol metrics",
+                       description="Predict every frame of --split, write <out>/predictions/<id>.txt and, with "
+                       "labels, print the VoD-protocol table and write <out>/metrics.json.")
+    e.add_argument("--checkpoint", type=Path, required=True, help="checkpoint.pt written by train")
+    _common(e)
+    e.add_argument("--split", default="val", help="ImageSets split (val, test, ...; default val)")
+    e.add_argument("--score-threshold", type=_unit_float, default=None,
+                   help="detections kept (default: the training run's, 0.1)")
+    e.add_argument("--out", type=Path, default=None, help="output folder (default: <checkpoint dir>/eval_<split>)")
+    return ap
+
+
+# --------------------------------------------------------------------------------------------------
+# Data
+# --------------------------------------------------------------------------------------------------
+def _open_dataset(ap: argparse.ArgumentParser, root: Path, spec: DatasetSpec, sensor: Optional[str],
+                  split: str) -> KittiFormatDataset:
+    if not root.is_dir():
+        ap.error(f"--data-root: expected an existing dataset folder, got {root} (not found)")
+    try:
+        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=split, class_names=spec.class_names)
+    except (FileNotFoundError, MSSFError) as exc:
+        ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}")
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+class _Frames(torch.utils.data.Dataset):
+    """Frames of a :class:`KittiFormatDataset` for a ``DataLoader`` (labels optional)."""
+
+    def __init__(self, ds: KittiFormatDataset, with_labels: bool) -> None:
+        self.ds, self.with_labels = ds, with_labels
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def __getitem__(self, i: int) -> Frame:
+        return self.ds.load(self.ds.frame_ids[i], with_labels=self.with_labels)
+
+
+def scale_batch(batch, scale: float):
+    """Resize a batch's images by ``scale`` and map ``lidar2img`` to the resized pixels.
+
+    With pixel ``i``'s centre at ``i`` and edges kept aligned, ``u' = (u + 0.5) s_x - 0.5`` where
+    ``s_x = W' / W`` (the same for ``v``), i.e. ``lidar2img' = S @ lidar2img`` with
+    ``S = [[s_x, 0, (s_x - 1) / 2], [0, s_y, (s_y - 1) / 2], [0, 0, 1]]``.
+    """
+    if scale == 1.0:
+        return batch
+    b, v, c, h, w = batch.images.shape
+    nh, nw = max(1, round(h * scale)), max(1, round(w * scale))
+    images = F.interpolate(batch.images.flatten(0, 1), size=(nh, nw), mode="bilinear", align_corners=False,
+                           antialias=nh < h).unflatten(0, (b, v))
+    sx, sy = nw / w, nh / h
+    s = torch.tensor([[sx, 0.0, (sx - 1) / 2], [0.0, sy, (sy - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    lidar2img = (s @ batch.lidar2img.to(torch.float64)).to(batch.lidar2img.dtype)
+    return dataclasses.replace(batch, images=images, lidar2img=lidar2img, image_size=None)
+
+
+def _loader(frames: _Frames, batches: Sequence[Sequence[int]], workers: int, collate):
+    return torch.utils.data.DataLoader(frames, batch_sampler=batches, num_workers=workers, collate_fn=collate)
+
+
+# --------------------------------------------------------------------------------------------------
+# Config <-> preset
+# --------------------------------------------------------------------------------------------------
+def _tuples(x):
+    return tuple(_tuples(v) for v in x) if isinstance(x, (list, tuple)) else x
+
+
+def _preset_to_json(p: DetectorPreset) -> Dict:
+    return {f.name: getattr(p, f.name) for f in dataclasses.fields(p)}
+
+
+def _preset_from_json(d: Dict) -> DetectorPreset:
+    return DetectorPreset(**{k: _tuples(v) for k, v in d.items()})
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+# --------------------------------------------------------------------------------------------------
+# Commands
+# --------------------------------------------------------------------------------------------------
+def _set_progress(enabled: bool) -> None:
+    from . import training
+
+    if not enabled:
+        training.tqdm = lambda it=None, **kw: it if it is not None else _NullBar()  # type: ignore[assignment]
+
+
+class _NullBar:
+    def update(self, n=1):
+        pass
+
+    def set_postfix(self, **kw):
+        pass
+
+    def close(self):
+        pass
+
+
+def _train(ap: argparse.ArgumentParser, args) -> int:
+    spec = DATASETS[args.dataset]
+    sensor = args.sensor if "sensor" in args else spec.default_sensor
+    batch_size = getattr(args, "batch_size", 4)
+    if args.data_root is None:
+        ap.error("--data-root: required for train")
+    if args.fusion_blocks > 4:
+        ap.error(f"--fusion-blocks: expected 0..4 (0..3 for pointpillars), got {args.fusion_blocks}")
+    if args.detector == "pointpillars" and args.fusion_blocks > 3:
+        ap.error(f"--fusion-blocks: expected 0..3 for pointpillars (three 2D blocks), got {args.fusion_blocks}")
+    if args.image_weights is not None and not args.image_weights.is_file():
+        ap.error(f"--image-weights: file not found: {args.image_weights}")
+    ds = _open_dataset(ap, args.data_root, spec, sensor, args.split)
+    if len(ds) == 0:
+        ap.error(f"--split {args.split}: no frames in {ds.data_dir}")
+    if ds.label_dir is None:
+        ap.error(f"--data-root {args.data_root}: training needs labels, found no label_2/ folder near {ds.data_dir}")
+    if batch_size > len(ds):
+        ap.error(f"--batch-size: expected <= {len(ds)} (frames in split {args.split!r}), got {batch_size}")
+    val_ds = _open_dataset(ap, args.data_root, spec, sensor, args.val_split) if args.val_split else None
+    per_epoch = len(ds) // batch_size
+    steps = args.steps if args.steps is not None else max(1, round(args.epochs * per_epoch))
+
+    first = ds.load(ds.frame_ids[0], with_labels=False)
+    h, w = first.image_size
+    image_size = (max(1, round(h * args.image_scale)), max(1, round(w * args.image_scale)))
+    base = spec.preset if args.preset == "paper" else cli_tiny_preset(spec.preset, image_size)
+    preset = dataclasses.replace(base, image_size=image_size,
+                                 freeze_image_branch=base.freeze_image_branch and not args.train_image_branch)
+    torch.manual_seed(args.seed)
+    model = build_detector(args.detector, preset, num_fusion_blocks=args.fusion_blocks, fusion=args.fusion,
+                           score_threshold=args.score_threshold)
+    if args.image_weights is not None and model.image_branch is not None:
+        model.image_branch.load_state_dict(torch.load(args.image_weights, map_location="cpu", weights_only=True))
+
+    config = dict(
+        command="train", dataset=args.dataset, data_root=str(args.data_root), sensor=sensor, split=args.split,
+        detector=args.detector, fusion_blocks=args.fusion_blocks, fusion=args.fusion, preset_name=args.preset,
+        image_scale=args.image_scale, train_image_branch=args.train_image_branch,
+        image_weights=None if args.image_weights is None else str(args.image_weights), steps=steps,
+        epochs=steps * batch_size / len(ds), batch_size=batch_size, lr=args.lr, seed=args.seed,
+        score_threshold=args.score_threshold, num_frames=len(ds), preset=_preset_to_json(preset),
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    order = batch_order(len(ds), batch_size, steps, args.seed)
+    collate = _Collate(args.image_scale)
+    print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} frames "
+          f"of {ds!r}: {steps} steps of {batch_size}", file=sys.stderr)
+    log = train_detector(model, _loader(_Frames(ds, True), order, args.workers, collate), steps, args.lr,
+                         desc=f"train {args.detector}")
+    config["train_seconds"] = log["seconds"]
+    config["final_loss"] = log["history"][-1]
+    ckpt = save_checkpoint(args.out / "checkpoint.pt", model, _jsonable(config))
+    (args.out / "config.json").write_text(json.dumps(_jsonable(config), indent=1))
+    (args.out / "train_log.json").write_text(json.dumps(_jsonable(log["history"])))
+    print(f"wrote {ckpt} and {args.out / 'config.json'} ({log['seconds']:.1f} s, final loss "
+          f"{log['history'][-1]['loss']:.4f})", file=sys.stderr)
+    if val_ds is not None:
+        _evaluate(model, config, val_ds, args.out / f"eval_{args.val_split}", batch_size, args.workers, ckpt)
+    return 0
+
+
+class _Collate:
+    """Picklable ``collate_fn``: frames -> batch (scaled)."""
+
+    def __init__(self, scale: float) -> None:
+        self.scale = scale
+
+    def __call__(self, frames: List[Frame]):
+        return scale_batch(frames_to_batch(frames), self.scale)
+
+
+class _CollateWithFrames(_Collate):
+    def __call__(self, frames: List[Frame]):
+        return super().__call__(frames), frames
+
+
+def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size: int, workers: int,
+              checkpoint: Path) -> Dict:
+    """Predict ``ds``, write prediction files and (with labels) metrics; returns the metrics dict."""
+    spec = DATASETS[config["dataset"]]
+    with_labels = ds.label_dir is not None and all(ds.paths(i).label.is_file() for i in ds.frame_ids)
+    pred_dir = out / "predictions"
+    pred_dir.mkdir(parents=True, exist_ok=True)
+    chunks = [list(range(i, min(i + batch_size, len(ds)))) for i in range(0, len(ds), batch_size)]
+    loader = _loader(_Frames(ds, with_labels), chunks, workers, _CollateWithFrames(config.get("image_scale", 1.0)))
+    t0 = time.perf_counter()
+    preds: List[Dict] = []
+    gts: List[Dict] = []
+    frames_seen: List[Frame] = []
+
+    def batches():
+        for batch, frames in loader:
+            frames_seen.extend(frames)
+            yield batch
+
+    for p in predict(model, batches(), total=len(chunks), desc="eval"):
+        preds.append(p)
+    num_det = 0
+    for frame, p in zip(frames_seen, preds):
+        lines = kitti_lines(p["boxes"], p["labels"], spec.class_names, frame.calib, frame.image_size,
+                            scores=p["scores"].double())
+        num_det += len(lines)
+        write_kitti_file(pred_dir / f"{frame.frame_id}.txt", lines)
+        if with_labels:
+            gts.append(dict(boxes=frame.gt_boxes, labels=frame.gt_labels, lidar2cam=frame.calib.sensor_to_camera))
+    seconds = time.perf_counter() - t0
+    print(f"wrote {len(frames_seen)} prediction files ({num_det} detections) to {pred_dir}", file=sys.stderr)
+    metrics: Dict = dict(split=ds.split, num_frames=len(frames_seen), num_detections=num_det,
+                         predictions=str(pred_dir), checkpoint=str(checkpoint), predict_seconds=seconds,
+                         config=config, environment=dict(torch=torch.__version__, python=platform.python_version(),
+                                                         threads=torch.get_num_threads()))
+    if with_labels:
+        results = evaluate(preds, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, regions=DEFAULT_REGIONS)
+        name = f"{config['detector']} n={config['fusion_blocks']}"
+        table = "\n\n".join(format_table({name: results}, metric=m) for m in ("AP3D_R11", "APBEV_R11"))
+        print("\n" + table)
+        metrics.update(results=results, table=table, num_gt=sum(len(g["labels"]) for g in gts))
+        (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1))
+        print(f"\nwrote {out / 'metrics.json'}", file=sys.stderr)
+    else:
+        print(f"split {ds.split!r} has no labels: wrote predictions only", file=sys.stderr)
+    return metrics
+
+
+def _eval(ap: argparse.ArgumentParser, args) -> int:
+    try:
+        state, config = load_checkpoint(args.checkpoint)
+    except (FileNotFoundError, MSSFError) as exc:
+        ap.error(f"--checkpoint: {exc}")
+    spec = DATASETS.get(config.get("dataset"))
+    if spec is None:
+        ap.error(f"--checkpoint {args.checkpoint}: unknown dataset {config.get('dataset')!r} in its config")
+    root = args.data_root if args.data_root is not None else Path(config["data_root"])
+    sensor = args.sensor if "sensor" in args else config.get("sensor", spec.default_sensor)
+    batch_size = getattr(args, "batch_size", config.get("batch_size", 4))
+    ds = _open_dataset(ap, root, spec, sensor, args.split)
+    preset = _preset_from_json(config["preset"])
+    thr = args.score_threshold if args.score_threshold is not None else config.get("score_threshold", 0.1)
+    model = build_detector(config["detector"], preset, num_fusion_blocks=config["fusion_blocks"],
+                           fusion=config["fusion"], score_threshold=thr)
+    model.load_state_dict(state)
+    config = dict(config, score_threshold=thr)
+    out = args.out if args.out is not None else args.checkpoint.parent / f"eval_{args.split}"
+    _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint)
+    return 0
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Entry point of ``python -m mssf_examples``; returns the exit code (argparse errors exit with 2)."""
+    ap = build_parser()
+    args = ap.parse_args(None if argv is None else list(argv))
+    sub = ap._subparsers._group_actions[0].choices[args.command]  # the sub-command's parser, for its errors
+    from .spconv_compat import enable_cpu_backward
+
+    enable_cpu_backward()  # spconv 2.3 cannot run backward on CPU-only torch without it
+    saved_threads = torch.get_num_threads()
+    saved_tqdm = None
+    from . import training
+
+    saved_tqdm = training.tqdm
+    _set_progress(not args.no_progress)
+    torch.set_num_threads(args.threads)
+    try:
+        return _train(sub, args) if args.command == "train" else _eval(sub, args)
+    finally:
+        torch.set_num_threads(saved_threads)
+        training.tqdm = saved_tqdm
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
