@@ -103,7 +103,7 @@ def kitti_lines(
         nums = [float(alpha[i]), *box2d[i].tolist(), *hwl[i].tolist(), *loc[i].tolist(), float(ry[i])]
         line = f"{names[i]} {truncated:.2f} {int(occluded)} " + " ".join(f"{v:.6f}" for v in nums)
         if scores is not None:
-            line += f" {float(scores[i]):.6f}"
+            line += f" {float(scores[i]):.9g}"  # float32 scores exactly: the order (and ties) survive
         lines.append(line)
     return lines
 

@@ -1,0 +1,337 @@
+"""The train/eval CLI (``python -m mssf_examples``) end to end on a tiny VoD-layout tree the test writes.
+
+The tree holds generated scenes (:mod:`mssf_examples.scenes`) saved with
+:func:`mssf_examples.kitti_export.write_vod_tree`; no licensed frames are used.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("spconv")
+pytest.importorskip("PIL")
+
+from mssf_examples import cli  # noqa: E402
+from mssf_examples.evaluation import evaluate  # noqa: E402
+from mssf_examples.kitti_export import kitti_lines, scene_calibration, write_kitti_file, write_vod_tree  # noqa: E402
+from mssf_examples.kitti_io import (  # noqa: E402
+    VOD_CLASSES,
+    VOD_RADAR,
+    Calibration,
+    KittiFormatDataset,
+    camera_boxes_to_sensor,
+    parse_labels,
+    read_calibration,
+)
+from mssf_examples.scenes import SceneConfig, SyntheticDataset  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+SIZE = (64, 104)
+
+
+def wrap(a):
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory):
+    cfg = SceneConfig(image_size=SIZE)
+    train = [SyntheticDataset("train", 4, cfg, seed=3)[i] for i in range(4)]
+    val = [SyntheticDataset("val", 2, cfg, seed=3)[i] for i in range(2)]
+    root = tmp_path_factory.mktemp("vod")
+    ids = write_vod_tree(root, {"train": train, "val": val})
+    return root, ids, {"train": train, "val": val}
+
+
+# ---------------------------------------------------------------------------------------------------
+# (1) the written tree reads back as the scenes
+# ---------------------------------------------------------------------------------------------------
+def test_tree_reads_back_as_the_scenes(tree):
+    root, ids, scenes = tree
+    assert ids == {"train": ["00000", "00001", "00002", "00003"], "val": ["00004", "00005"]}
+    for split in ("train", "val"):
+        ds = KittiFormatDataset(root, VOD_RADAR, sensor="radar_5frames", split=split)
+        assert ds.layout == "nested" and ds.frame_ids == ids[split]
+        for frame, scene in zip(ds, scenes[split]):
+            assert torch.equal(frame.points, scene.points)
+            assert frame.raw_points.shape[1] == 7
+            torch.testing.assert_close(frame.lidar2img, scene.lidar2img, rtol=0, atol=1e-5)
+            assert frame.image_size == SIZE
+            # 8-bit PNG: within half a quantisation step
+            assert (frame.image.double() / 255 - scene.image.double()).abs().max() <= 0.5 / 255 + 1e-6
+            g = scene.gt_boxes.double()
+            assert torch.equal(frame.gt_labels, scene.gt_labels)
+            assert frame.gt_boxes.shape == g.shape
+            torch.testing.assert_close(frame.gt_boxes[:, :6], g[:, :6], rtol=0, atol=1e-5)
+            assert wrap(frame.gt_boxes[:, 6] - g[:, 6]).abs().max() < 1e-5
+            # clutter lines are written as another VoD type and are not evaluated
+            others = [n for n, lab in zip(frame.objects.names, frame.labels.tolist()) if lab < 0]
+            assert others == ["bicycle_rack"] * len(scene.clutter_boxes)
+
+
+def test_tree_calibration_files(tree):
+    root, ids, scenes = tree
+    calib = read_calibration(root / "radar_5frames" / "training" / "calib" / "00004.txt")
+    s = scenes["val"][0]
+    np.testing.assert_allclose(calib.P2[:, :3].numpy(), s.intrinsics.numpy(), rtol=0, atol=1e-12)
+    assert calib.P2[:, 3].abs().max() == 0
+    np.testing.assert_allclose(calib.Tr_velo_to_cam.numpy(), s.sensor_to_camera[:3].numpy(), rtol=0, atol=1e-12)
+    assert torch.equal(calib.R0_rect, torch.eye(3, dtype=torch.float64))
+
+
+# ---------------------------------------------------------------------------------------------------
+# (2) prediction files: parse back with the reader, compare with the boxes; 2D box by hand
+# ---------------------------------------------------------------------------------------------------
+def _tilted_calib() -> Calibration:
+    """Camera pitched down by 6 degrees and yawed by 2, like VoD's radar extrinsics; KITTI-like P2."""
+    def rot(axis, deg):
+        c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+        m = np.eye(3)
+        i, j = [(1, 2), (0, 2), (0, 1)][axis]
+        m[i, i], m[i, j], m[j, i], m[j, j] = c, -s, s, c
+        return m
+
+    perm = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    r = rot(0, 6.0) @ rot(1, 2.0) @ perm
+    tr = np.concatenate([r, np.array([[0.05], [0.9], [1.4]])], 1)
+    p2 = np.array([[700.0, 0.0, 600.0, 45.0], [0.0, 700.0, 180.0, -0.3], [0.0, 0.0, 1.0, 0.005]])
+    return Calibration(P2=torch.tensor(p2), R0_rect=torch.tensor(rot(1, 0.5)), Tr_velo_to_cam=torch.tensor(tr))
+
+
+def _hand_corners_cam(loc, hwl, ry):
+    """KITTI label box corners in the camera frame (numpy, from the label definition)."""
+    h, w, l = hwl
+    out = []
+    for sx in (1, -1):
+        for sz in (1, -1):
+            for y in (0.0, -h):
+                x, z = sx * l / 2, sz * w / 2
+                out.append([math.cos(ry) * x + math.sin(ry) * z + loc[0], y + loc[1],
+                            -math.sin(ry) * x + math.cos(ry) * z + loc[2]])
+    return np.array(out)
+
+
+@pytest.mark.parametrize("calib_kind", ["scene", "tilted"])
+def test_prediction_file_round_trip(tree, tmp_path, calib_kind):
+    root, ids, scenes = tree
+    calib = scene_calibration(scenes["val"][0]) if calib_kind == "scene" else _tilted_calib()
+    size = SIZE if calib_kind == "scene" else (375, 1242)
+    g = torch.Generator().manual_seed(1)
+    k = 7
+    boxes = torch.cat([torch.rand(k, 1, generator=g, dtype=torch.float64) * 30 + 4,
+                       (torch.rand(k, 1, generator=g, dtype=torch.float64) - 0.5) * 16,
+                       torch.rand(k, 1, generator=g, dtype=torch.float64) * 2 - 1.5,
+                       torch.rand(k, 3, generator=g, dtype=torch.float64) * 3 + 0.4,
+                       (torch.rand(k, 1, generator=g, dtype=torch.float64) - 0.5) * 2 * math.pi], 1)
+    labels = torch.tensor([0, 1, 2, 0, 1, 2, 0])
+    scores = torch.rand(k, generator=g, dtype=torch.float64)
+    path = write_kitti_file(tmp_path / "00042.txt", kitti_lines(boxes, labels, VOD_CLASSES, calib, size, scores=scores))
+    text = path.read_text()
+    assert text.endswith("\n") and all(len(line.split()) == 16 for line in text.splitlines())
+    obj = parse_labels(text)
+    assert obj.names == [VOD_CLASSES[i] for i in labels.tolist()]
+    assert obj.truncation.eq(-1).all() and obj.occlusion.eq(-1).all()
+    torch.testing.assert_close(obj.score, scores, rtol=0, atol=1e-6)
+    back = camera_boxes_to_sensor(obj.location, obj.dimensions, obj.rotation_y, calib)
+    torch.testing.assert_close(back[:, :6], boxes[:, :6], rtol=0, atol=1e-5)
+    assert wrap(back[:, 6] - boxes[:, 6]).abs().max() < 1e-5
+    # dims h w l = dz dy dx
+    torch.testing.assert_close(obj.dimensions, boxes[:, [5, 4, 3]], rtol=0, atol=1e-6)
+    p2 = calib.P2.numpy()
+    r0 = np.eye(4)
+    r0[:3, :3] = calib.R0_rect.numpy()
+    h_img, w_img = size
+    for i in range(k):
+        loc, hwl, ry = obj.location[i].numpy(), obj.dimensions[i].numpy(), float(obj.rotation_y[i])
+        # alpha = ry - atan2(x, z) of the box centre (camera frame)
+        expect_alpha = wrap(torch.tensor(ry - math.atan2(loc[0], loc[2]))).item()
+        assert abs(wrap(torch.tensor(float(obj.alpha[i]) - expect_alpha)).item()) < 1e-5
+        corners = _hand_corners_cam(loc, hwl, ry)  # rectified camera frame
+        hom = np.concatenate([corners, np.ones((8, 1))], 1) @ p2.T
+        if (hom[:, 2] <= 1e-5).any():
+            assert obj.boxes_2d[i].abs().max() == 0
+            continue
+        uv = hom[:, :2] / hom[:, 2:]
+        ref = [np.clip(uv[:, 0].min(), 0, w_img - 1), np.clip(uv[:, 1].min(), 0, h_img - 1),
+               np.clip(uv[:, 0].max(), 0, w_img - 1), np.clip(uv[:, 1].max(), 0, h_img - 1)]
+        np.testing.assert_allclose(obj.boxes_2d[i].numpy(), ref, rtol=0, atol=1e-4)
+    # no detections -> an empty file (official kits expect one file per frame)
+    empty = write_kitti_file(tmp_path / "00043.txt", kitti_lines(torch.zeros(0, 7), torch.zeros(0, dtype=torch.long),
+                                                                  VOD_CLASSES, calib, size, scores=torch.zeros(0)))
+    assert empty.read_text() == ""
+
+
+def test_scale_batch_maps_pixels_with_the_image(tree):
+    """A 2x2 bright block at pixels (2i..2i+1, 2j..2j+1) lands on pixel (i, j) of the half-size image,
+    and the scaled lidar2img projects the block centre's 3D point there."""
+    from mssf_examples.data import RadarCameraBatch
+
+    h, w = 32, 48
+    img = torch.zeros(1, 1, 3, h, w)
+    bi, bj = 7, 10  # half-size pixel (row, col)
+    img[..., 2 * bi:2 * bi + 2, 2 * bj:2 * bj + 2] = 1.0
+    k = torch.tensor([[40.0, 0, 23.5], [0, 40.0, 15.5], [0, 0, 1]], dtype=torch.float64)
+    l2i = torch.cat([k, torch.zeros(3, 1, dtype=torch.float64)], 1)
+    u, v, d = 2 * bj + 0.5, 2 * bi + 0.5, 5.0  # the block centre in full-size pixels, at depth 5
+    p = torch.linalg.solve(k, torch.tensor([u * d, v * d, d], dtype=torch.float64))
+    batch = RadarCameraBatch(points=[torch.zeros(1, 3)], lidar2img=l2i.float()[None, None], images=img)
+    out = cli.scale_batch(batch, 0.5)
+    assert out.image_size == (16, 24)
+    flat = out.images[0, 0, 0]
+    assert divmod(int(flat.argmax()), 24) == (bi, bj)
+    q = out.lidar2img[0, 0].double() @ torch.cat([p, torch.ones(1, dtype=torch.float64)])
+    torch.testing.assert_close(q[:2] / q[2], torch.tensor([bj, bi], dtype=torch.float64), rtol=0, atol=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------------
+# (3) end to end: train 3 steps, eval, files; and the documented module invocation
+# ---------------------------------------------------------------------------------------------------
+def _train_args(root, out, *extra):
+    return ["train", "--dataset", "vod", "--data-root", str(root), "--preset", "tiny", "--steps", "3",
+            "--batch-size", "2", "--threads", "1", "--no-progress", "--out", str(out), *extra]
+
+
+@pytest.fixture(scope="module")
+def trained(tree, tmp_path_factory):
+    root, ids, scenes = tree
+    out = tmp_path_factory.mktemp("run")
+    assert cli.main(_train_args(root, out, "--fusion-blocks", "1")) == 0
+    return out
+
+
+def test_train_writes_checkpoint_and_config(trained):
+    assert (trained / "checkpoint.pt").is_file()
+    cfg = json.loads((trained / "config.json").read_text())
+    assert cfg["dataset"] == "vod" and cfg["sensor"] == "radar_5frames" and cfg["steps"] == 3
+    assert cfg["preset"]["image_size"] == list(SIZE)
+    assert cfg["preset"]["class_names"] == list(VOD_CLASSES)
+    assert math.isfinite(cfg["final_loss"]["loss"])
+
+
+def test_train_is_deterministic(tree, trained, tmp_path):
+    root, _, _ = tree
+    assert cli.main(_train_args(root, tmp_path, "--fusion-blocks", "1")) == 0
+    a = json.loads((trained / "train_log.json").read_text())
+    b = json.loads((tmp_path / "train_log.json").read_text())
+    assert a == b
+
+
+def test_eval_writes_one_prediction_file_per_frame_and_metrics(tree, trained, tmp_path, capsys):
+    root, ids, scenes = tree
+    out = tmp_path / "eval"
+    assert cli.main(["eval", "--checkpoint", str(trained / "checkpoint.pt"), "--data-root", str(root), "--split", "val",
+                     "--score-threshold", "0", "--threads", "1", "--no-progress", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "Entire annotated area" in printed and "Driving corridor" in printed
+    files = sorted(p.stem for p in (out / "predictions").glob("*.txt"))
+    assert files == ids["val"]
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["results"]) == {"entire_area", "driving_corridor"}
+    assert m["num_frames"] == 2 and m["num_gt"] == sum(len(s.gt_labels) for s in scenes["val"])
+    # Independent re-evaluation from the written files: parse, convert to the sensor frame, evaluate.
+    preds, gts = [], []
+    ds = KittiFormatDataset(root, VOD_RADAR, sensor="radar_5frames", split="val")
+    total = 0
+    for frame in ds:
+        obj = parse_labels((out / "predictions" / f"{frame.frame_id}.txt").read_text())
+        total += len(obj)
+        assert obj.score is not None or len(obj) == 0
+        boxes = camera_boxes_to_sensor(obj.location, obj.dimensions, obj.rotation_y, frame.calib)
+        preds.append(dict(boxes=boxes, labels=torch.tensor([VOD_CLASSES.index(n) for n in obj.names], dtype=torch.long),
+                          scores=obj.score if obj.score is not None else torch.zeros(0, dtype=torch.float64)))
+        gts.append(dict(boxes=frame.gt_boxes, labels=frame.gt_labels, lidar2cam=frame.calib.sensor_to_camera))
+    assert total == m["num_detections"] > 0  # score threshold 0 keeps up to 100 per frame
+    again = evaluate(preds, gts, VOD_CLASSES)
+    for region in again:
+        for cls, vals in again[region].items():
+            for key, v in vals.items():
+                ref = m["results"][region][cls][key]
+                if isinstance(v, float) and math.isnan(v):
+                    assert ref is None
+                else:
+                    assert abs(v - ref) < 1e-6, (region, cls, key, v, ref)
+
+
+def test_train_with_val_split_and_unlabelled_split(tree, tmp_path):
+    root, ids, _ = tree
+    assert cli.main(_train_args(root, tmp_path, "--fusion-blocks", "0", "--detector", "centerpoint",
+                                "--val-split", "val")) == 0
+    assert sorted(p.stem for p in (tmp_path / "eval_val" / "predictions").glob("*.txt")) == ids["val"]
+    assert (tmp_path / "eval_val" / "metrics.json").is_file()
+    # a split without labels (like VoD's test split): prediction files only, no metrics
+    unl = tmp_path / "unlabelled"
+    sensor = unl / "radar_5frames"
+    (sensor / "ImageSets").mkdir(parents=True)
+    src = root / "radar_5frames" / "training"
+    for sub in ("velodyne", "calib", "image_2"):
+        (sensor / "testing" / sub).mkdir(parents=True)
+        for f in (src / sub).glob("0000[45].*"):
+            (sensor / "testing" / sub / f.name).write_bytes(f.read_bytes())
+    (sensor / "training" / "velodyne").mkdir(parents=True)
+    (sensor / "ImageSets" / "test.txt").write_text("00004\n00005\n")
+    out = tmp_path / "test_eval"
+    assert cli.main(["eval", "--checkpoint", str(tmp_path / "checkpoint.pt"), "--data-root", str(unl), "--split", "test",
+                     "--threads", "1", "--no-progress", "--out", str(out)]) == 0
+    assert sorted(p.stem for p in (out / "predictions").glob("*.txt")) == ["00004", "00005"]
+    assert not (out / "metrics.json").exists()
+
+
+def test_module_help_from_repo_root():
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(["examples", os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    r = subprocess.run([sys.executable, "-m", "mssf_examples", "--help"], cwd=REPO, env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "train" in r.stdout and "eval" in r.stdout
+
+
+# ---------------------------------------------------------------------------------------------------
+# (4) bad input
+# ---------------------------------------------------------------------------------------------------
+def _error(argv, capsys) -> str:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_missing_data_root_names_the_path(tmp_path, capsys):
+    missing = tmp_path / "no_such_dataset"
+    err = _error(["train", "--dataset", "vod", "--data-root", str(missing), "--out", str(tmp_path / "o")], capsys)
+    assert "--data-root" in err and str(missing) in err
+
+
+def test_wrong_layout_names_what_was_tried(tmp_path, capsys):
+    err = _error(["train", "--dataset", "vod", "--data-root", str(tmp_path), "--out", str(tmp_path / "o")], capsys)
+    assert str(tmp_path / "radar_5frames" / "training" / "velodyne") in err
+
+
+def test_unknown_dataset_is_an_argparse_error(tmp_path, capsys):
+    err = _error(["train", "--dataset", "kitti", "--data-root", str(tmp_path), "--out", str(tmp_path)], capsys)
+    assert "--dataset" in err and "invalid choice" in err and "'kitti'" in err
+
+
+@pytest.mark.parametrize("flag,value", [("--steps", "0"), ("--lr", "-1"), ("--batch-size", "x"), ("--fusion-blocks", "-1")])
+def test_bad_values_are_argparse_errors(tree, tmp_path, capsys, flag, value):
+    root, _, _ = tree
+    argv = ["train", "--dataset", "vod", "--data-root", str(root), "--out", str(tmp_path), flag, value]
+    err = _error(argv, capsys)
+    assert flag in err and value in err
+
+
+def test_batch_larger_than_split_and_missing_checkpoint(tree, tmp_path, capsys):
+    root, _, _ = tree
+    err = _error(["train", "--dataset", "vod", "--data-root", str(root), "--batch-size", "5", "--out", str(tmp_path)],
+                 capsys)
+    assert "--batch-size" in err and "5" in err and "4" in err
+    missing = tmp_path / "nope.pt"
+    err = _error(["eval", "--checkpoint", str(missing), "--data-root", str(root)], capsys)
+    assert "--checkpoint" in err and str(missing) in err
