@@ -148,7 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "the --split frames and save <out>/checkpoint.pt and <out>/config.json.")
     t.add_argument("--dataset", choices=tuple(DATASETS), required=True)
     _common(t)
-    t.add_argument("--split", default="train", help="ImageSets split to train on (default train)")
+    t.add_argument("--split", default="train",
+                   help="ImageSets/<split>.txt to train on (default train; 'all' = every point file)")
     t.add_argument("--val-split", default=None, help="also evaluate this split after training (e.g. val)")
     t.add_argument("--detector", choices=DETECTOR_NAMES, default="pointpillars")
     t.add_argument("--fusion-blocks", type=_non_negative_int, default=2,
@@ -174,7 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "labels, print the VoD-protocol table and write <out>/metrics.json.")
     e.add_argument("--checkpoint", type=Path, required=True, help="checkpoint.pt written by train")
     _common(e)
-    e.add_argument("--split", default="val", help="ImageSets split (val, test, ...; default val)")
+    e.add_argument("--split", default="val", help="ImageSets split (val, test, ...; default val; 'all' = every point file)")
     e.add_argument("--score-threshold", type=_unit_float, default=None,
                    help="detections kept (default: the training run's, 0.1)")
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <checkpoint dir>/eval_<split>)")
@@ -189,7 +190,8 @@ def _open_dataset(ap: argparse.ArgumentParser, root: Path, spec: DatasetSpec, se
     if not root.is_dir():
         ap.error(f"--data-root: expected an existing dataset folder, got {root} (not found)")
     try:
-        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=split, class_names=spec.class_names)
+        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=None if split == "all" else split,
+                                  class_names=spec.class_names)
     except (FileNotFoundError, MSSFError) as exc:
         ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}")
     raise AssertionError("unreachable")  # pragma: no cover

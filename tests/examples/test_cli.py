@@ -335,3 +335,24 @@ def test_batch_larger_than_split_and_missing_checkpoint(tree, tmp_path, capsys):
     missing = tmp_path / "nope.pt"
     err = _error(["eval", "--checkpoint", str(missing), "--data-root", str(root)], capsys)
     assert "--checkpoint" in err and str(missing) in err
+
+
+# ---------------------------------------------------------------------------------------------------
+# real VoD frames (skipped without ../shared/realdata): the writer reproduces the released label lines
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.realdata
+def test_writer_reproduces_vod_label_lines(realdata_root):
+    """Label -> sensor box -> kitti_lines gives back the released alpha, 2D box, dims, location, ry."""
+    ds = KittiFormatDataset(realdata_root / "vod", VOD_RADAR, sensor="radar", load_image=False)
+    assert len(ds) >= 1
+    for frame in ds:
+        ref = frame.objects
+        lines = kitti_lines(frame.boxes, frame.labels, VOD_CLASSES, frame.calib, frame.image_size,
+                            scores=torch.ones(len(ref)), names=ref.names)
+        got = parse_labels("\n".join(lines))
+        assert got.names == ref.names
+        torch.testing.assert_close(got.location, ref.location, rtol=0, atol=1e-5)
+        torch.testing.assert_close(got.dimensions, ref.dimensions, rtol=0, atol=1e-5)
+        assert wrap(got.rotation_y - ref.rotation_y).abs().max() < 1e-5
+        assert wrap(got.alpha - ref.alpha).abs().max() < 1e-5  # VoD: alpha = ry - atan2(x, z)
+        torch.testing.assert_close(got.boxes_2d, ref.boxes_2d, rtol=0, atol=1e-3)  # files hold 4-5 decimals
