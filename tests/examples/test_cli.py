@@ -356,3 +356,37 @@ def test_writer_reproduces_vod_label_lines(realdata_root):
         assert wrap(got.rotation_y - ref.rotation_y).abs().max() < 1e-5
         assert wrap(got.alpha - ref.alpha).abs().max() < 1e-5  # VoD: alpha = ry - atan2(x, z)
         torch.testing.assert_close(got.boxes_2d, ref.boxes_2d, rtol=0, atol=1e-3)  # files hold 4-5 decimals
+
+
+def test_tj4d_layout_train_and_eval(tree, tmp_path):
+    """TJ4DRadSet: KITTI layout (root/training, root/ImageSets), 8 stored channels, 4 classes."""
+    root, ids, scenes = tree
+    src = root / "radar_5frames" / "training"
+    tj = tmp_path / "tj4d"
+    for sub in ("calib", "image_2", "label_2"):
+        (tj / "training" / sub).mkdir(parents=True)
+        for f in (src / sub).iterdir():
+            (tj / "training" / sub / f.name).write_bytes(f.read_bytes())
+    (tj / "training" / "velodyne").mkdir()
+    for f in (src / "velodyne").iterdir():
+        p = np.fromfile(f, dtype="<f4").reshape(-1, 7)
+        rng = np.linalg.norm(p[:, :3], axis=1)
+        # x, y, z, V_r, Range, Power, Alpha, Beta
+        cols = [p[:, 0], p[:, 1], p[:, 2], p[:, 4], rng, p[:, 3], np.arctan2(p[:, 1], p[:, 0]), np.zeros(len(p))]
+        np.stack(cols, 1).astype("<f4").tofile(tj / "training" / "velodyne" / f.name)
+    (tj / "ImageSets").mkdir()
+    for split in ("train", "val"):
+        (tj / "ImageSets" / f"{split}.txt").write_text("\n".join(ids[split]) + "\n")
+    out = tmp_path / "run"
+    assert cli.main(["train", "--dataset", "tj4d", "--data-root", str(tj), "--preset", "tiny", "--steps", "2",
+                     "--batch-size", "2", "--threads", "1", "--no-progress", "--detector", "second",
+                     "--fusion-blocks", "1", "--out", str(out)]) == 0
+    cfg = json.loads((out / "config.json").read_text())
+    assert cfg["sensor"] is None and cfg["preset"]["class_names"] == ["Car", "Pedestrian", "Cyclist", "Truck"]
+    assert cfg["preset"]["point_features"] == ["x", "y", "z", "v_rc", "Power"]
+    assert cli.main(["eval", "--checkpoint", str(out / "checkpoint.pt"), "--split", "val", "--score-threshold", "0",
+                     "--threads", "1", "--no-progress"]) == 0
+    m = json.loads((out / "eval_val" / "metrics.json").read_text())
+    assert set(m["results"]["entire_area"]) == {"Car", "Pedestrian", "Cyclist", "Truck", "mAP"}
+    assert m["results"]["entire_area"]["Truck"]["AP3D_R11"] is None  # no truck in the scenes: undefined AP
+    assert sorted(p.stem for p in (out / "eval_val" / "predictions").glob("*.txt")) == ids["val"]
