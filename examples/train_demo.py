@@ -5,16 +5,20 @@ The project's main demo (``make demo``). On CPU, with the same code, seed and da
 1. generate ``--train-scenes`` / ``--val-scenes`` synthetic VoD-like radar + camera scenes
    (:class:`mssf_examples.scenes.SyntheticDataset`; static clutter mimics objects on radar, the camera
    tells them apart, ghosts and leaked points give 3D-blurred points);
-2. train ``--detector`` (default PointPillars, the cheapest) twice: with ``n = 1`` MSDFF fusion block
+2. pre-train the image branch (ResNet-18 + FPN) on the train scenes' per-pixel 2D semantics with a
+   linear read-out, freeze it and cache its features (:mod:`mssf_examples.image_pretrain`; the paper
+   freezes a pre-trained image branch, and nothing can be downloaded here);
+3. train ``--detector`` (default PointPillars, the cheapest) twice: with ``n = 1`` MSDFF fusion block
    plus the semantic-guided head, and with ``n = 0`` (radar only); AdamW with a one-cycle learning
    rate, as in the paper (OpenPCDet's ``adam_onecycle``: 40 % warm-up, ``div_factor`` 10);
-3. evaluate both on the val split (VoD protocol, entire annotated area and driving corridor,
+4. evaluate both on the val split (VoD protocol, entire annotated area and driving corridor,
    :func:`mssf_examples.evaluation.evaluate`) and print the paper-style table;
-4. write ``metrics.json`` (metrics, configuration, timings) and PNG figures to ``--out``: BEV views with
+5. write ``metrics.json`` (metrics, configuration, timings) and PNG figures to ``--out``: BEV views with
    radar points, GT and predicted boxes for both models, the fusion model's semantic scores per lifted
-   voxel (paper Fig. 5) and the blur-ratio / foreground-recall curves (paper Fig. 7).
+   voxel (paper Fig. 5), the blur-ratio / foreground-recall curves (paper Fig. 7) and the image
+   branch's 2D read-out.
 
-Run: ``python examples/train_demo.py [--steps 300] [--seed 0] [--lighting] [--out outputs/demo]``;
+Run: ``python examples/train_demo.py [--steps 2000] [--seed 0] [--lighting] [--out outputs/demo]``;
 ``--quick`` is a tiny run for tests. A rerun with the same arguments gives identical metrics.
 Synthetic scenes say nothing about View-of-Delft numbers; see ``docs/demo.md``.
 """
@@ -38,6 +42,10 @@ from mssf_blocks.diagnostics import blur_curves, classify_projection, plot_blur_
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_examples.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
 from mssf_examples.evaluation import evaluate, format_table  # noqa: E402
+from mssf_examples.image_branch import ImageBranch  # noqa: E402
+from mssf_examples.image_pretrain import (  # noqa: E402
+    SemanticReadout, collate_with_features, precompute_features, pretrain_image_branch, segmentation_metrics,
+    semantic_map)
 from mssf_examples.presets import VOD, DetectorPreset, tiny_preset  # noqa: E402
 from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig, SyntheticDataset  # noqa: E402
 from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
@@ -54,8 +62,8 @@ MODELS = ("MSSF (n=1)", "Radar only (n=0)")
 def demo_preset(scene_cfg: SceneConfig, quick: bool = False) -> DetectorPreset:
     """A small VoD-like preset over the scenes' range (not from the paper: CPU-sized widths).
 
-    Pillars of 0.32 m (80 x 80 over 25.6 m), a ResNet-18 image branch with 8 base channels trained
-    from scratch (no pretrained weights here), 16-channel FPN.
+    Pillars of 0.32 m (80 x 80 over 25.6 m), a ResNet-18 image branch with 8 base channels and a
+    16-channel FPN (pre-trained on the train scenes by default, see ``--image-branch``).
     """
     r = tuple(scene_cfg.point_cloud_range)
     ps = 0.64 if quick else 0.32
@@ -81,7 +89,10 @@ def batches(n: int, batch_size: int, steps: int, seed: int):
     return out[:steps]
 
 
-def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str) -> Dict:
+def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
+          collate=None) -> Dict:
+    """Train ``model`` in place; ``collate(indices)`` builds a batch (default: ``Scene.collate``)."""
+    collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
     params = [p for p in model.parameters() if p.requires_grad]
     opt = torch.optim.AdamW(params, lr=lr, betas=(0.95, 0.99), weight_decay=0.01)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.4,
@@ -91,7 +102,7 @@ def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, se
     bar = tqdm(batches(len(scenes), batch_size, steps, seed), desc=f"train {desc}", unit="step", dynamic_ncols=True)
     t0 = time.perf_counter()
     for idx in bar:
-        losses = model(Scene.collate([scenes[i] for i in idx]))
+        losses = model(collate(idx))
         opt.zero_grad(set_to_none=True)
         losses["loss"].backward()
         torch.nn.utils.clip_grad_norm_(params, 10.0)  # OpenPCDet's GRAD_NORM_CLIP
@@ -106,24 +117,26 @@ def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, se
 
 
 @torch.no_grad()
-def predict(model, scenes: List[Scene], batch_size: int, desc: str) -> List[Dict[str, torch.Tensor]]:
+def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None) -> List[Dict[str, torch.Tensor]]:
+    collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
     model.eval()
     preds: List[Dict[str, torch.Tensor]] = []
     for i in tqdm(range(0, len(scenes), batch_size), desc=f"eval {desc}", unit="batch", dynamic_ncols=True):
-        for p in model(Scene.collate(scenes[i:i + batch_size])):
+        for p in model(collate(list(range(i, min(i + batch_size, len(scenes)))))):
             preds.append({k: v.double() if k == "boxes" else v for k, v in p.items()})
     return preds
 
 
 @torch.no_grad()
-def semantic_scores(model, scenes: List[Scene], batch_size: int):
+def semantic_scores(model, scenes: List[Scene], batch_size: int, collate=None):
     """Per scene: the fused voxels' centroids and sigmoid scores; pooled blur classification + scores."""
+    collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
     model.eval()
     projector = VoxelCentroidProjector()
     per_scene, classes, scores = [], [], []
     for i in range(0, len(scenes), batch_size):
         chunk = scenes[i:i + batch_size]
-        batch = Scene.collate(chunk)
+        batch = collate(list(range(i, i + len(chunk))))
         _, out, pts, pb = model.extract(batch)
         v = out.seg_voxels
         proj = projector(v, pts, pb, batch.lidar2img, batch.image_size)
@@ -215,6 +228,35 @@ def plot_bev(path: Path, scenes, preds_by_model, seg, score_threshold: float, rn
     plt.close(fig)
 
 
+@torch.no_grad()
+def plot_image_semantics(path: Path, scenes, branch, readout) -> None:
+    """Per scene: the camera image, the 2D semantic ground truth and the frozen branch's linear read-out."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import ListedColormap
+
+    cmap = ListedColormap(["0.85", "tab:blue", "tab:red", "tab:green"])
+    fig, axes = plt.subplots(len(scenes), 3, figsize=(9.6, 2.1 * len(scenes)), squeeze=False)
+    for r, s in enumerate(scenes):
+        pred = readout([branch(s.image[None, None])[0][:, 0]], s.image_size)[0].argmax(1)[0]
+        panels = ((s.image.permute(1, 2, 0).clamp(0, 1).numpy(), f"image ({s.lighting})"),
+                  (semantic_map(s, len(CLASS_NAMES)).numpy(), "2D semantics (GT)"),
+                  (pred.numpy(), "frozen branch, linear read-out (P2)"))
+        for ax, (img, title) in zip(axes[r], panels):
+            if img.ndim == 2:
+                ax.imshow(img, cmap=cmap, vmin=0, vmax=3, interpolation="nearest")
+            else:
+                ax.imshow(img)
+            ax.set_title(title, fontsize=8)
+            ax.axis("off")
+    fig.suptitle("Image branch pre-training (grey background/clutter, blue car, red ped., green cyc.)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
 def plot_losses(path: Path, histories: Dict[str, List[Dict[str, float]]]) -> None:
     import matplotlib
 
@@ -246,7 +288,7 @@ def _finite(x):
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--detector", choices=DETECTOR_NAMES, default="pointpillars")
-    ap.add_argument("--steps", type=int, default=None, help="training steps per model (default 500)")
+    ap.add_argument("--steps", type=int, default=None, help="training steps per model (default 2000)")
     ap.add_argument("--epochs", type=float, default=None, help="alternative to --steps: passes over the train split")
     ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--lr", type=float, default=3e-3, help="one-cycle peak learning rate")
@@ -255,6 +297,11 @@ def parse_args(argv=None):
     ap.add_argument("--seed", type=int, default=0, help="scene seed and torch seed")
     ap.add_argument("--fusion-blocks", type=int, default=1, help="n of the fusion model")
     ap.add_argument("--fusion", choices=("msdff", "sff"), default="msdff")
+    ap.add_argument("--image-branch", choices=("pretrained", "end-to-end"), default="pretrained",
+                    help="pretrained: pre-train on the train scenes' 2D semantics, freeze, cache features "
+                         "(the paper freezes a pre-trained branch); end-to-end: train it with the detector")
+    ap.add_argument("--image-pretrain-steps", type=int, default=None, help="default 400")
+    ap.add_argument("--image-pretrain-lr", type=float, default=3e-3)
     ap.add_argument("--lighting", action="store_true", help="also report AP per lighting condition")
     ap.add_argument("--save-checkpoint", type=Path, default=None)
     ap.add_argument("--load-checkpoint", type=Path, default=None, help="skip training, evaluate these weights")
@@ -263,18 +310,18 @@ def parse_args(argv=None):
     ap.add_argument("--quick", action="store_true", help="tiny run (a few steps and scenes) for tests")
     ap.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = ap.parse_args(argv)
+    defaults = dict(image_pretrain_steps=400, train_scenes=400, val_scenes=80)
     if args.quick:
-        args.steps = args.steps or 3
+        defaults.update(image_pretrain_steps=3, train_scenes=4, val_scenes=4, steps=3)
         args.batch_size = min(args.batch_size, 2)
-        args.train_scenes = args.train_scenes or 4
-        args.val_scenes = args.val_scenes or 4
         args.figure_scenes = min(args.figure_scenes, 2)
-    args.train_scenes = args.train_scenes or 400
-    args.val_scenes = args.val_scenes or 80
+    for name, value in defaults.items():  # only unset options (0 stays 0 and is rejected below)
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     if args.steps is None:
         per_epoch = max(args.train_scenes // args.batch_size, 1)
-        args.steps = max(1, round(args.epochs * per_epoch)) if args.epochs is not None else 500
-    for name in ("steps", "batch_size", "train_scenes", "val_scenes", "threads"):
+        args.steps = max(1, round(args.epochs * per_epoch)) if args.epochs is not None else 2000
+    for name in ("steps", "batch_size", "train_scenes", "val_scenes", "threads", "image_pretrain_steps"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')}: expected a positive int, got {getattr(args, name)}")
     if args.batch_size > args.train_scenes:
@@ -315,18 +362,61 @@ def _run(args) -> int:
     blocks = {MODELS[0]: args.fusion_blocks, MODELS[1]: 0}
     models, timings, histories, results, preds_by_model, lighting = {}, {}, {}, {}, {}, {}
     ckpt = torch.load(args.load_checkpoint, map_location="cpu", weights_only=True) if args.load_checkpoint else None
+
+    # The image branch: pre-trained on the train scenes' 2D semantics, frozen, features cached (default);
+    # or trained end to end with the detector from scratch (--image-branch end-to-end).
+    image_pretrain, branch, readout = None, None, None
+    collates = {MODELS[0]: None, MODELS[1]: None}
+    fusion_collate_val = None
+    if args.image_branch == "pretrained":
+        torch.manual_seed(args.seed)
+        branch = ImageBranch(preset.image_depth, preset.image_base_channels, preset.fpn_channels,
+                             preset.num_image_levels)
+        t0 = time.perf_counter()
+        if ckpt is not None:
+            branch.load_state_dict(ckpt["image_branch"])
+            readout = SemanticReadout(branch.out_channels, len(CLASS_NAMES))
+            readout.load_state_dict(ckpt["image_readout"])
+            image_pretrain = {"loaded": str(args.load_checkpoint)}
+        else:
+            log = pretrain_image_branch(branch, train_scenes, args.image_pretrain_steps,
+                                        batch_size=min(8, len(train_scenes)),
+                                        lr=args.image_pretrain_lr, seed=args.seed, num_classes=len(CLASS_NAMES),
+                                        progress=lambda it: tqdm(it, desc="pretrain image branch", unit="step",
+                                                                 dynamic_ncols=True))
+            readout = log["readout"]
+            image_pretrain = {"steps": args.image_pretrain_steps, "seconds": log["seconds"],
+                              "final_loss": sum(log["history"][-10:]) / len(log["history"][-10:])}
+        seg_val = segmentation_metrics(branch, readout, val_scenes, len(CLASS_NAMES))
+        image_pretrain["val_pixel"] = {"classes": ["background", *CLASS_NAMES], **seg_val}
+        print("image branch, val pixels (background, " + ", ".join(CLASS_NAMES) + "): IoU "
+              + " ".join(f"{v:.2f}" for v in seg_val["iou"]) + ", recall "
+              + " ".join(f"{v:.2f}" for v in seg_val["recall"]))
+        for p in branch.parameters():
+            p.requires_grad_(False)
+        bar = dict(unit="batch", dynamic_ncols=True)
+        feats_train = precompute_features(branch, train_scenes, progress=lambda it: tqdm(it, desc="image features train", **bar))
+        feats_val = precompute_features(branch, val_scenes, progress=lambda it: tqdm(it, desc="image features val", **bar))
+        image_pretrain["total_seconds"] = time.perf_counter() - t0
+        collates[MODELS[0]] = lambda idx: collate_with_features([train_scenes[i] for i in idx], [feats_train[i] for i in idx])
+        fusion_collate_val = lambda idx: collate_with_features([val_scenes[i] for i in idx], [feats_val[i] for i in idx])
+    image_source = "precomputed" if branch is not None else "backbone"
+
     for name, n in blocks.items():
         torch.manual_seed(args.seed)  # same initialisation stream for both models
-        model = build_detector(args.detector, preset, num_fusion_blocks=n, fusion=args.fusion)
+        model = build_detector(args.detector, preset, num_fusion_blocks=n, fusion=args.fusion,
+                               image_features=image_source if n else "backbone")
+        val_collate = fusion_collate_val if n else None
         if ckpt is not None:
             model.load_state_dict(ckpt["models"][name])
             timings[name] = {"train_seconds": 0.0, "loaded": str(args.load_checkpoint)}
         else:
-            log = train(model, train_scenes, args.steps, args.batch_size, args.lr, args.seed, name)
+            log = train(model, train_scenes, args.steps, args.batch_size, args.lr, args.seed, name,
+                        collate=collates[name] if n else None)
             timings[name] = {"train_seconds": log["seconds"], "seconds_per_step": log["seconds_per_step"]}
             histories[name] = log["history"]
         t0 = time.perf_counter()
-        preds_by_model[name] = predict(model, val_scenes, args.batch_size, name)
+        preds_by_model[name] = predict(model, val_scenes, args.batch_size, name, collate=val_collate)
         results[name] = evaluate(preds_by_model[name], gts, CLASS_NAMES)
         if args.lighting:
             lighting[name] = lighting_report(preds_by_model[name], gts, val_scenes)
@@ -336,8 +426,10 @@ def _run(args) -> int:
     config = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
     if args.save_checkpoint:
         args.save_checkpoint.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"models": {k: m.state_dict() for k, m in models.items()}, "config": config},
-                   args.save_checkpoint)
+        state = {"models": {k: m.state_dict() for k, m in models.items()}, "config": config}
+        if branch is not None:
+            state.update(image_branch=branch.state_dict(), image_readout=readout.state_dict())
+        torch.save(state, args.save_checkpoint)
 
     table = "\n\n".join(format_table(results, metric=m) for m in ("AP3D_R11", "APBEV_R11"))
     print("\n" + table)
@@ -351,8 +443,11 @@ def _run(args) -> int:
     t0 = time.perf_counter()
     fusion_model = models[MODELS[0]]
     k = min(args.figure_scenes, len(val_scenes))
-    seg, pooled, scores = semantic_scores(fusion_model, val_scenes, args.batch_size)
+    seg, pooled, scores = semantic_scores(fusion_model, val_scenes, args.batch_size, fusion_collate_val)
     figures = {"bev": "bev_val_scenes.png", "blur_curves": "blur_curves.png"}
+    if branch is not None:
+        figures["image_semantics"] = "image_semantics.png"
+        plot_image_semantics(args.out / figures["image_semantics"], val_scenes[:k], branch, readout)
     plot_bev(args.out / figures["bev"], val_scenes[:k], {m: p[:k] for m, p in preds_by_model.items()},
              seg[:k], 0.15, preset.pillar_range)
     curves = None
@@ -379,6 +474,7 @@ def _run(args) -> int:
         "table": table,
         "fusion_minus_radar_mAP_AP3D_R11": gap,
         "lighting": lighting or None,
+        "image_pretrain": image_pretrain,
         "blur_curves": None if curves is None else {
             "tau": curves.tau.tolist(), "blur_ratio": curves.blur_ratio.tolist(),
             "foreground_recall": curves.foreground_recall.tolist(),

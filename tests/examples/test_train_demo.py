@@ -43,6 +43,9 @@ def test_metrics_have_both_models_and_table_keys(quick_run):
         assert m["lighting"][name]
     assert m["models"] == {train_demo.MODELS[0]: 1, train_demo.MODELS[1]: 0}
     assert m["config"]["steps"] == 3
+    pre = m["image_pretrain"]
+    assert pre["steps"] == 3 and pre["val_pixel"]["classes"] == ["background", *CLASSES]
+    assert len(pre["val_pixel"]["iou"]) == 4 and all(0.0 <= v <= 1.0 for v in pre["val_pixel"]["iou"])
     # curves start at the class shares of the 2D-foreground voxels, which add up to 1
     c = m["blur_curves"]
     counts = c["counts"]
@@ -77,8 +80,18 @@ def test_rerun_same_seed_identical(quick_run, tmp_path):
     assert again["results"] == m["results"]
 
 
+def test_end_to_end_image_branch(tmp_path):
+    """--image-branch end-to-end trains the image branch with the detector (no pre-training, no cache)."""
+    assert train_demo.main(["--quick", "--image-branch", "end-to-end", "--out", str(tmp_path)]) == 0
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["image_pretrain"] is None and "image_semantics" not in m["figures"]
+    assert set(m["results"]) == set(train_demo.MODELS)
+
+
 def test_bad_arguments():
     with pytest.raises(SystemExit):
         train_demo.parse_args(["--steps", "0"])
     with pytest.raises(SystemExit):
         train_demo.parse_args(["--train-scenes", "2", "--batch-size", "4"])
+    with pytest.raises(SystemExit):
+        train_demo.parse_args(["--image-pretrain-steps", "0"])
