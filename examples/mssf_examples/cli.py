@@ -169,16 +169,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=_non_negative_int, default=0, help="initialisation and data-order seed")
     t.add_argument("--score-threshold", type=_unit_float, default=0.1, help="detections kept in eval (default 0.1)")
     t.add_argument("--out", type=Path, required=True, help="output folder")
+    t.set_defaults(parser=t)
 
     e = sub.add_parser("eval", help="write KITTI prediction files and VoD-protocol metrics",
                        description="Predict every frame of --split, write <out>/predictions/<id>.txt and, with "
                        "labels, print the VoD-protocol table and write <out>/metrics.json.")
     e.add_argument("--checkpoint", type=Path, required=True, help="checkpoint.pt written by train")
     _common(e)
-    e.add_argument("--split", default="val", help="ImageSets split (val, test, ...; default val; 'all' = every point file)")
+    e.add_argument("--split", default="val",
+                   help="ImageSets split (val, test, ...; default val; 'all' = every point file)")
     e.add_argument("--score-threshold", type=_unit_float, default=None,
                    help="detections kept (default: the training run's, 0.1)")
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <checkpoint dir>/eval_<split>)")
+    e.set_defaults(parser=e)
     return ap
 
 
@@ -263,24 +266,6 @@ def _jsonable(x):
 # --------------------------------------------------------------------------------------------------
 # Commands
 # --------------------------------------------------------------------------------------------------
-def _set_progress(enabled: bool) -> None:
-    from . import training
-
-    if not enabled:
-        training.tqdm = lambda it=None, **kw: it if it is not None else _NullBar()  # type: ignore[assignment]
-
-
-class _NullBar:
-    def update(self, n=1):
-        pass
-
-    def set_postfix(self, **kw):
-        pass
-
-    def close(self):
-        pass
-
-
 def _train(ap: argparse.ArgumentParser, args) -> int:
     spec = DATASETS[args.dataset]
     sensor = args.sensor if "sensor" in args else spec.default_sensor
@@ -330,7 +315,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} frames "
           f"of {ds!r}: {steps} steps of {batch_size}", file=sys.stderr)
     log = train_detector(model, _loader(_Frames(ds, True), order, args.workers, collate), steps, args.lr,
-                         desc=f"train {args.detector}")
+                         desc=f"train {args.detector}", progress=not args.no_progress)
     config["train_seconds"] = log["seconds"]
     config["final_loss"] = log["history"][-1]
     ckpt = save_checkpoint(args.out / "checkpoint.pt", model, _jsonable(config))
@@ -339,7 +324,8 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     print(f"wrote {ckpt} and {args.out / 'config.json'} ({log['seconds']:.1f} s, final loss "
           f"{log['history'][-1]['loss']:.4f})", file=sys.stderr)
     if val_ds is not None:
-        _evaluate(model, config, val_ds, args.out / f"eval_{args.val_split}", batch_size, args.workers, ckpt)
+        _evaluate(model, config, val_ds, args.out / f"eval_{args.val_split}", batch_size, args.workers, ckpt,
+                  progress=not args.no_progress)
     return 0
 
 
@@ -359,7 +345,7 @@ class _CollateWithFrames(_Collate):
 
 
 def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size: int, workers: int,
-              checkpoint: Path) -> Dict:
+              checkpoint: Path, progress: bool = True) -> Dict:
     """Predict ``ds``, write prediction files and (with labels) metrics; returns the metrics dict."""
     spec = DATASETS[config["dataset"]]
     with_labels = ds.label_dir is not None and all(ds.paths(i).label.is_file() for i in ds.frame_ids)
@@ -377,7 +363,7 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
             frames_seen.extend(frames)
             yield batch
 
-    for p in predict(model, batches(), total=len(chunks), desc="eval"):
+    for p in predict(model, batches(), total=len(chunks), desc="eval", progress=progress):
         preds.append(p)
     num_det = 0
     for frame, p in zip(frames_seen, preds):
@@ -425,7 +411,7 @@ def _eval(ap: argparse.ArgumentParser, args) -> int:
     model.load_state_dict(state)
     config = dict(config, score_threshold=thr)
     out = args.out if args.out is not None else args.checkpoint.parent / f"eval_{args.split}"
-    _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint)
+    _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint, progress=not args.no_progress)
     return 0
 
 
@@ -433,22 +419,16 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``python -m mssf_examples``; returns the exit code (argparse errors exit with 2)."""
     ap = build_parser()
     args = ap.parse_args(None if argv is None else list(argv))
-    sub = ap._subparsers._group_actions[0].choices[args.command]  # the sub-command's parser, for its errors
     from .spconv_compat import enable_cpu_backward
 
     enable_cpu_backward()  # spconv 2.3 cannot run backward on CPU-only torch without it
-    saved_threads = torch.get_num_threads()
-    saved_tqdm = None
-    from . import training
-
-    saved_tqdm = training.tqdm
-    _set_progress(not args.no_progress)
+    saved_threads = torch.get_num_threads()  # restored, so that calling main() (tests) leaks nothing
     torch.set_num_threads(args.threads)
     try:
-        return _train(sub, args) if args.command == "train" else _eval(sub, args)
+        # errors name the sub-command (its own parser prints the usage)
+        return _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
     finally:
         torch.set_num_threads(saved_threads)
-        training.tqdm = saved_tqdm
 
 
 if __name__ == "__main__":  # pragma: no cover

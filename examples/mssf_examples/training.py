@@ -29,8 +29,23 @@ from mssf_blocks.errors import MSSFError
 try:
     from tqdm import tqdm
 except ImportError:  # pragma: no cover - tqdm is in the examples extra
-    def tqdm(it=None, **kw):  # type: ignore[no-redef]
-        return it
+    class tqdm:  # type: ignore[no-redef]
+        """Stand-in without a bar."""
+
+        def __init__(self, it=None, **kw):
+            self.it = it
+
+        def __iter__(self):
+            return iter(self.it)
+
+        def update(self, n=1):
+            pass
+
+        def set_postfix(self, **kw):
+            pass
+
+        def close(self):
+            pass
 
 __all__ = ["batch_order", "train_detector", "predict", "save_checkpoint", "load_checkpoint", "CHECKPOINT_FORMAT"]
 
@@ -68,6 +83,7 @@ def train_detector(
     grad_clip: float = 10.0,
     desc: str = "train",
     log: Optional[Callable[[int, Dict[str, float]], None]] = None,
+    progress: bool = True,
 ) -> Dict:
     """Train ``model`` for ``steps`` optimiser steps on ``batches`` (an iterable of batches).
 
@@ -79,6 +95,7 @@ def train_detector(
         weight_decay, grad_clip: AdamW weight decay and the gradient-norm clip.
         desc: progress-bar label.
         log: optional ``log(step, losses)`` called after every step.
+        progress: show the tqdm bar.
 
     Returns:
         ``{"seconds", "seconds_per_step", "history": [losses per step]}``.
@@ -93,7 +110,7 @@ def train_detector(
                                                 base_momentum=0.85, max_momentum=0.95)
     model.train()
     history: List[Dict[str, float]] = []
-    bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True)
+    bar = tqdm(total=steps, desc=desc, unit="step", dynamic_ncols=True, disable=not progress)
     t0 = time.perf_counter()
     it = iter(batches)
     try:
@@ -112,22 +129,24 @@ def train_detector(
             history.append(row)
             if log is not None:
                 log(step, row)
-            if hasattr(bar, "set_postfix"):
-                bar.set_postfix(loss=f"{row['loss']:.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
-                bar.update(1)
+            bar.set_postfix(loss=f"{row['loss']:.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
+            bar.update(1)
     finally:
-        if hasattr(bar, "close"):
-            bar.close()
+        bar.close()
     seconds = time.perf_counter() - t0
     return dict(seconds=seconds, seconds_per_step=seconds / steps, history=history)
 
 
 @torch.no_grad()
-def predict(model: nn.Module, batches: Iterable, total: Optional[int] = None, desc: str = "predict") -> List[Dict[str, Tensor]]:
-    """Eval-mode detections: one dict ``boxes (K, 7) float64, scores (K,), labels (K,)`` per sample."""
+def predict(model: nn.Module, batches: Iterable, total: Optional[int] = None, desc: str = "predict",
+            progress: bool = True) -> List[Dict[str, Tensor]]:
+    """Eval-mode detections: one dict ``boxes (K, 7) float64, scores (K,), labels (K,)`` per sample.
+
+    ``total`` (the number of batches) only sizes the progress bar.
+    """
     model.eval()
     out: List[Dict[str, Tensor]] = []
-    for batch in tqdm(batches, total=total, desc=desc, unit="batch", dynamic_ncols=True):
+    for batch in tqdm(batches, total=total, desc=desc, unit="batch", dynamic_ncols=True, disable=not progress):
         for p in model(batch):
             out.append({k: (v.double() if k == "boxes" else v).detach().cpu() for k, v in p.items()})
     return out
@@ -154,7 +173,8 @@ def load_checkpoint(path: PathLike) -> Tuple[Dict[str, Tensor], Dict]:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not our checkpoint"
-        raise MSSFError(f"{path}: expected a checkpoint written by mssf_examples (train), could not load it: {exc}") from None
+        raise MSSFError(f"{path}: expected a checkpoint written by mssf_examples (train), "
+                        f"could not load it: {exc}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         got = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
         raise MSSFError(f"{path}: expected a checkpoint with format {CHECKPOINT_FORMAT!r}, got {got!r}")

@@ -390,3 +390,11 @@ def test_tj4d_layout_train_and_eval(tree, tmp_path):
     assert set(m["results"]["entire_area"]) == {"Car", "Pedestrian", "Cyclist", "Truck", "mAP"}
     assert m["results"]["entire_area"]["Truck"]["AP3D_R11"] is None  # no truck in the scenes: undefined AP
     assert sorted(p.stem for p in (out / "eval_val" / "predictions").glob("*.txt")) == ids["val"]
+
+
+def test_foreign_checkpoint_is_rejected(tree, tmp_path, capsys):
+    root, _, _ = tree
+    path = tmp_path / "demo.pt"
+    torch.save({"models": {}, "config": {}}, path)  # e.g. a train_demo.py checkpoint
+    err = _error(["eval", "--checkpoint", str(path), "--data-root", str(root)], capsys)
+    assert "--checkpoint" in err and str(path) in err and "mssf-examples-detector/1" in err
