@@ -311,7 +311,8 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     )
     args.out.mkdir(parents=True, exist_ok=True)
     order = batch_order(len(ds), batch_size, steps, args.seed)
-    collate = _Collate(args.image_scale)
+    collate = _Collate(args.image_scale, preset.pillar_range if args.detector == "pointpillars"
+                       else preset.point_cloud_range)
     print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} frames "
           f"of {ds!r}: {steps} steps of {batch_size}", file=sys.stderr)
     log = train_detector(model, _loader(_Frames(ds, True), order, args.workers, collate), steps, args.lr,
@@ -330,13 +331,24 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
 
 
 class _Collate:
-    """Picklable ``collate_fn``: frames -> batch (scaled)."""
+    """Picklable ``collate_fn``: frames -> batch (images scaled by ``scale``).
 
-    def __init__(self, scale: float) -> None:
-        self.scale = scale
+    With ``gt_range = (x0, y0, z0, x1, y1, z1)`` the ground truth keeps boxes whose centre has
+    ``x0 <= x < x1`` and ``y0 <= y < y1`` (as OpenPCDet does before training: boxes the BEV grid cannot
+    hold would give the heads targets outside their maps).
+    """
+
+    def __init__(self, scale: float, gt_range: Optional[Sequence[float]] = None) -> None:
+        self.scale, self.gt_range = scale, None if gt_range is None else tuple(float(v) for v in gt_range)
 
     def __call__(self, frames: List[Frame]):
-        return scale_batch(frames_to_batch(frames), self.scale)
+        batch = frames_to_batch(frames)
+        if self.gt_range is not None:
+            x0, y0, _, x1, y1, _ = self.gt_range
+            keep = [(g[:, 0] >= x0) & (g[:, 0] < x1) & (g[:, 1] >= y0) & (g[:, 1] < y1) for g in batch.gt_boxes]
+            batch = dataclasses.replace(batch, gt_boxes=[g[k] for g, k in zip(batch.gt_boxes, keep)],
+                                        gt_labels=[g[k] for g, k in zip(batch.gt_labels, keep)])
+        return scale_batch(batch, self.scale)
 
 
 class _CollateWithFrames(_Collate):

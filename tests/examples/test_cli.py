@@ -398,3 +398,21 @@ def test_foreign_checkpoint_is_rejected(tree, tmp_path, capsys):
     torch.save({"models": {}, "config": {}}, path)  # e.g. a train_demo.py checkpoint
     err = _error(["eval", "--checkpoint", str(path), "--data-root", str(root)], capsys)
     assert "--checkpoint" in err and str(path) in err and "mssf-examples-detector/1" in err
+
+
+def test_training_batches_drop_gt_outside_the_grid(tree):
+    from mssf_examples.presets import VOD
+
+    root, _, _ = tree
+    ds = KittiFormatDataset(root, VOD_RADAR, sensor="radar_5frames", split="train")
+    frame = ds[0]
+    n = len(frame.gt_boxes)
+    far = torch.tensor([[60.0, 0.0, -1.0, 4.0, 1.8, 1.5, 0.0], [10.0, -25.6, -1.0, 0.6, 0.6, 1.7, 0.0],
+                        [10.0, 25.6, -1.0, 0.6, 0.6, 1.7, 0.0]], dtype=torch.float64)
+    frame.boxes = torch.cat([frame.boxes, far])
+    frame.labels = torch.cat([frame.labels, torch.tensor([0, 1, 1])])
+    kept = cli._Collate(1.0, VOD.point_cloud_range)([frame])
+    # x = 60 is beyond 51.2; y = -25.6 is on the closed lower edge (kept), y = 25.6 on the open upper edge
+    assert len(kept.gt_boxes[0]) == n + 1
+    torch.testing.assert_close(kept.gt_boxes[0][-1].double(), far[1])
+    assert len(cli._Collate(1.0)([frame]).gt_boxes[0]) == n + 3
