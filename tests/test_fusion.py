@@ -461,3 +461,42 @@ def test_bad_inputs_name_the_argument():
         MSDFF(8, 4, method="cuda")
     with pytest.raises(MSSFError, match="value_projection"):
         MSDFF(8, 4, value_projection="never")
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last"])
+def test_msdff_touched_pixels_equals_reference_with_all_gradients(dtype, layout):
+    # value_projection="before_sampling" with method "auto" projects only the touched pixels (or whole
+    # levels); it must equal projecting every pixel + grid_sample (method "reference") in the output
+    # and in the gradient of every parameter, the query, the image and uv.
+    gen = torch.Generator().manual_seed(21)
+    levels, uv, valid, bidx = scene(gen, n=9, chans=(3, 3), sizes=((6, 9), (3, 5)))
+    uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside
+    valid[3] = True
+    mods = {}
+    for method in ("reference", "auto"):
+        mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method,
+                    value_projection="before_sampling", dtype=D64).eval()
+        randomize_msdff(mod, torch.Generator().manual_seed(22))
+        mods[method] = mod.to(dtype)
+    query = torch.randn(9, 8, generator=gen, dtype=D64).to(dtype)
+    go = torch.randn(9, 8, generator=gen, dtype=D64).to(dtype)
+    results = {}
+    for method, mod in mods.items():
+        lv = [l.to(dtype).requires_grad_(True) for l in levels]
+        feeds = [l.reshape(-1, *l.shape[2:]).contiguous(memory_format=torch.channels_last).view(l.shape)
+                 if layout == "channels_last" else l for l in lv]
+        q = query.clone().requires_grad_(True)
+        u = uv.to(dtype).requires_grad_(True)
+        out = mod(q, feeds, make_projection(u, valid, bidx))
+        params = list(mod.parameters())
+        grads = torch.autograd.grad((out * go).sum(), [q, u, *lv, *params], allow_unused=True)
+        results[method] = (out.detach(), grads)
+    assert_close(results["auto"][0], results["reference"][0], msg="out")
+    names = ["query", "uv", "level0", "level1"] + [n for n, _ in mods["auto"].named_parameters()]
+    for name, a, b in zip(names, results["auto"][1], results["reference"][1]):
+        assert (a is None) == (b is None), name
+        if b is not None:
+            assert_close(a, b, msg=f"grad {name}")
+    by_name = dict(zip(names, results["reference"][1]))
+    assert by_name["value_proj.weight"].abs().sum() > 0 and by_name["value_proj.bias"].abs().sum() > 0

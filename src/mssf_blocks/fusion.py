@@ -42,7 +42,7 @@ from ._checks import (
 )
 from .errors import MSSFError
 from .functional.geometry import normalize_lidar2img
-from .functional.sampling import bilinear_sample, camera_mean, ms_deform_sample
+from .functional.sampling import bilinear_sample, camera_mean, ms_deform_sample, ms_deform_sample_project
 from .geometry import CentroidProjection
 
 __all__ = [
@@ -339,10 +339,14 @@ class MSDFF(nn.Module):
         norm_layer: normalisation after ``output_proj``.
         method: ``ms_deform_sample`` implementation: ``"auto"``, ``"reference"`` or ``"fast"``.
         value_projection: ``"after_sampling"`` (default; cost ``O(N * M * L * P * C)``, independent of
-            the image size) or ``"before_sampling"`` (Deformable DETR's order: ``value_proj`` on every
-            pixel, then sample ``E / M`` channels per head; cost ``O(pixels * C * E + N * M * L * P * E / M)``).
-            Both give the same result (tested); the second is faster when ``C`` is large and the number
-            of voxels is not much smaller than the number of pixels (``docs/fusion.md`` has numbers).
+            the image size) or ``"before_sampling"`` (Deformable DETR's order: ``value_proj`` on the
+            pixels, then sample ``E / M`` channels per head). With ``method`` ``"auto"``/``"fast"``,
+            ``"before_sampling"`` projects only the ``U_l`` pixels of each level that some bilinear
+            corner reads (the whole level when more than half of it is read;
+            :func:`~mssf_blocks.functional.ms_deform_sample_project` ``method="touched"``), cost
+            ``O(sum_l min(U_l, pixels_l) * C * E + N * M * L * P * 4 * E / M)``; with ``"reference"``
+            it projects every pixel and uses ``grid_sample``. All give the same result (tested); the
+            second is faster when ``C`` is large (``docs/fusion.md`` and ``docs/performance.md``).
         device, dtype: factory arguments of the parameters.
 
     Shapes:
@@ -482,6 +486,15 @@ class MSDFF(nn.Module):
             w_heads = self.value_proj.weight.view(m, self.head_dim, c)
             b_heads = self.value_proj.bias.view(m, self.head_dim)
             heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+        elif self.method != "reference":
+            # Project-then-sample restricted to the pixels some bilinear corner reads (whole levels
+            # when most of their pixels are read): exact, bias included (out-of-map corners read 0).
+            values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
+            heads = ms_deform_sample_project(
+                values, image_index, locations, weights,
+                self.value_proj.weight.view(m, self.head_dim, c), self.value_proj.bias.view(m, self.head_dim),
+                method="touched",
+            )
         else:
             values = []
             for lvl in levels:

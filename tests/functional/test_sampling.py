@@ -378,3 +378,140 @@ def test_sample_project_gradcheck_and_errors():
         ms_deform_sample_project(values, image_index, locations, weights, proj_w, proj_b[:, :2])
     with pytest.raises(MSSFError, match="chunk_size"):
         ms_deform_sample_project(values, image_index, locations, weights, proj_w, chunk_size=0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# ms_deform_sample_project(method="touched"): project the touched pixels, then sample
+# ---------------------------------------------------------------------------------------------------
+def project_reference(values, image_index, locations, weights, proj_w, proj_b):
+    """grid_sample reference of the raw channels, then the per-head projection and bias * mass."""
+    s, ms = ms_deform_sample(values, image_index, locations, weights, method="reference", return_mass=True)
+    return torch.einsum("qmc,mdc->qmd", s, proj_w) + ms[..., None] * proj_b
+
+
+def touched(values, image_index, locations, weights, proj_w, proj_b, branch):
+    """The "touched" method with its dense/gather choice forced (or the cost model's, branch "auto")."""
+    from mssf_blocks.functional import sampling
+
+    cost = {"gather": 0.0, "dense": float("inf")}.get(branch)
+    if cost is None:
+        return ms_deform_sample_project(values, image_index, locations, weights, proj_w, proj_b, method="touched")
+    return sampling._ms_deform_sample_touched(values, image_index, locations, weights, proj_w, proj_b, cost)
+
+
+def channels_last(values):
+    return [v[:, 0].contiguous(memory_format=torch.channels_last)[:, None] for v in values]
+
+
+@pytest.mark.parametrize("branch", ["gather", "dense", "auto"])
+def test_touched_equals_naive_loop(branch):
+    # independent: naive loop sampling, then the per-head projection and bias * mass by hand
+    values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=2, d=3, q=7, seed=8, spread=0.5)
+    g = torch.Generator().manual_seed(9)
+    proj_w = torch.randn(2, 4, 3, generator=g, dtype=F64)
+    proj_b = torch.randn(2, 4, generator=g, dtype=F64)
+    sampled, mass = naive_ms_deform(values, image_index, locations, weights)
+    expected = torch.einsum("qmc,mdc->qmd", sampled, proj_w) + mass[..., None] * proj_b
+    assert bool((mass < weights.sum((2, 3)) - 1e-6).any())  # some corners read the zero padding
+    for vals in (values, channels_last(values)):
+        out = touched(vals, image_index, locations, weights, proj_w, proj_b, branch)
+        assert out.shape == (7, 2, 4)
+        assert_close(out, expected)
+        assert_close(touched(vals, image_index, locations, weights, proj_w, None, branch),
+                     torch.einsum("qmc,mdc->qmd", sampled, proj_w))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("where", ["random", "borders"])
+@pytest.mark.parametrize("branch", ["gather", "dense"])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last"])
+def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch, layout):
+    sizes = ((8, 16), (4, 8), (2, 4))
+    values, image_index, locations, weights = random_inputs(
+        num_images=3, mv=1, m=3, d=4, sizes=sizes, q=17, p=2, dtype=dtype, spread=0.4
+    )
+    if where == "borders":  # pixel centres, pixel borders, image edges and outside
+        locations = border_locations(sizes, 17, 3, 2, dtype)
+    g = torch.Generator().manual_seed(11)
+    proj_w = torch.randn(3, 2, 4, generator=g, dtype=dtype)
+    proj_b = torch.randn(3, 2, generator=g, dtype=dtype)
+    go = torch.randn(17, 3, 2, generator=g, dtype=dtype)
+
+    def run(fn):
+        vals = [v.detach().clone().requires_grad_(True) for v in values]
+        if layout == "channels_last":
+            vals = [v.detach()[:, 0].contiguous(memory_format=torch.channels_last).requires_grad_(True)
+                    for v in values]
+            inputs5 = [v[:, None] for v in vals]
+        else:
+            inputs5 = vals
+        rest = [t.detach().clone().requires_grad_(True) for t in (locations, weights, proj_w, proj_b)]
+        out = fn(inputs5, image_index, *rest)
+        return out.detach(), torch.autograd.grad((out * go).sum(), vals + rest)
+
+    out_r, grads_r = run(project_reference)
+    out_t, grads_t = run(lambda *a: touched(*a, branch))
+    assert_close(out_t, out_r, msg="out")
+    names = [f"values[{i}]" for i in range(len(sizes))] + ["locations", "weights", "proj_weight", "proj_bias"]
+    for name, a, b in zip(names, grads_t, grads_r):
+        assert_close(a.reshape(b.shape), b, msg=f"grad {name}")
+    assert all(bool(gr.abs().sum() > 0) for gr in grads_r)  # not vacuous
+
+
+@pytest.mark.parametrize("branch", ["gather", "dense"])
+def test_touched_gradcheck(branch):
+    values, image_index, locations, weights = random_inputs(
+        num_images=2, mv=1, m=2, d=2, sizes=((3, 4), (2, 2)), q=3, p=2, seed=10, spread=0.3
+    )
+    proj_w = torch.randn(2, 3, 2, dtype=F64)
+    proj_b = torch.randn(2, 3, dtype=F64)
+    assert gradcheck64(
+        lambda v0, v1, loc, wt, pw, pb: touched([v0, v1], image_index, loc, wt, pw, pb, branch),
+        (values[0], values[1], locations, weights, proj_w, proj_b),
+    )
+
+
+def test_touched_all_outside_empty_and_batch_independence():
+    values, image_index, locations, weights = random_inputs(num_images=3, mv=1, m=2, d=3, q=20, seed=12)
+    g = torch.Generator().manual_seed(13)
+    proj_w = torch.randn(2, 2, 3, generator=g, dtype=F64)
+    proj_b = torch.randn(2, 2, generator=g, dtype=F64)
+    # every point far outside the image: zero padding everywhere, bias included; gradients are zero
+    far = (locations + 5.0).requires_grad_(True)
+    pw = proj_w.clone().requires_grad_(True)
+    out = ms_deform_sample_project(values, image_index, far, weights, pw, proj_b, method="touched")
+    assert torch.equal(out, torch.zeros_like(out))
+    out.sum().backward()
+    assert torch.equal(far.grad, torch.zeros_like(far))
+    assert pw.grad is None or torch.equal(pw.grad, torch.zeros_like(pw))  # no pixel read: no graph to it
+    # no queries: an empty result that can be backpropagated
+    loc0 = torch.zeros(0, 2, 2, 3, 2, dtype=F64, requires_grad=True)
+    out0 = ms_deform_sample_project(values, torch.zeros(0, dtype=torch.long), loc0, weights[:0], proj_w, proj_b,
+                                    method="touched")
+    assert out0.shape == (0, 2, 2)
+    out0.sum().backward()
+    assert torch.equal(loc0.grad, torch.zeros_like(loc0))
+    # sample i never sees image j
+    base = ms_deform_sample_project(values, image_index, locations, weights, proj_w, proj_b, method="touched")
+    for j in range(3):
+        changed = [v.clone() for v in values]
+        for v in changed:
+            v[j] = torch.randn_like(v[j]) * 100
+        out = ms_deform_sample_project(changed, image_index, locations, weights, proj_w, proj_b, method="touched")
+        assert torch.equal(out[image_index != j], base[image_index != j])
+        assert not torch.equal(out[image_index == j], base[image_index == j])
+
+
+def test_project_methods_auto_and_errors():
+    values, image_index, locations, weights = random_inputs(num_images=2, mv=2, m=2, d=2, q=5, seed=14)
+    proj_w = torch.randn(2, 3, 2, dtype=F64)
+    with pytest.raises(MSSFError, match="Mv = 1"):
+        ms_deform_sample_project(values, image_index, locations, weights, proj_w, method="touched")
+    with pytest.raises(MSSFError, match="method"):
+        ms_deform_sample_project(values, image_index, locations, weights, proj_w, method="gemm")
+    # auto: "chunked" for per-head maps (Mv = M), "touched" for shared maps; both equal the reference
+    assert_close(ms_deform_sample_project(values, image_index, locations, weights, proj_w, method="auto"),
+                 ms_deform_sample_project(values, image_index, locations, weights, proj_w, method="chunked"))
+    shared = [v[:, :1] for v in values]
+    assert_close(ms_deform_sample_project(shared, image_index, locations, weights, proj_w, method="auto"),
+                 project_reference(shared, image_index, locations, weights, proj_w, torch.zeros(2, 3, dtype=F64)))

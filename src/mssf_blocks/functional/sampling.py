@@ -405,6 +405,146 @@ def _sample_project_level(
     return out
 
 
+# Cost model of the "touched" method, per level: projecting all ``pixels`` densely costs
+# ``pixels * D * E`` multiply-adds at dense-GEMM speed; projecting only the ``U`` touched pixels costs
+# ``U * D * E`` of them plus a gather of ``U`` scattered ``D``-channel rows. Measured on one core
+# (Xeon, torch 2.13, D = 256, NCHW and channels-last maps of 10^4-10^5 pixels): one gathered element
+# costs as much as 40-70 multiply-adds of the GEMM, so the level is projected densely when
+# ``U * (E + _GATHER_COST) > pixels * E``; e.g. at E = 16 above 1/4 of the pixels touched, at E = 128
+# above 3/4.
+_GATHER_COST = 48.0
+
+
+def _touched_rows(value: Tensor, touched: Tensor) -> List[Tensor]:
+    """Raw rows ``(U_i, D)`` of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``."""
+    num_images, _, dch, h, w = value.shape
+    try:  # channels-last memory: a free (I * H * W, D) row table, one contiguous row per pixel
+        table = value.permute(0, 1, 3, 4, 2).view(-1, dch)
+    except RuntimeError:
+        table = None
+    if table is not None:
+        return [table.index_select(0, touched)]
+    # Channel planes (NCHW): gather along each plane with the sorted pixel ids (monotone reads per
+    # plane); the (D, U_i) result is used transposed, no copy. Sorted ids are grouped by image.
+    bounds = torch.searchsorted(
+        touched, torch.arange(num_images + 1, device=touched.device, dtype=touched.dtype) * (h * w)
+    ).tolist()
+    rows = []
+    for i in range(num_images):
+        if bounds[i + 1] > bounds[i]:
+            sel = touched[bounds[i] : bounds[i + 1]] - i * h * w
+            rows.append(value[i, 0].reshape(dch, h * w).index_select(1, sel).t())
+    return rows
+
+
+def _touched_level(
+    value: Tensor,
+    image_index: Tensor,
+    loc: Tensor,
+    wt: Tensor,
+    w_all: Tensor,
+    b_all: Optional[Tensor],
+    m: int,
+    gather_cost: float,
+) -> Tensor:
+    """One level of the ``"touched"`` method: ``(M * Q, d)`` head-major output.
+
+    ``value (I, 1, D, H, W)``, ``loc (Q, M, P, 2)``, ``wt (Q, M, P)``, ``w_all (M * d, D)``,
+    ``b_all (M * d,)``. Corners are located on the level padded by 2 pixels on every side, with the
+    top-left corner clamped to ``[-2, W]`` x ``[-2, H]``: every corner then has a cell of the padded
+    grid, and a corner is in the map iff its cell is not in the padding (no per-corner masks). The
+    cells read by some corner are marked in a ``(I, H + 4, W + 4)`` array (O(pixels + corners), no
+    sort); the touched in-map pixels are projected with one GEMM (all heads at once) into a
+    ``(U + 1, M * d)`` table whose last row is zero and which padding cells map to (grid_sample's zero
+    padding, bias included); every corner then reads its head's ``d`` channels of its row in one
+    ``embedding_bag`` weighted by ``bilinear weight * attention weight``.
+    """
+    num_images, _, dch, h, w = value.shape
+    q, _, p, _ = loc.shape
+    e = w_all.shape[0]
+    d = e // m
+    dev = loc.device
+    n_pix = num_images * h * w
+    hp, wp = h + 4, w + 4
+    n_cells = num_images * hp * wp
+    lo = loc.permute(1, 0, 2, 3)  # (M, Q, P, 2): head-major, the layout of the per-head output
+    x = _pixel_coordinate(lo[..., 0], w)
+    y = _pixel_coordinate(lo[..., 1], h)
+    x0 = x.detach().floor()
+    y0 = y.detach().floor()
+    fx = x - x0
+    fy = y - y0
+    wo = wt.transpose(0, 1)
+    # (M, Q, 2, 2, P) corner weights as an outer product (y corner, x corner), in the order of the
+    # cell offsets (0, 1, Wp, Wp + 1) below.
+    ay = torch.stack(((1.0 - fy) * wo, fy * wo), 2)[:, :, :, None]
+    ax = torch.stack((1.0 - fx, fx), 2)[:, :, None]
+    psw = (ay * ax).view(m, q * 4 * p)
+    idt = torch.int32 if n_cells * m < 2**31 else torch.int64
+    # Clamping the top-left corner to [-2, W] keeps every in-map decision (x0 = -2 and x0 = W have
+    # both corners outside) and bounds the integers; the padded cell is (y0 + 2, x0 + 2).
+    xc = x0.clamp(-2.0, float(w)).to(idt) + 2
+    yc = y0.clamp(-2.0, float(h)).to(idt) + 2
+    row = (image_index.to(idt).view(1, q, 1) * hp + yc) * wp  # (M, Q, P)
+    cells = torch.stack((row, row + wp), 2)[:, :, :, None] + torch.stack((xc, xc + 1), 2)[:, :, None]
+
+    # Which in-map pixels are read, as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
+    mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
+    mark.view(-1)[cells.view(-1)] = True
+    inner = mark[:, 2 : h + 2, 2 : w + 2]
+    touched = inner.reshape(-1).nonzero().squeeze(1)  # (U,) sorted raw pixel ids
+    u = touched.numel()
+    remap = torch.full((num_images, hp, wp), -1, dtype=idt, device=dev)  # padding: the zero row
+    if u * (e + gather_cost) > n_pix * e:
+        # Many pixels are read: project the whole level (sequential reads, one GEMM per image).
+        parts = []
+        for i in range(num_images):
+            flat = value[i, 0].reshape(dch, h * w).t()  # (H*W, D); a transposed view for NCHW
+            parts.append(flat @ w_all.t() if b_all is None else torch.addmm(b_all, flat, w_all.t()))
+        remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
+        n_rows = n_pix
+    else:
+        # Few pixels are read: project only those (one gather of U raw rows, one GEMM).
+        parts = [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t())
+                 for raw in _touched_rows(value, touched)]
+        remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
+        n_rows = u
+    parts.append(w_all.new_zeros(1, e))
+    table = torch.cat(parts, 0).view(-1, d)  # ((rows + 1) * M, d): row r * M + head
+    remap = remap.view(-1)
+    remap[remap < 0] = n_rows
+    rows = remap[cells.view(m, -1).long()] * m + torch.arange(m, dtype=idt, device=dev).view(m, 1)
+    return F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p), mode="sum")
+
+
+def _ms_deform_sample_touched(
+    levels: List[Tensor],
+    image_index: Tensor,
+    locations: Tensor,
+    weights: Tensor,
+    proj_weight: Tensor,
+    proj_bias: Optional[Tensor],
+    gather_cost: float = _GATHER_COST,
+) -> Tensor:
+    q, m, _, p, _ = locations.shape
+    e = proj_weight.shape[0] * proj_weight.shape[1]
+    d = proj_weight.shape[1]
+    w_all = proj_weight.reshape(e, -1)
+    b_all = None if proj_bias is None else proj_bias.reshape(e)
+    if q == 0:  # keep a graph (of zeros) so that an empty batch can still be backpropagated
+        out = locations.new_zeros(0, m, d) + 0.0 * (locations.sum() + weights.sum() + w_all.sum())
+        return out if b_all is None else out + 0.0 * b_all.sum()
+    out = None
+    for lvl, val in enumerate(levels):
+        part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m,
+                              gather_cost)
+        out = part if out is None else out + part
+    return out.view(m, q, d).transpose(0, 1)
+
+
+_PROJECT_METHODS = ("chunked", "touched", "auto")
+
+
 def ms_deform_sample_project(
     values: Sequence[Tensor],
     image_index: Tensor,
@@ -413,25 +553,40 @@ def ms_deform_sample_project(
     proj_weight: Tensor,
     proj_bias: Optional[Tensor] = None,
     chunk_size: Optional[int] = 512,
+    method: str = "chunked",
 ) -> Tensor:
-    """:func:`ms_deform_sample` followed by a per-head linear projection, in chunks of queries.
+    """:func:`ms_deform_sample` followed by a per-head linear projection (MSDFF's value projection).
 
     ``out[q, m] = proj_weight[m] @ sampled[q, m] + mass[q, m] * proj_bias[m]`` where
-    ``sampled, mass = ms_deform_sample(..., method="fast", return_mass=True)``: MSDFF's value
-    projection applied after sampling (exact, since sampling is linear and the bias only enters where
-    bilinear corners fall inside the image). Queries are processed ``chunk_size`` at a time and, when
-    gradients are needed, each (chunk, level) block is recomputed in backward (activation
-    checkpointing), so memory is ``O(chunk_size * M * (D + L * P))`` instead of ``O(Q * M * L * P * D)``
-    at the price of one more sampling pass in backward.
+    ``sampled, mass = ms_deform_sample(..., return_mass=True)``; equivalently (sampling is linear and
+    the bias only enters where bilinear corners fall inside the image) the bilinear sample of the
+    projected map ``proj_weight[m] @ values + proj_bias[m]`` with zero padding. Two methods:
+
+    * ``"chunked"`` (default): sample the raw ``D`` channels once per head and point, then project.
+      Queries are processed ``chunk_size`` at a time and, when gradients are needed, each
+      (chunk, level) block is recomputed in backward (activation checkpointing), so memory is
+      ``O(chunk_size * M * (D + L * P))`` instead of ``O(Q * M * L * P * D)`` at the price of one
+      more sampling pass in backward. Cost ``O(Q * M * L * P * 4 * D)`` scattered row reads.
+    * ``"touched"`` (``Mv = 1`` only): per level, project only the pixels that some in-map bilinear
+      corner reads (``U <= min(I * H_l * W_l, Q * M * P * 4)`` rows, one GEMM for all heads), then
+      sample ``d`` channels per head and point from that table. Cost
+      ``O(U * D * M * d)`` (dense GEMM speed) ``+ O(U * D)`` gathered reads ``+ O(Q * M * P * 4 * d)``.
+      A level is projected densely instead when that is cheaper by the cost model
+      ``U * (M * d + 48) > I * H_l * W_l * M * d`` (one gathered element costs about 48 GEMM
+      multiply-adds on a CPU; e.g. at ``M * d = 16`` a level with more than 1/4 of its pixels touched). Memory ``O(U * M * d + Q * M * P * 4)`` per level;
+      ``chunk_size`` is ignored.
+    * ``"auto"``: ``"touched"`` when ``Mv = 1``, else ``"chunked"``.
 
     Args:
         values, image_index, locations, weights: as :func:`ms_deform_sample` (``Mv`` 1 or ``M``).
         proj_weight: ``(M, d, D)`` per-head projection (e.g. ``value_proj.weight.view(M, d, D)``).
         proj_bias: ``(M, d)`` per-head bias or ``None``.
-        chunk_size: queries per chunk; ``None`` processes all queries at once (no recomputation).
+        chunk_size: queries per chunk of ``"chunked"``; ``None`` processes all queries at once (no
+            recomputation).
+        method: ``"chunked"``, ``"touched"`` or ``"auto"``.
 
     Returns:
-        ``(Q, M, d)``.
+        ``(Q, M, d)`` (the ``"touched"`` method returns a transposed view of head-major memory).
 
     Example:
         >>> val = [torch.ones(1, 1, 2, 2, 2)]  # I = Mv = 1, D = 2, a 2x2 map of ones
@@ -448,6 +603,14 @@ def ms_deform_sample_project(
         check_dtype(proj_bias, "proj_bias", (levels[0].dtype,), hint=" (must match values)")
     if chunk_size is not None and (isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1):
         raise MSSFError(f"chunk_size: expected a positive int or None, got {chunk_size!r}")
+    if method not in _PROJECT_METHODS:
+        raise MSSFError(f"method: expected one of {_PROJECT_METHODS}, got {method!r}")
+    if method == "touched" and dims["Mv"] != 1:
+        raise MSSFError(
+            f"values: method='touched' needs Mv = 1 (raw maps shared by all heads), got Mv = {dims['Mv']}"
+        )
+    if method == "touched" or (method == "auto" and dims["Mv"] == 1):
+        return _ms_deform_sample_touched(levels, image_index, locations, weights, proj_weight, proj_bias)
     q = dims["Q"]
     step = q if chunk_size is None else chunk_size
     needs_grad = torch.is_grad_enabled() and any(
