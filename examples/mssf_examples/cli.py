@@ -368,11 +368,12 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
     t0 = time.perf_counter()
     preds: List[Dict] = []
     gts: List[Dict] = []
-    frames_seen: List[Frame] = []
+    frames_seen: List[Frame] = []  # without their images and points: a split's images do not fit in memory
 
     def batches():
         for batch, frames in loader:
-            frames_seen.extend(frames)
+            frames_seen.extend(dataclasses.replace(f, image=None, points=f.points[:0], raw_points=f.raw_points[:0])
+                               for f in frames)
             yield batch
 
     for p in predict(model, batches(), total=len(chunks), desc="eval", progress=progress):
