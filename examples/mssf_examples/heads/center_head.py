@@ -28,47 +28,41 @@ __all__ = ["CenterHead", "REGRESSION_BRANCHES"]
 REGRESSION_BRANCHES = (("center", 2), ("center_z", 1), ("dim", 3), ("rot", 2))
 
 
-def _branch(cin: int, cout: int, hidden: int, norm_layer, factory: dict) -> nn.Sequential:
-    layers: list = [nn.Conv2d(cin, hidden, 3, padding=1, bias=norm_layer is None, **factory)]
-    if norm_layer is not None:
-        layers.append(norm_layer(hidden, **factory))
-    layers += [nn.ReLU(inplace=True), nn.Conv2d(hidden, cout, 3, padding=1, **factory)]
-    return nn.Sequential(*layers)
+class _CenterHeadBase(nn.Module):
+    """What the dense and the sparse centre heads share: arguments, checks, layers, loss weighting.
 
-
-class CenterHead(nn.Module):
-    """CenterPoint head on a dense BEV map.
-
-    Args:
-        in_channels: channels ``C`` of the BEV map.
-        grid: the map's :class:`BEVGrid` (the head's stride is folded into its cell size).
-        num_classes: ``K``.
-        head_channels: width of the shared conv and of every branch.
-        norm_layer: normalisation type after each hidden conv (``None`` for none).
-        min_overlap, min_radius: Gaussian radius settings (CenterPoint: 0.1, 2).
-        cls_weight, reg_weight: loss weights (OpenPCDet KITTI config: 1, 2).
-        code_weights: 8 weights of ``(off_x, off_y, z, log dx, log dy, log dz, sin, cos)``.
-        nms_pre: heatmap peaks taken per sample before the score threshold and NMS.
-        device, dtype: for the parameters.
-
-    Shape:
-        ``forward(bev (B, C, ny, nx)) -> dict(hm (B, K, ny, nx), center (B, 2, ny, nx),
-        center_z (B, 1, ny, nx), dim (B, 3, ny, nx), rot (B, 2, ny, nx))``.
+    Subclasses set ``_layer(cin, cout, bias, factory)`` (a 3x3 conv or a linear layer) and
+    ``_shared_name`` (the attribute of the shared layer, kept for state_dict compatibility).
     """
+
+    _shared_name = "shared"
+
+    @staticmethod
+    def _layer(cin: int, cout: int, bias: bool, factory: dict) -> nn.Module:
+        raise NotImplementedError
+
+    def _hidden(self, cin: int, hidden: int, norm_layer, factory: dict) -> list:
+        layers: list = [self._layer(cin, hidden, norm_layer is None, factory)]
+        if norm_layer is not None:
+            layers.append(norm_layer(hidden, **factory))
+        return layers + [nn.ReLU(inplace=True)]
+
+    def _branch(self, cin: int, cout: int, hidden: int, norm_layer, factory: dict) -> nn.Sequential:
+        return nn.Sequential(*self._hidden(cin, hidden, norm_layer, factory), self._layer(hidden, cout, True, factory))
 
     def __init__(
         self,
         in_channels: int,
         grid: BEVGrid,
         num_classes: int,
-        head_channels: int = 64,
-        norm_layer: Callable[..., nn.Module] | None = nn.BatchNorm2d,
-        min_overlap: float = 0.1,
-        min_radius: int = 2,
-        cls_weight: float = 1.0,
-        reg_weight: float = 2.0,
-        code_weights: Sequence[float] | None = None,
-        nms_pre: int = 500,
+        head_channels: int,
+        norm_layer: Callable[..., nn.Module] | None,
+        min_overlap: float,
+        min_radius: int,
+        cls_weight: float,
+        reg_weight: float,
+        code_weights: Sequence[float] | None,
+        nms_pre: int,
         device=None,
         dtype=None,
     ) -> None:
@@ -89,18 +83,72 @@ class CenterHead(nn.Module):
         self.cls_weight, self.reg_weight, self.nms_pre = cls_weight, reg_weight, nms_pre
         factory = {"device": device, "dtype": dtype}
         self.register_buffer("code_weights", torch.tensor(code_weights, **factory), persistent=False)
-        shared: list = [nn.Conv2d(in_channels, head_channels, 3, padding=1, bias=norm_layer is None, **factory)]
-        if norm_layer is not None:
-            shared.append(norm_layer(head_channels, **factory))
-        shared.append(nn.ReLU(inplace=True))
-        self.shared_conv = nn.Sequential(*shared)
-        self.heads = nn.ModuleDict({"hm": _branch(head_channels, num_classes, head_channels, norm_layer, factory)})
+        setattr(self, self._shared_name, nn.Sequential(*self._hidden(in_channels, head_channels, norm_layer, factory)))
+        self.heads = nn.ModuleDict({"hm": self._branch(head_channels, num_classes, head_channels, norm_layer, factory)})
         for name, channels in REGRESSION_BRANCHES:
-            self.heads[name] = _branch(head_channels, channels, head_channels, norm_layer, factory)
+            self.heads[name] = self._branch(head_channels, channels, head_channels, norm_layer, factory)
         nn.init.constant_(self.heads["hm"][-1].bias, -2.19)  # CenterPoint's heatmap prior (p ~ 0.1)
 
     def extra_repr(self) -> str:
         return f"in_channels={self.in_channels}, num_classes={self.num_classes}, grid={self.grid}"
+
+    def _codes(self, preds: Dict[str, Tensor]) -> Tensor:
+        """The 8-value centre code, concatenated along dim 1: ``(B, 8, ny, nx)`` or ``(M, 8)``."""
+        return torch.cat([preds[name] for name, _ in REGRESSION_BRANCHES], dim=1)
+
+    def _weighted_losses(self, hm: Tensor, heatmap: Tensor, pred_rows: List[Tensor],
+                         target_rows: List[Tensor]) -> Dict[str, Tensor]:
+        """Gaussian focal heatmap loss and L1 regression over the boxes' rows (normalised by their number)."""
+        cls_loss = gaussian_focal_loss(hm, heatmap)
+        pred, target = torch.cat(pred_rows), torch.cat(target_rows)
+        reg_loss = ((pred - target).abs() * self.code_weights).sum() / max(1, target.shape[0])
+        return {"cls": self.cls_weight * cls_loss, "reg": self.reg_weight * reg_loss}
+
+
+class CenterHead(_CenterHeadBase):
+    """CenterPoint head on a dense BEV map.
+
+    Args:
+        in_channels: channels ``C`` of the BEV map.
+        grid: the map's :class:`BEVGrid` (the head's stride is folded into its cell size).
+        num_classes: ``K``.
+        head_channels: width of the shared conv and of every branch.
+        norm_layer: normalisation type after each hidden conv (``None`` for none).
+        min_overlap, min_radius: Gaussian radius settings (CenterPoint: 0.1, 2).
+        cls_weight, reg_weight: loss weights (OpenPCDet KITTI config: 1, 2).
+        code_weights: 8 weights of ``(off_x, off_y, z, log dx, log dy, log dz, sin, cos)``.
+        nms_pre: heatmap peaks taken per sample before the score threshold and NMS.
+        device, dtype: for the parameters.
+
+    Shape:
+        ``forward(bev (B, C, ny, nx)) -> dict(hm (B, K, ny, nx), center (B, 2, ny, nx),
+        center_z (B, 1, ny, nx), dim (B, 3, ny, nx), rot (B, 2, ny, nx))``.
+    """
+
+    _shared_name = "shared_conv"
+
+    @staticmethod
+    def _layer(cin: int, cout: int, bias: bool, factory: dict) -> nn.Module:
+        return nn.Conv2d(cin, cout, 3, padding=1, bias=bias, **factory)
+
+    def __init__(
+        self,
+        in_channels: int,
+        grid: BEVGrid,
+        num_classes: int,
+        head_channels: int = 64,
+        norm_layer: Callable[..., nn.Module] | None = nn.BatchNorm2d,
+        min_overlap: float = 0.1,
+        min_radius: int = 2,
+        cls_weight: float = 1.0,
+        reg_weight: float = 2.0,
+        code_weights: Sequence[float] | None = None,
+        nms_pre: int = 500,
+        device=None,
+        dtype=None,
+    ) -> None:
+        super().__init__(in_channels, grid, num_classes, head_channels, norm_layer, min_overlap, min_radius,
+                         cls_weight, reg_weight, code_weights, nms_pre, device, dtype)
 
     def forward(self, bev: Tensor) -> Dict[str, Tensor]:
         """Heatmap logits and regression maps from ``bev (B, C, ny, nx)``."""
@@ -108,9 +156,6 @@ class CenterHead(nn.Module):
         check_floating(bev, "bev")
         x = self.shared_conv(bev)
         return {name: head(x) for name, head in self.heads.items()}
-
-    def _codes(self, preds: Dict[str, Tensor]) -> Tensor:
-        return torch.cat([preds[name] for name, _ in REGRESSION_BRANCHES], dim=1)  # (B, 8, ny, nx)
 
     def loss(self, preds: Dict[str, Tensor], gt_boxes: List[Tensor], gt_labels: List[Tensor]) -> Dict[str, Tensor]:
         """CenterNet focal heatmap loss (normalised by the batch's peaks) and L1 regression at box centres
@@ -132,10 +177,7 @@ class CenterHead(nn.Module):
             heatmaps.append(t.heatmap)
             pred_rows.append(codes[b, :, t.cell_index[:, 1], t.cell_index[:, 0]].T)
             target_rows.append(t.regression)
-        cls_loss = gaussian_focal_loss(hm, torch.stack(heatmaps))
-        pred, target = torch.cat(pred_rows), torch.cat(target_rows)
-        reg_loss = ((pred - target).abs() * self.code_weights).sum() / max(1, target.shape[0])
-        return {"cls": self.cls_weight * cls_loss, "reg": self.reg_weight * reg_loss}
+        return self._weighted_losses(hm, torch.stack(heatmaps), pred_rows, target_rows)
 
     @torch.no_grad()
     def decode(

@@ -21,23 +21,15 @@ from torch import Tensor, nn
 from mssf_blocks._checks import check_dtype, check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
-from ..ops.boxes import CENTER_CODE_SIZE, decode_center
+from ..ops.boxes import decode_center
 from ..ops.targets import sparse_center_targets
-from .center_head import REGRESSION_BRANCHES
-from .common import BEVGrid, check_decode_args, check_gt_lists, gaussian_focal_loss, select_detections
+from .center_head import _CenterHeadBase
+from .common import BEVGrid, check_decode_args, check_gt_lists, select_detections
 
 __all__ = ["SparseCenterHead"]
 
 
-def _branch(cin: int, cout: int, hidden: int, norm_layer, factory: dict) -> nn.Sequential:
-    layers: list = [nn.Linear(cin, hidden, bias=norm_layer is None, **factory)]
-    if norm_layer is not None:
-        layers.append(norm_layer(hidden, **factory))
-    layers += [nn.ReLU(inplace=True), nn.Linear(hidden, cout, **factory)]
-    return nn.Sequential(*layers)
-
-
-class SparseCenterHead(nn.Module):
+class SparseCenterHead(_CenterHeadBase):
     """VoxelNeXt-style sparse centre head.
 
     Args:
@@ -56,6 +48,12 @@ class SparseCenterHead(nn.Module):
         center (M, 2), center_z (M, 1), dim (M, 3), rot (M, 2), coords (M, 3), batch_size)``.
     """
 
+    _shared_name = "shared"
+
+    @staticmethod
+    def _layer(cin: int, cout: int, bias: bool, factory: dict) -> nn.Module:
+        return nn.Linear(cin, cout, bias=bias, **factory)
+
     def __init__(
         self,
         in_channels: int,
@@ -72,35 +70,8 @@ class SparseCenterHead(nn.Module):
         device=None,
         dtype=None,
     ) -> None:
-        super().__init__()
-        if not isinstance(grid, BEVGrid):
-            raise MSSFError(f"grid: expected a BEVGrid, got {type(grid).__name__}")
-        sizes = (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels))
-        for name, value in sizes:
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise MSSFError(f"{name}: expected a positive int, got {value!r}")
-        if not 0.0 < min_overlap < 1.0:
-            raise MSSFError(f"min_overlap: expected a value in (0, 1), got {min_overlap}")
-        code_weights = [1.0] * CENTER_CODE_SIZE if code_weights is None else list(map(float, code_weights))
-        if len(code_weights) != CENTER_CODE_SIZE:
-            raise MSSFError(f"code_weights: expected {CENTER_CODE_SIZE} values, got {len(code_weights)}")
-        self.grid, self.in_channels, self.num_classes = grid, in_channels, num_classes
-        self.min_overlap, self.min_radius = min_overlap, min_radius
-        self.cls_weight, self.reg_weight, self.nms_pre = cls_weight, reg_weight, nms_pre
-        factory = {"device": device, "dtype": dtype}
-        self.register_buffer("code_weights", torch.tensor(code_weights, **factory), persistent=False)
-        shared: list = [nn.Linear(in_channels, head_channels, bias=norm_layer is None, **factory)]
-        if norm_layer is not None:
-            shared.append(norm_layer(head_channels, **factory))
-        shared.append(nn.ReLU(inplace=True))
-        self.shared = nn.Sequential(*shared)
-        self.heads = nn.ModuleDict({"hm": _branch(head_channels, num_classes, head_channels, norm_layer, factory)})
-        for name, channels in REGRESSION_BRANCHES:
-            self.heads[name] = _branch(head_channels, channels, head_channels, norm_layer, factory)
-        nn.init.constant_(self.heads["hm"][-1].bias, -2.19)
-
-    def extra_repr(self) -> str:
-        return f"in_channels={self.in_channels}, num_classes={self.num_classes}, grid={self.grid}"
+        super().__init__(in_channels, grid, num_classes, head_channels, norm_layer, min_overlap, min_radius,
+                         cls_weight, reg_weight, code_weights, nms_pre, device, dtype)
 
     def forward(self, features: Tensor, coords: Tensor, batch_size: int) -> Dict[str, object]:
         """Per-voxel heatmap logits and regression from ``features (M, C)`` at ``coords (M, 3)`` (b, y, x)."""
@@ -125,9 +96,6 @@ class SparseCenterHead(nn.Module):
         out["batch_size"] = batch_size
         return out
 
-    def _codes(self, preds: Dict[str, object]) -> Tensor:
-        return torch.cat([preds[name] for name, _ in REGRESSION_BRANCHES], dim=1)  # (M, 8)
-
     def loss(self, preds: Dict[str, object], gt_boxes: List[Tensor], gt_labels: List[Tensor]) -> Dict[str, Tensor]:
         """Focal heatmap loss over all voxels and L1 regression at each box's voxel.
 
@@ -148,10 +116,7 @@ class SparseCenterHead(nn.Module):
             heatmap[rows] = t.heatmap
             pred_rows.append(codes[rows[t.voxel_index]])
             target_rows.append(t.regression)
-        cls_loss = gaussian_focal_loss(hm, heatmap)
-        pred, target = torch.cat(pred_rows), torch.cat(target_rows)
-        reg_loss = ((pred - target).abs() * self.code_weights).sum() / max(1, target.shape[0])
-        return {"cls": self.cls_weight * cls_loss, "reg": self.reg_weight * reg_loss}
+        return self._weighted_losses(hm, heatmap, pred_rows, target_rows)
 
     @torch.no_grad()
     def decode(
