@@ -390,20 +390,19 @@ def project_reference(values, image_index, locations, weights, proj_w, proj_b):
 
 
 def touched(values, image_index, locations, weights, proj_w, proj_b, branch):
-    """The "touched" method with its dense/gather choice forced (or the cost model's, branch "auto")."""
+    """The "touched" method with its per-level plan forced (or the cost model's, branch "auto")."""
     from mssf_blocks.functional import sampling
 
-    cost = {"gather": 0.0, "dense": float("inf")}.get(branch)
-    if cost is None:
+    if branch == "auto":
         return ms_deform_sample_project(values, image_index, locations, weights, proj_w, proj_b, method="touched")
-    return sampling._ms_deform_sample_touched(values, image_index, locations, weights, proj_w, proj_b, cost)
+    return sampling._ms_deform_sample_touched(values, image_index, locations, weights, proj_w, proj_b, branch)
 
 
 def channels_last(values):
     return [v[:, 0].contiguous(memory_format=torch.channels_last)[:, None] for v in values]
 
 
-@pytest.mark.parametrize("branch", ["gather", "dense", "auto"])
+@pytest.mark.parametrize("branch", ["project", "sample", "dense", "auto"])
 def test_touched_equals_naive_loop(branch):
     # independent: naive loop sampling, then the per-head projection and bias * mass by hand
     values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=2, d=3, q=7, seed=8, spread=0.5)
@@ -423,7 +422,7 @@ def test_touched_equals_naive_loop(branch):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("where", ["random", "borders"])
-@pytest.mark.parametrize("branch", ["gather", "dense"])
+@pytest.mark.parametrize("branch", ["project", "sample", "dense"])
 @pytest.mark.parametrize("layout", ["nchw", "channels_last"])
 def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch, layout):
     sizes = ((8, 16), (4, 8), (2, 4))
@@ -458,7 +457,7 @@ def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch
     assert all(bool(gr.abs().sum() > 0) for gr in grads_r)  # not vacuous
 
 
-@pytest.mark.parametrize("branch", ["gather", "dense"])
+@pytest.mark.parametrize("branch", ["project", "sample", "dense"])
 def test_touched_gradcheck(branch):
     values, image_index, locations, weights = random_inputs(
         num_images=2, mv=1, m=2, d=2, sizes=((3, 4), (2, 2)), q=3, p=2, seed=10, spread=0.3
@@ -477,13 +476,14 @@ def test_touched_all_outside_empty_and_batch_independence():
     proj_w = torch.randn(2, 2, 3, generator=g, dtype=F64)
     proj_b = torch.randn(2, 2, generator=g, dtype=F64)
     # every point far outside the image: zero padding everywhere, bias included; gradients are zero
-    far = (locations + 5.0).requires_grad_(True)
-    pw = proj_w.clone().requires_grad_(True)
-    out = ms_deform_sample_project(values, image_index, far, weights, pw, proj_b, method="touched")
-    assert torch.equal(out, torch.zeros_like(out))
-    out.sum().backward()
-    assert torch.equal(far.grad, torch.zeros_like(far))
-    assert pw.grad is None or torch.equal(pw.grad, torch.zeros_like(pw))  # no pixel read: no graph to it
+    for branch in ("auto", "project", "sample", "dense"):
+        far = (locations + 5.0).requires_grad_(True)
+        pw = proj_w.clone().requires_grad_(True)
+        out = touched(values, image_index, far, weights, pw, proj_b, branch)
+        assert torch.equal(out, torch.zeros_like(out)), branch
+        out.sum().backward()
+        assert torch.equal(far.grad, torch.zeros_like(far)), branch
+        assert pw.grad is None or torch.equal(pw.grad, torch.zeros_like(pw)), branch  # no pixel read
     # no queries: an empty result that can be backpropagated
     loc0 = torch.zeros(0, 2, 2, 3, 2, dtype=F64, requires_grad=True)
     out0 = ms_deform_sample_project(values, torch.zeros(0, dtype=torch.long), loc0, weights[:0], proj_w, proj_b,

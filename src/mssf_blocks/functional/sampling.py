@@ -405,14 +405,21 @@ def _sample_project_level(
     return out
 
 
-# Cost model of the "touched" method, per level: projecting all ``pixels`` densely costs
-# ``pixels * D * E`` multiply-adds at dense-GEMM speed; projecting only the ``U`` touched pixels costs
-# ``U * D * E`` of them plus a gather of ``U`` scattered ``D``-channel rows. Measured on one core
-# (Xeon, torch 2.13, D = 256, NCHW and channels-last maps of 10^4-10^5 pixels): one gathered element
-# costs as much as 40-70 multiply-adds of the GEMM, so the level is projected densely when
-# ``U * (E + _GATHER_COST) > pixels * E``; e.g. at E = 16 above 1/4 of the pixels touched, at E = 128
-# above 3/4.
+# Cost model of the "touched" method, per level, in multiply-adds of a dense GEMM (D input channels,
+# E = M * d output channels, U touched pixels of the level's I * H * W, Q * M * P * 4 corners):
+#   "dense"   project every pixel, then sample d per head:          pixels * D * E
+#   "project" gather the U touched raw rows, project them:          U * D * (E + _GATHER_COST)
+#   "sample"  gather the U touched raw rows into a compact table,
+#             sample its D channels per corner, project per head:   U * D * _GATHER_COST
+#                                                                   + corners * D * _BAG_COST + Q * D * E
+# Measured on one core (Xeon, torch 2.13, D = 256, 10^4-10^5-pixel maps, NCHW and channels-last): a
+# GEMM multiply-add costs 0.03-0.04 ns, a gathered element 1.4-3 ns (about 48 multiply-adds), an
+# element of embedding_bag over a compact (U, D) table 0.15 ns (about 5). The smallest wins: "dense"
+# when most pixels are touched and E is small, "sample" when E is large against the corners per
+# touched pixel (e.g. few queries and E = 128), "project" in between.
 _GATHER_COST = 48.0
+_BAG_COST = 5.0
+_PLANS = ("dense", "project", "sample")
 
 
 def _touched_rows(value: Tensor, touched: Tensor) -> List[Tensor]:
@@ -445,7 +452,7 @@ def _touched_level(
     w_all: Tensor,
     b_all: Optional[Tensor],
     m: int,
-    gather_cost: float,
+    plan: Optional[str],
 ) -> Tensor:
     """One level of the ``"touched"`` method: ``(M * Q, d)`` head-major output.
 
@@ -475,45 +482,65 @@ def _touched_level(
     fx = x - x0
     fy = y - y0
     wo = wt.transpose(0, 1)
-    # (M, Q, 2, 2, P) corner weights as an outer product (y corner, x corner), in the order of the
-    # cell offsets (0, 1, Wp, Wp + 1) below.
-    ay = torch.stack(((1.0 - fy) * wo, fy * wo), 2)[:, :, :, None]
-    ax = torch.stack((1.0 - fx, fx), 2)[:, :, None]
-    psw = (ay * ax).view(m, q * 4 * p)
-    idt = torch.int32 if n_cells * m < 2**31 else torch.int64
+    ay0, ay1 = (1.0 - fy) * wo, fy * wo
+    ax0, ax1 = 1.0 - fx, fx
+    # (M, Q, 4, P) corner weights, in the order of the cell offsets (0, 1, Wp, Wp + 1) below. Stacks of
+    # contiguous products: several times faster than one broadcasting product on the CPU.
+    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), 2).view(m, q * 4 * p)
     # Clamping the top-left corner to [-2, W] keeps every in-map decision (x0 = -2 and x0 = W have
-    # both corners outside) and bounds the integers; the padded cell is (y0 + 2, x0 + 2).
-    xc = x0.clamp(-2.0, float(w)).to(idt) + 2
-    yc = y0.clamp(-2.0, float(h)).to(idt) + 2
-    row = (image_index.to(idt).view(1, q, 1) * hp + yc) * wp  # (M, Q, P)
-    cells = torch.stack((row, row + wp), 2)[:, :, :, None] + torch.stack((xc, xc + 1), 2)[:, :, None]
+    # both corners outside) and bounds the integers; the padded cell is (y0 + 2, x0 + 2). int64 cells
+    # (index_fill_ wants them); the rows read by embedding_bag are int32 (its fast path).
+    xc = x0.clamp(-2.0, float(w)).long() + 2
+    yc = y0.clamp(-2.0, float(h)).long() + 2
+    c00 = (image_index.view(1, q, 1) * hp + yc) * wp + xc  # (M, Q, P)
+    cells = torch.stack((c00, c00 + 1, c00 + wp, c00 + wp + 1), 2).view(-1)
 
     # Which in-map pixels are read, as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
     mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
-    mark.view(-1)[cells.view(-1)] = True
+    mark.view(-1).index_fill_(0, cells, True)
     inner = mark[:, 2 : h + 2, 2 : w + 2]
     touched = inner.reshape(-1).nonzero().squeeze(1)  # (U,) sorted raw pixel ids
     u = touched.numel()
-    remap = torch.full((num_images, hp, wp), -1, dtype=idt, device=dev)  # padding: the zero row
-    if u * (e + gather_cost) > n_pix * e:
+    if plan is None:
+        costs = {
+            "dense": n_pix * e,
+            "project": u * (e + _GATHER_COST),
+            "sample": u * _GATHER_COST + m * q * 4 * p * _BAG_COST + q * e,
+        }
+        plan = min(costs, key=costs.get)
+    n_rows = n_pix if plan == "dense" else u
+    idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
+    remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
+    if plan == "dense":
         # Many pixels are read: project the whole level (sequential reads, one GEMM per image).
         parts = []
         for i in range(num_images):
             flat = value[i, 0].reshape(dch, h * w).t()  # (H*W, D); a transposed view for NCHW
             parts.append(flat @ w_all.t() if b_all is None else torch.addmm(b_all, flat, w_all.t()))
         remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
-        n_rows = n_pix
     else:
-        # Few pixels are read: project only those (one gather of U raw rows, one GEMM).
-        parts = [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t())
-                 for raw in _touched_rows(value, touched)]
+        # Few pixels are read: gather only those raw rows.
+        parts = _touched_rows(value, touched)
         remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
-        n_rows = u
+    if plan != "sample":
+        remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
+    rows = remap.view(-1).index_select(0, cells).view(m, -1)  # (M, Q * 4 * P); n_rows: the zero row
+    if plan == "sample":
+        # Sample the D raw channels per head and point from the compact table, then project per head
+        # (Q * D * E) and add the bias times the in-map weight mass.
+        table = torch.cat(parts + [value.new_zeros(1, dch)], 0)  # (U + 1, D)
+        sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p),
+                                  mode="sum")  # (M * Q, D)
+        out = torch.bmm(sampled.view(m, q, dch), w_all.view(m, d, dch).transpose(1, 2))  # (M, Q, d)
+        if b_all is not None:
+            mass = (psw.view(m, q, 4 * p) * (rows.view(m, q, 4 * p) != n_rows)).sum(-1, keepdim=True)
+            out = out + mass * b_all.view(m, 1, d)
+        return out.view(m * q, d)
+    if plan == "project":
+        parts = [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in parts]
     parts.append(w_all.new_zeros(1, e))
     table = torch.cat(parts, 0).view(-1, d)  # ((rows + 1) * M, d): row r * M + head
-    remap = remap.view(-1)
-    remap[remap < 0] = n_rows
-    rows = remap[cells.view(m, -1).long()] * m + torch.arange(m, dtype=idt, device=dev).view(m, 1)
+    rows += torch.arange(m, dtype=idt, device=dev).view(m, 1)
     return F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p), mode="sum")
 
 
@@ -524,7 +551,7 @@ def _ms_deform_sample_touched(
     weights: Tensor,
     proj_weight: Tensor,
     proj_bias: Optional[Tensor],
-    gather_cost: float = _GATHER_COST,
+    plan: Optional[str] = None,
 ) -> Tensor:
     q, m, _, p, _ = locations.shape
     e = proj_weight.shape[0] * proj_weight.shape[1]
@@ -536,8 +563,7 @@ def _ms_deform_sample_touched(
         return out if b_all is None else out + 0.0 * b_all.sum()
     out = None
     for lvl, val in enumerate(levels):
-        part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m,
-                              gather_cost)
+        part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m, plan)
         out = part if out is None else out + part
     return out.view(m, q, d).transpose(0, 1)
 
