@@ -49,6 +49,8 @@ from mssf_examples.image_pretrain import (  # noqa: E402
 from mssf_examples.presets import VOD, DetectorPreset, tiny_preset  # noqa: E402
 from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig, SyntheticDataset  # noqa: E402
 from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
+from mssf_examples.training import batch_order, train_detector  # noqa: E402
+from mssf_examples.training import predict as predict_detections  # noqa: E402
 
 try:
     from tqdm import tqdm
@@ -79,52 +81,19 @@ def ground_truths(scenes: List[Scene]) -> List[Dict[str, torch.Tensor]]:
     return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, lidar2cam=s.sensor_to_camera) for s in scenes]
 
 
-def batches(n: int, batch_size: int, steps: int, seed: int):
-    """Deterministic data order: a seeded permutation per epoch, ``steps`` batches of indices."""
-    g = torch.Generator().manual_seed(seed)
-    out: List[List[int]] = []
-    while len(out) < steps:
-        perm = torch.randperm(n, generator=g).tolist()
-        out += [perm[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
-    return out[:steps]
-
-
 def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
           collate=None) -> Dict:
-    """Train ``model`` in place; ``collate(indices)`` builds a batch (default: ``Scene.collate``)."""
+    """Train ``model`` in place on a seeded data order; ``collate(indices)`` builds a batch (default:
+    ``Scene.collate``). The loop is :func:`mssf_examples.training.train_detector`."""
     collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
-    params = [p for p in model.parameters() if p.requires_grad]
-    opt = torch.optim.AdamW(params, lr=lr, betas=(0.95, 0.99), weight_decay=0.01)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.4,
-                                                div_factor=10.0, base_momentum=0.85, max_momentum=0.95)
-    model.train()
-    history: List[Dict[str, float]] = []
-    bar = tqdm(batches(len(scenes), batch_size, steps, seed), desc=f"train {desc}", unit="step", dynamic_ncols=True)
-    t0 = time.perf_counter()
-    for idx in bar:
-        losses = model(collate(idx))
-        opt.zero_grad(set_to_none=True)
-        losses["loss"].backward()
-        torch.nn.utils.clip_grad_norm_(params, 10.0)  # OpenPCDet's GRAD_NORM_CLIP
-        opt.step()
-        sched.step()
-        row = {k: float(v.detach()) for k, v in losses.items()}
-        history.append(row)
-        if hasattr(bar, "set_postfix"):
-            bar.set_postfix(loss=f"{row['loss']:.3f}")
-    seconds = time.perf_counter() - t0
-    return dict(seconds=seconds, seconds_per_step=seconds / max(steps, 1), history=history)
+    order = batch_order(len(scenes), batch_size, steps, seed)
+    return train_detector(model, (collate(idx) for idx in order), steps, lr, desc=f"train {desc}")
 
 
-@torch.no_grad()
 def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None) -> List[Dict[str, torch.Tensor]]:
     collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
-    model.eval()
-    preds: List[Dict[str, torch.Tensor]] = []
-    for i in tqdm(range(0, len(scenes), batch_size), desc=f"eval {desc}", unit="batch", dynamic_ncols=True):
-        for p in model(collate(list(range(i, min(i + batch_size, len(scenes)))))):
-            preds.append({k: v.double() if k == "boxes" else v for k, v in p.items()})
-    return preds
+    chunks = [list(range(i, min(i + batch_size, len(scenes)))) for i in range(0, len(scenes), batch_size)]
+    return predict_detections(model, (collate(idx) for idx in chunks), total=len(chunks), desc=f"eval {desc}")
 
 
 @torch.no_grad()
