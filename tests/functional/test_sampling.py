@@ -515,3 +515,58 @@ def test_project_methods_auto_and_errors():
     shared = [v[:, :1] for v in values]
     assert_close(ms_deform_sample_project(shared, image_index, locations, weights, proj_w, method="auto"),
                  project_reference(shared, image_index, locations, weights, proj_w, torch.zeros(2, 3, dtype=F64)))
+
+
+# ---------------------------------------------------------------------------------------------------
+# bilinear_sample methods: "gather" (distinct corner pixels + embedding_bag) vs "grid" (grid_sample)
+# ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("where", ["random", "borders"])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last"])
+def test_bilinear_gather_equals_grid_forward_and_gradients(dtype, where, layout):
+    g = torch.Generator().manual_seed(15)
+    b, v, c, h, w, n = 2, 2, 5, 6, 9, 23
+    image = torch.randn(b, v, c, h, w, generator=g, dtype=dtype)
+    if where == "borders":  # pixel centres, pixel borders, image edges and outside
+        uv = border_locations(((h, w),), n, v, 1, dtype, seed=16)[:, :, 0, 0]  # (N, V, 2)
+    else:
+        uv = torch.rand(n, v, 2, generator=g, dtype=dtype) * 1.4 - 0.2
+    uv[0, 0] = float("nan")  # invalid entries may hold anything
+    batch_index = torch.randint(0, b, (n,), generator=g)
+    valid = torch.rand(n, v, generator=g) > 0.2
+    valid[0, 0] = False
+    go = torch.randn(n, v, c, generator=g, dtype=dtype)
+    results = {}
+    for method in ("gather", "grid", "auto"):
+        im = image.detach().clone().requires_grad_(True)
+        feed = im
+        if layout == "channels_last":
+            feed = im.reshape(b * v, c, h, w).contiguous(memory_format=torch.channels_last).view(b, v, c, h, w)
+        p = uv.detach().clone().requires_grad_(True)
+        out = bilinear_sample(feed, p, batch_index, valid, method=method)
+        gi, gp = torch.autograd.grad((out * go).sum(), (im, p))
+        results[method] = (out.detach(), gi, gp)
+    # independent naive loop for the forward
+    expected = torch.zeros(n, v, c, dtype=F64)
+    for i in range(n):
+        for cam in range(v):
+            if valid[i, cam]:
+                expected[i, cam] = naive_bilinear(image[batch_index[i], cam].double(), *uv[i, cam].double().tolist())
+    for method in ("gather", "auto"):
+        for name, a, ref in zip(("out", "grad image", "grad uv"), results[method], results["grid"]):
+            assert_close(a, ref, msg=f"{method} {name}")
+    assert_close(results["gather"][0], expected)
+    assert results["grid"][1].abs().sum() > 0 and results["grid"][2].abs().sum() > 0
+    assert torch.equal(results["gather"][2][0, 0], torch.zeros(2, dtype=dtype))  # invalid: no gradient
+
+
+@pytest.mark.parametrize("method", ["gather", "grid"])
+def test_bilinear_sample_methods_gradcheck(method):
+    g = torch.Generator().manual_seed(17)
+    image = torch.randn(2, 2, 2, 4, 5, generator=g, dtype=F64)
+    uv = torch.rand(6, 2, 2, generator=g, dtype=F64) * 1.2 - 0.1
+    bidx = torch.tensor([0, 1, 1, 0, 0, 1])
+    valid = torch.tensor([[True, True], [False, True], [True, False], [True, True], [True, True], [True, False]])
+    assert gradcheck64(lambda im, p: bilinear_sample(im, p, bidx, valid, method=method), (image, uv))
+    with pytest.raises(MSSFError, match="method"):
+        bilinear_sample(image, uv, bidx, valid, method="fast")
