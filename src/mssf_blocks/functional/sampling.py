@@ -434,6 +434,7 @@ def _sample_project_level(
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
 _PLANS = ("dense", "project", "sample")
+_PROJECT_CHUNK = 4096  # touched rows gathered and projected at a time (4 MiB of 256 float32 channels)
 # bilinear_sample on NCHW maps is bound by cache-line reads per channel plane: grid_sample reads ~2
 # lines (rows y0, y1) per point, the gather of the U distinct corner pixels reads the lines holding
 # them, ``pixels / 16 * (1 - (1 - U / pixels) ** 16)`` for float32, with some more overhead per line.
@@ -442,25 +443,35 @@ _PLANS = ("dense", "project", "sample")
 _GRID_LINES_PER_POINT = 1.5
 
 
-def _touched_rows(value: Tensor, touched: Tensor) -> List[Tensor]:
-    """Raw rows ``(U_i, D)`` of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``."""
+def _touched_rows(value: Tensor, touched: Tensor, chunk: Optional[int] = None) -> List[Tensor]:
+    """Raw rows ``(U_i, D)`` of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``.
+
+    In pieces of at most ``chunk`` rows when given: a piece consumed right away (e.g. by a GEMM) is
+    still in cache, and no ``U x D`` temporary is allocated (tens of MiB at P2; fresh pages cost a
+    page fault each).
+    """
     num_images, _, dch, h, w = value.shape
     try:  # channels-last memory: a free (I * H * W, D) row table, one contiguous row per pixel
         table = value.permute(0, 1, 3, 4, 2).view(-1, dch)
     except RuntimeError:
         table = None
+    step = max(touched.numel(), 1) if chunk is None else chunk
     if table is not None:
-        return [table.index_select(0, touched)]
+        # (an empty piece when nothing is touched keeps the image in the graph: zero gradient, not None)
+        return [table.index_select(0, touched[s : s + step]) for s in range(0, max(touched.numel(), 1), step)]
     # Channel planes (NCHW): gather along each plane with the sorted pixel ids (monotone reads per
-    # plane); the (D, U_i) result is used transposed, no copy. Sorted ids are grouped by image.
+    # plane); the (D, U_i) result is used transposed. Sorted ids are grouped by image.
     bounds = torch.searchsorted(
         touched, torch.arange(num_images + 1, device=touched.device, dtype=touched.dtype) * (h * w)
     ).tolist()
     rows = []
     for i in range(num_images):
-        if bounds[i + 1] > bounds[i]:
-            sel = touched[bounds[i] : bounds[i + 1]] - i * h * w
-            rows.append(value[i, 0].reshape(dch, h * w).index_select(1, sel).t())
+        plane = value[i, 0].reshape(dch, h * w)
+        for s in range(bounds[i], bounds[i + 1], step):
+            sel = touched[s : min(s + step, bounds[i + 1])] - i * h * w
+            rows.append(plane.index_select(1, sel).t())
+    if not rows:
+        rows.append(value[0, 0].reshape(dch, h * w).index_select(1, touched).t())
     return rows
 
 
@@ -551,8 +562,9 @@ def _touched_level(
             parts.append(flat @ w_all.t() if b_all is None else torch.addmm(b_all, flat, w_all.t()))
         remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
     else:
-        # Few pixels are read: gather only those raw rows.
-        parts = _touched_rows(value, touched)
+        # Few pixels are read: gather only those raw rows ("project": in cache-sized pieces, each
+        # projected at once).
+        parts = _touched_rows(value, touched, _PROJECT_CHUNK if plan == "project" else None)
         remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
     if plan != "sample":
         remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
