@@ -424,8 +424,9 @@ def _sample_project_level(
 #   "dense"   project every pixel, then sample d per head:          pixels * D * E
 #   "project" gather the U touched raw rows, project them:          U * D * (E + _GATHER_COST)
 #   "sample"  gather the U touched raw rows into a compact table,
-#             sample its D channels per corner, project per head:   U * D * _GATHER_COST
+#             sample its D channels per corner, project per head:   U * D * (_GATHER_COST [+ _TRANSPOSE_COST])
 #                                                                   + corners * D * _BAG_COST + Q * D * E
+#             (the transposing copy of the gathered rows for NCHW maps; channels-last rows need none)
 # Measured on one core (Xeon, torch 2.13, D = 256, 10^4-10^5-pixel maps, NCHW and channels-last): a
 # GEMM multiply-add costs 0.03-0.04 ns, a gathered element 1.4-3 ns (about 48 multiply-adds), an
 # element of embedding_bag over a compact (U, D) table 0.15 ns (about 5). The smallest wins: "dense"
@@ -434,6 +435,9 @@ def _sample_project_level(
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
 _PLANS = ("dense", "project", "sample")
+# NCHW maps: the "sample" plan's table of gathered rows is a transposed (D, U) gather that
+# embedding_bag copies to (U, D); a transposing copy costs about as much as the gather (measured).
+_TRANSPOSE_COST = 48.0
 _PROJECT_CHUNK = 4096  # touched rows gathered and projected at a time (4 MiB of 256 float32 channels)
 # bilinear_sample on NCHW maps is bound by cache-line reads per channel plane: grid_sample reads ~2
 # lines (rows y0, y1) per point, the gather of the U distinct corner pixels reads the lines holding
@@ -441,6 +445,15 @@ _PROJECT_CHUNK = 4096  # touched rows gathered and projected at a time (4 MiB of
 # Measured on one core (256 channels, 2.5k-8k points, P2-P5 of a 1216 x 1936 image): the gather wins
 # while it reads fewer than 1.5 lines per point (points sharing corners, coarse levels; 1.3-5x faster).
 _GRID_LINES_PER_POINT = 1.5
+
+
+def _is_row_table(value: Tensor) -> bool:
+    """Whether ``value (I, 1, D, H, W)`` is a free ``(I * H * W, D)`` row table (channels-last)."""
+    try:
+        value.permute(0, 1, 3, 4, 2).view(-1, value.shape[2])
+        return True
+    except RuntimeError:
+        return False
 
 
 def _touched_rows(value: Tensor, touched: Tensor, chunk: Optional[int] = None) -> List[Tensor]:
@@ -548,7 +561,8 @@ def _touched_level(
         costs = {
             "dense": n_pix * e,
             "project": u * (e + _GATHER_COST),
-            "sample": u * _GATHER_COST + m * q * 4 * p * _BAG_COST + q * e,
+            "sample": u * (_GATHER_COST + (0.0 if _is_row_table(value) else _TRANSPOSE_COST))
+            + m * q * 4 * p * _BAG_COST + q * e,
         }
         plan = min(costs, key=costs.get)
     n_rows = n_pix if plan == "dense" else u
@@ -572,15 +586,21 @@ def _touched_level(
     if plan == "sample":
         # Sample the D raw channels per head and point from the compact table, then project per head
         # (Q * D * E) and add the bias times the in-map weight mass.
-        table = torch.cat(parts + [value.new_zeros(1, dch)], 0)  # (U + 1, D)
-        sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p),
-                                  mode="sum")  # (M * Q, D)
+        # No zero row here (appending one would copy the U x D table): out-of-map corners get weight 0
+        # and any valid row.
+        inside = rows.view(m * q, 4 * p) != n_rows
+        psw = psw.view(m * q, 4 * p) * inside
+        if u == 0:
+            table, rows = value.new_zeros(1, dch) + 0.0 * parts[0].sum(), torch.zeros_like(rows)
+        else:
+            table = parts[0] if len(parts) == 1 else torch.cat(parts, 0)  # (U, D); a copy if NCHW
+            rows = rows.clamp(max=n_rows - 1)
+        sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw, mode="sum")  # (M * Q, D)
         if w_all is None:
             return sampled
         out = torch.bmm(sampled.view(m, q, dch), w_all.view(m, d, dch).transpose(1, 2))  # (M, Q, d)
         if b_all is not None:
-            mass = (psw.view(m, q, 4 * p) * (rows.view(m, q, 4 * p) != n_rows)).sum(-1, keepdim=True)
-            out = out + mass * b_all.view(m, 1, d)
+            out = out + psw.view(m, q, 4 * p).sum(-1, keepdim=True) * b_all.view(m, 1, d)
         return out.view(m * q, d)
     if plan == "project":
         parts = [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in parts]
