@@ -324,10 +324,12 @@ class MSDFF(nn.Module):
     * head ``m`` reads ``sum_{l,p} w * Sample(value_proj_m(F_l), location)``;
 
     heads are concatenated, averaged over the valid cameras, and ``Linear_BN`` = ``output_proj`` + norm
-    gives ``f_img`` (eq. 10). The value projection is applied *after* sampling (sampling is linear in
-    the values): raw image channels are sampled once per head, then projected with that head's rows of
-    ``value_proj.weight``, plus ``value_proj.bias`` times the in-image bilinear weight mass - exactly
-    what projecting every pixel first would give, at a cost that scales with voxels, not pixels.
+    gives ``f_img`` (eq. 10). Sampling is linear in the values, so the value projection may be applied
+    to the pixels (all of them, or only those a bilinear corner reads) or after sampling (raw channels
+    sampled per head, projected with that head's rows of ``value_proj.weight``, plus
+    ``value_proj.bias`` times the in-image bilinear weight mass): all are exactly equal, and the
+    default ``method="auto"`` picks the cheapest per level, at a cost that scales with the pixels the
+    voxels read, not with the image.
 
     Args:
         embed_dim: query and output channels ``E`` (the voxel channels); divisible by ``num_heads``.
@@ -337,16 +339,18 @@ class MSDFF(nn.Module):
         num_levels: ``L``, number of image levels read.
         num_points: ``P``, sampling points per head and level.
         norm_layer: normalisation after ``output_proj``.
-        method: ``ms_deform_sample`` implementation: ``"auto"``, ``"reference"`` or ``"fast"``.
-        value_projection: ``"after_sampling"`` (default; cost ``O(N * M * L * P * C)``, independent of
-            the image size) or ``"before_sampling"`` (Deformable DETR's order: ``value_proj`` on the
-            pixels, then sample ``E / M`` channels per head). With ``method`` ``"auto"``/``"fast"``,
-            ``"before_sampling"`` projects only the ``U_l`` pixels of each level that some bilinear
-            corner reads (the whole level when more than half of it is read;
-            :func:`~mssf_blocks.functional.ms_deform_sample_project` ``method="touched"``), cost
-            ``O(sum_l min(U_l, pixels_l) * C * E + N * M * L * P * 4 * E / M)``; with ``"reference"``
-            it projects every pixel and uses ``grid_sample``. All give the same result (tested); the
-            second is faster when ``C`` is large (``docs/fusion.md`` and ``docs/performance.md``).
+        method: ``"auto"`` (default): whatever ``value_projection``, per level the cheapest exact plan
+            of :func:`~mssf_blocks.functional.ms_deform_sample_project` ``method="touched"`` (project
+            every pixel, project only the ``U_l`` pixels some bilinear corner reads, or sample those
+            pixels' raw channels and project per head; cost
+            ``O(min(pixels_l * E, U_l * (E + G), U_l * G + N * M * P * 4 * B) * C)``, see
+            ``docs/fusion.md``). ``"fast"`` / ``"reference"``: the literal order of
+            ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path.
+        value_projection: the order used by ``method`` ``"fast"`` / ``"reference"``:
+            ``"after_sampling"`` (default; sample the raw channels per head, then project; cost
+            ``O(N * M * L * P * C)``, independent of the image size) or ``"before_sampling"``
+            (Deformable DETR's order: ``value_proj`` on every pixel, then sample ``E / M`` channels per
+            head; ``O(pixels * C * E + N * M * L * P * E / M)``). All give the same result (tested).
         device, dtype: factory arguments of the parameters.
 
     Shapes:
@@ -476,25 +480,22 @@ class MSDFF(nn.Module):
         locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
         weights = weights[n_idx]
         image_index = batch_index[n_idx] * v + v_idx
-        if self.value_projection == "after_sampling":
+        w_heads = self.value_proj.weight.view(m, self.head_dim, c)
+        b_heads = self.value_proj.bias.view(m, self.head_dim)
+        if self.method == "auto":
+            # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
+            # of project-all / project-touched / sample-touched-then-project (exact, bias included).
+            values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
+            heads = ms_deform_sample_project(values, image_index, locations, weights, w_heads, b_heads,
+                                             method="touched")
+        elif self.value_projection == "after_sampling":
             values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
             sampled, mass = ms_deform_sample(
                 values, image_index, locations, weights, method=self.method, return_mass=True
             )  # (Q, M, C), (Q, M)
             # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
             # contributes only where the bilinear corners were inside the image (zero padding).
-            w_heads = self.value_proj.weight.view(m, self.head_dim, c)
-            b_heads = self.value_proj.bias.view(m, self.head_dim)
             heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
-        elif self.method != "reference":
-            # Project-then-sample restricted to the pixels some bilinear corner reads (whole levels
-            # when most of their pixels are read): exact, bias included (out-of-map corners read 0).
-            values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
-            heads = ms_deform_sample_project(
-                values, image_index, locations, weights,
-                self.value_proj.weight.view(m, self.head_dim, c), self.value_proj.bias.view(m, self.head_dim),
-                method="touched",
-            )
         else:
             values = []
             for lvl in levels:

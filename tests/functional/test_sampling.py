@@ -402,7 +402,7 @@ def channels_last(values):
     return [v[:, 0].contiguous(memory_format=torch.channels_last)[:, None] for v in values]
 
 
-@pytest.mark.parametrize("branch", ["project", "sample", "dense", "auto"])
+@pytest.mark.parametrize("branch", ["project", "sample", "dense", "direct", "auto"])
 def test_touched_equals_naive_loop(branch):
     # independent: naive loop sampling, then the per-head projection and bias * mass by hand
     values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=2, d=3, q=7, seed=8, spread=0.5)
@@ -412,7 +412,7 @@ def test_touched_equals_naive_loop(branch):
     sampled, mass = naive_ms_deform(values, image_index, locations, weights)
     expected = torch.einsum("qmc,mdc->qmd", sampled, proj_w) + mass[..., None] * proj_b
     assert bool((mass < weights.sum((2, 3)) - 1e-6).any())  # some corners read the zero padding
-    for vals in (values, channels_last(values)):
+    for vals in (values, channels_last(values)) if branch != "direct" else (channels_last(values),):
         out = touched(vals, image_index, locations, weights, proj_w, proj_b, branch)
         assert out.shape == (7, 2, 4)
         assert_close(out, expected)
@@ -422,8 +422,8 @@ def test_touched_equals_naive_loop(branch):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("where", ["random", "borders"])
-@pytest.mark.parametrize("branch", ["project", "sample", "dense"])
-@pytest.mark.parametrize("layout", ["nchw", "channels_last"])
+@pytest.mark.parametrize("branch,layout", [(b, l) for b in ("project", "sample", "dense") for l in ("nchw", "channels_last")]
+                         + [("direct", "channels_last")])
 def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch, layout):
     sizes = ((8, 16), (4, 8), (2, 4))
     values, image_index, locations, weights = random_inputs(
@@ -457,11 +457,13 @@ def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch
     assert all(bool(gr.abs().sum() > 0) for gr in grads_r)  # not vacuous
 
 
-@pytest.mark.parametrize("branch", ["project", "sample", "dense"])
+@pytest.mark.parametrize("branch", ["project", "sample", "dense", "direct"])
 def test_touched_gradcheck(branch):
     values, image_index, locations, weights = random_inputs(
         num_images=2, mv=1, m=2, d=2, sizes=((3, 4), (2, 2)), q=3, p=2, seed=10, spread=0.3
     )
+    if branch == "direct":
+        values = channels_last(values)
     proj_w = torch.randn(2, 3, 2, dtype=F64)
     proj_b = torch.randn(2, 3, dtype=F64)
     assert gradcheck64(
@@ -476,10 +478,11 @@ def test_touched_all_outside_empty_and_batch_independence():
     proj_w = torch.randn(2, 2, 3, generator=g, dtype=F64)
     proj_b = torch.randn(2, 2, generator=g, dtype=F64)
     # every point far outside the image: zero padding everywhere, bias included; gradients are zero
-    for branch in ("auto", "project", "sample", "dense"):
+    for branch in ("auto", "project", "sample", "dense", "direct"):
         far = (locations + 5.0).requires_grad_(True)
         pw = proj_w.clone().requires_grad_(True)
-        out = touched(values, image_index, far, weights, pw, proj_b, branch)
+        out = touched(channels_last(values) if branch == "direct" else values, image_index, far, weights, pw,
+                      proj_b, branch)
         assert torch.equal(out, torch.zeros_like(out)), branch
         out.sum().backward()
         assert torch.equal(far.grad, torch.zeros_like(far)), branch

@@ -18,6 +18,9 @@ rows of a (pixels x D) table and reduces them with ``embedding_bag(mode="sum")``
 ``bilinear weight * attention weight`` (never materialising a gathered ``(corners, D)`` tensor);
 autograd carries the per-corner weight gradient back to ``locations`` and ``weights``. The
 ``"reference"`` path is the usual per-level ``F.grid_sample`` formulation and is kept for tests.
+:func:`ms_deform_sample_project` adds MSDFF's value projection; its ``"touched"`` method projects
+only the pixels that some bilinear corner reads (found with a bool mark array over the level), and
+:func:`bilinear_sample` gathers the distinct corner pixels of its points once (``method="gather"``).
 """
 
 from __future__ import annotations
@@ -434,7 +437,11 @@ def _sample_project_level(
 # touched pixel (e.g. few queries and E = 128), "project" in between.
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
-_PLANS = ("dense", "project", "sample")
+_PLANS = ("dense", "project", "sample", "direct")
+# "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
+# view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. Random 1 KiB rows of a 10^5-row table
+# miss the cache, hence more than _BAG_COST per element (measured).
+_DIRECT_BAG_COST = 6.0
 # NCHW maps: the "sample" plan's table of gathered rows is a transposed (D, U) gather that
 # embedding_bag copies to (U, D); a transposing copy costs about as much as the gather (measured).
 _TRANSPOSE_COST = 48.0
@@ -564,11 +571,18 @@ def _touched_level(
             "sample": u * (_GATHER_COST + (0.0 if _is_row_table(value) else _TRANSPOSE_COST))
             + m * q * 4 * p * _BAG_COST + q * e,
         }
+        if _is_row_table(value):
+            costs["direct"] = m * q * 4 * p * _DIRECT_BAG_COST + q * e
         plan = min(costs, key=costs.get)
-    n_rows = n_pix if plan == "dense" else u
+    n_rows = n_pix if plan in ("dense", "direct") else u
     idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
     remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
-    if plan == "dense":
+    if plan == "direct":
+        # Channels-last maps are a free (I * H * W, D) row table: sample it in place, no gather.
+        parts = [value.permute(0, 1, 3, 4, 2).view(-1, dch)]
+        remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
+        plan = "sample"
+    elif plan == "dense":
         # Many pixels are read: project the whole level (sequential reads, one GEMM per image).
         parts = []
         for i in range(num_images):
