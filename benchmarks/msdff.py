@@ -38,10 +38,13 @@ layout PyTorch's CPU convolutions produce fastest, so that the fast path reads t
 spread uniformly over the image (the worst case for memory locality).
 
 Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)`` (``--threads``). Peak extra memory:
-rise of the resident-set high-water mark over a call (see ``benchmarks/_common.py``).
+rise of the resident-set high-water mark over a call (see ``benchmarks/_common.py``). That method
+makes glibc ``mmap`` every allocation above 64 KiB, so every such allocation pays its page faults in
+every call (expensive in the VM we measure on); ``--default-malloc`` times with glibc's defaults
+instead (memory columns then meaningless).
 
 Usage: ``python benchmarks/msdff.py [--quick] [--repeats 3] [--threads 2] [--chunk-size 1024]
-[--kinds fast fused touched] [--distributions uniform "radar band"] [--json out.json]``
+[--kinds fast fused touched] [--distributions uniform "radar band"] [--default-malloc] [--json out.json]``
 """
 
 from __future__ import annotations
@@ -236,8 +239,13 @@ def main() -> None:
                     help="paths compared with the reference")
     ap.add_argument("--distributions", nargs="+", default=["uniform", "radar band"],
                     choices=["uniform", "radar band"], help="where the voxels project (see the docstring)")
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="keep glibc's default allocator settings: times without the page fault that the "
+                         "memory measurement's 64 KiB mmap threshold adds to every larger allocation; the "
+                         "memory columns are then not meaningful")
     args = ap.parse_args()
-    reexec_with_mmap_threshold()
+    if not args.default_malloc:
+        reexec_with_mmap_threshold()
     torch.set_num_threads(args.threads)
     if args.quick:
         size, size2x, sizes, repeats = (608, 976), (864, 1376), [(1000, 32), (3000, 64)], 3
@@ -250,7 +258,7 @@ def main() -> None:
     print(f"image {size[0]} x {size[1]} (2x area: {size2x[0]} x {size2x[1]}), levels "
           f"{[tuple(f.shape[-2:]) for f in feats]}, {IMAGE_CHANNELS} ch, M={HEADS}, P={POINTS}, "
           f"threads={torch.get_num_threads()}, repeats={repeats}, fused chunk={args.chunk_size}, "
-          f"load average before={load[0]:.1f}")
+          f"load average before={load[0]:.1f}, MALLOC_MMAP_THRESHOLD_={os.environ.get('MALLOC_MMAP_THRESHOLD_')}")
     rows = [run_case(n, c, dist, feats, feats2x, repeats, args.chunk_size, args.kinds) for n, c, dist in cases]
     print(f"load average after={os.getloadavg()[0]:.1f}")
     kinds = [k for k in KINDS if k == "reference" or k in args.kinds]

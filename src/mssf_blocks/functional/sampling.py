@@ -607,7 +607,9 @@ def _touched_level(
         if u == 0:
             table, rows = value.new_zeros(1, dch) + 0.0 * parts[0].sum(), torch.zeros_like(rows)
         else:
-            table = parts[0] if len(parts) == 1 else torch.cat(parts, 0)  # (U, D); a copy if NCHW
+            # (U, D) rows; NCHW gathers are (D, U) transposed views: one transposing copy (embedding_bag
+            # reads a strided table element by element, far slower).
+            table = parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 0)
             rows = rows.clamp(max=n_rows - 1)
         sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw, mode="sum")  # (M * Q, D)
         if w_all is None:
