@@ -427,9 +427,8 @@ def _sample_project_level(
 #   "dense"   project every pixel, then sample d per head:          pixels * D * E
 #   "project" gather the U touched raw rows, project them:          U * D * (E + _GATHER_COST)
 #   "sample"  gather the U touched raw rows into a compact table,
-#             sample its D channels per corner, project per head:   U * D * (_GATHER_COST [+ _TRANSPOSE_COST])
+#             sample its D channels per corner, project per head:   U * D * (_GATHER_COST + _COPY_COST)
 #                                                                   + corners * D * _BAG_COST + Q * D * E
-#             (the transposing copy of the gathered rows for NCHW maps; channels-last rows need none)
 # Measured on one core (Xeon, torch 2.13, D = 256, 10^4-10^5-pixel maps, NCHW and channels-last): a
 # GEMM multiply-add costs 0.03-0.04 ns, a gathered element 1.4-3 ns (about 48 multiply-adds), an
 # element of embedding_bag over a compact (U, D) table 0.15 ns (about 5). The smallest wins: "dense"
@@ -437,15 +436,15 @@ def _sample_project_level(
 # touched pixel (e.g. few queries and E = 128), "project" in between.
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
+_DEBUG = False
 _PLANS = ("dense", "project", "sample", "direct")
 # "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
 # view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. Random 1 KiB rows of a 10^5-row table
 # miss the cache, hence more than _BAG_COST per element (measured).
 _DIRECT_BAG_COST = 6.0
-# NCHW maps: the "sample" plan's table of gathered rows is a transposed (D, U) gather that
-# embedding_bag copies to (U, D); a transposing copy costs about as much as the gather (measured).
-_TRANSPOSE_COST = 48.0
-_PROJECT_CHUNK = 4096  # touched rows gathered and projected at a time (4 MiB of 256 float32 channels)
+# "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
+_COPY_COST = 8.0
+_PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
 # bilinear_sample on NCHW maps is bound by cache-line reads per channel plane: grid_sample reads ~2
 # lines (rows y0, y1) per point, the gather of the U distinct corner pixels reads the lines holding
 # them, ``pixels / 16 * (1 - (1 - U / pixels) ** 16)`` for float32, with some more overhead per line.
@@ -454,44 +453,47 @@ _PROJECT_CHUNK = 4096  # touched rows gathered and projected at a time (4 MiB of
 _GRID_LINES_PER_POINT = 1.5
 
 
-def _is_row_table(value: Tensor) -> bool:
-    """Whether ``value (I, 1, D, H, W)`` is a free ``(I * H * W, D)`` row table (channels-last)."""
+def _row_table(value: Tensor) -> Optional[Tensor]:
+    """``value (I, 1, D, H, W)`` as a free ``(I * H * W, D)`` table with contiguous rows, or ``None``.
+
+    Only channels-last memory qualifies: an NCHW map also has an ``(I * H * W, D)`` view (for
+    ``I = 1``), but with stride ``H * W`` along ``D``, i.e. every row scattered over ``D`` planes.
+    """
     try:
-        value.permute(0, 1, 3, 4, 2).view(-1, value.shape[2])
-        return True
+        table = value.permute(0, 1, 3, 4, 2).view(-1, value.shape[2])
     except RuntimeError:
-        return False
+        return None
+    return table if table.stride(1) == 1 or table.shape[1] == 1 else None
 
 
-def _touched_rows(value: Tensor, touched: Tensor, chunk: Optional[int] = None) -> List[Tensor]:
-    """Raw rows ``(U_i, D)`` of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``.
+def _is_row_table(value: Tensor) -> bool:
+    return _row_table(value) is not None
 
-    In pieces of at most ``chunk`` rows when given: a piece consumed right away (e.g. by a GEMM) is
-    still in cache, and no ``U x D`` temporary is allocated (tens of MiB at P2; fresh pages cost a
-    page fault each).
+
+def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> List[Tensor]:
+    """Raw rows of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``, as contiguous
+    ``(<= chunk, D)`` pieces in order.
+
+    Channels-last maps are one ``(I * H * W, D)`` row table; NCHW maps are read through each image's
+    transposed ``(H * W, D)`` view. Pieces of ``chunk`` sorted pixels keep the reads of every channel
+    plane within a narrow band (measured 2x faster than one gather over a whole 10^5-pixel level) and,
+    when consumed right away (e.g. by a GEMM), are still in cache.
     """
     num_images, _, dch, h, w = value.shape
-    try:  # channels-last memory: a free (I * H * W, D) row table, one contiguous row per pixel
-        table = value.permute(0, 1, 3, 4, 2).view(-1, dch)
-    except RuntimeError:
-        table = None
-    step = max(touched.numel(), 1) if chunk is None else chunk
+    table = _row_table(value)
     if table is not None:
         # (an empty piece when nothing is touched keeps the image in the graph: zero gradient, not None)
-        return [table.index_select(0, touched[s : s + step]) for s in range(0, max(touched.numel(), 1), step)]
-    # Channel planes (NCHW): gather along each plane with the sorted pixel ids (monotone reads per
-    # plane); the (D, U_i) result is used transposed. Sorted ids are grouped by image.
+        return [table.index_select(0, touched[s : s + chunk]) for s in range(0, max(touched.numel(), 1), chunk)]
     bounds = torch.searchsorted(
         touched, torch.arange(num_images + 1, device=touched.device, dtype=touched.dtype) * (h * w)
     ).tolist()
     rows = []
     for i in range(num_images):
-        plane = value[i, 0].reshape(dch, h * w)
-        for s in range(bounds[i], bounds[i + 1], step):
-            sel = touched[s : min(s + step, bounds[i + 1])] - i * h * w
-            rows.append(plane.index_select(1, sel).t())
+        rows_i = value[i, 0].reshape(dch, h * w).t()  # (H*W, D), stride H*W along D
+        for s in range(bounds[i], bounds[i + 1], chunk):
+            rows.append(rows_i.index_select(0, touched[s : min(s + chunk, bounds[i + 1])] - i * h * w))
     if not rows:
-        rows.append(value[0, 0].reshape(dch, h * w).index_select(1, touched).t())
+        rows.append(value[0, 0].reshape(dch, h * w).t().index_select(0, touched))
     return rows
 
 
@@ -568,18 +570,18 @@ def _touched_level(
         costs = {
             "dense": n_pix * e,
             "project": u * (e + _GATHER_COST),
-            "sample": u * (_GATHER_COST + (0.0 if _is_row_table(value) else _TRANSPOSE_COST))
-            + m * q * 4 * p * _BAG_COST + q * e,
+            "sample": u * (_GATHER_COST + _COPY_COST) + m * q * 4 * p * _BAG_COST + q * e,
         }
         if _is_row_table(value):
             costs["direct"] = m * q * 4 * p * _DIRECT_BAG_COST + q * e
         plan = min(costs, key=costs.get)
+        if _DEBUG: print("PLAN", tuple(value.shape[-2:]), q, e, u, {k: int(v) for k, v in costs.items()}, plan)
     n_rows = n_pix if plan in ("dense", "direct") else u
     idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
     remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
     if plan == "direct":
         # Channels-last maps are a free (I * H * W, D) row table: sample it in place, no gather.
-        parts = [value.permute(0, 1, 3, 4, 2).view(-1, dch)]
+        parts = [_row_table(value)]
         remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
         plan = "sample"
     elif plan == "dense":
@@ -592,7 +594,7 @@ def _touched_level(
     else:
         # Few pixels are read: gather only those raw rows ("project": in cache-sized pieces, each
         # projected at once).
-        parts = _touched_rows(value, touched, _PROJECT_CHUNK if plan == "project" else None)
+        parts = _touched_rows(value, touched, _PROJECT_CHUNK)
         remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
     if plan != "sample":
         remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
@@ -607,9 +609,7 @@ def _touched_level(
         if u == 0:
             table, rows = value.new_zeros(1, dch) + 0.0 * parts[0].sum(), torch.zeros_like(rows)
         else:
-            # (U, D) rows; NCHW gathers are (D, U) transposed views: one transposing copy (embedding_bag
-            # reads a strided table element by element, far slower).
-            table = parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 0)
+            table = parts[0] if len(parts) == 1 else torch.cat(parts, 0)  # (U, D) contiguous rows
             rows = rows.clamp(max=n_rows - 1)
         sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw, mode="sum")  # (M * Q, D)
         if w_all is None:
