@@ -261,7 +261,7 @@ def parse_args(argv=None):
     ap.add_argument("--epochs", type=float, default=None, help="alternative to --steps: passes over the train split")
     ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--lr", type=float, default=3e-3, help="one-cycle peak learning rate")
-    ap.add_argument("--train-scenes", type=int, default=None, help="default 400")
+    ap.add_argument("--train-scenes", type=int, default=None, help="default 1000")
     ap.add_argument("--val-scenes", type=int, default=None, help="default 80")
     ap.add_argument("--seed", type=int, default=0, help="scene seed and torch seed")
     ap.add_argument("--fusion-blocks", type=int, default=1, help="n of the fusion model")
@@ -269,7 +269,7 @@ def parse_args(argv=None):
     ap.add_argument("--image-branch", choices=("pretrained", "end-to-end"), default="pretrained",
                     help="pretrained: pre-train on the train scenes' 2D semantics, freeze, cache features "
                          "(the paper freezes a pre-trained branch); end-to-end: train it with the detector")
-    ap.add_argument("--image-pretrain-steps", type=int, default=None, help="default 400")
+    ap.add_argument("--image-pretrain-steps", type=int, default=None, help="default 1000")
     ap.add_argument("--image-pretrain-lr", type=float, default=3e-3)
     ap.add_argument("--lighting", action="store_true", help="also report AP per lighting condition")
     ap.add_argument("--save-checkpoint", type=Path, default=None)
@@ -279,7 +279,7 @@ def parse_args(argv=None):
     ap.add_argument("--quick", action="store_true", help="tiny run (a few steps and scenes) for tests")
     ap.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = ap.parse_args(argv)
-    defaults = dict(image_pretrain_steps=400, train_scenes=400, val_scenes=80)
+    defaults = dict(image_pretrain_steps=1000, train_scenes=400, val_scenes=80)
     if args.quick:
         defaults.update(image_pretrain_steps=3, train_scenes=4, val_scenes=4, steps=3)
         args.batch_size = min(args.batch_size, 2)
