@@ -261,7 +261,7 @@ def parse_args(argv=None):
     ap.add_argument("--epochs", type=float, default=None, help="alternative to --steps: passes over the train split")
     ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--lr", type=float, default=3e-3, help="one-cycle peak learning rate")
-    ap.add_argument("--train-scenes", type=int, default=None, help="default 1000")
+    ap.add_argument("--train-scenes", type=int, default=None, help="default 400")
     ap.add_argument("--val-scenes", type=int, default=None, help="default 80")
     ap.add_argument("--seed", type=int, default=0, help="scene seed and torch seed")
     ap.add_argument("--fusion-blocks", type=int, default=1, help="n of the fusion model")
