@@ -436,7 +436,6 @@ def _sample_project_level(
 # touched pixel (e.g. few queries and E = 128), "project" in between.
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
-_DEBUG = False
 _PLANS = ("dense", "project", "sample", "direct")
 # "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
 # view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. Random 1 KiB rows of a 10^5-row table
@@ -575,7 +574,6 @@ def _touched_level(
         if _is_row_table(value):
             costs["direct"] = m * q * 4 * p * _DIRECT_BAG_COST + q * e
         plan = min(costs, key=costs.get)
-        if _DEBUG: print("PLAN", tuple(value.shape[-2:]), q, e, u, {k: int(v) for k, v in costs.items()}, plan)
     n_rows = n_pix if plan in ("dense", "direct") else u
     idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
     remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
