@@ -70,8 +70,8 @@ def bilinear_sample(
             (``None``: all valid). Invalid entries return exact zeros, pass no gradient to ``image``
             or ``uv``, and may hold any ``uv`` (even NaN).
         method: ``"gather"`` (distinct corner pixels gathered once, ``embedding_bag``), ``"grid"``
-            (``F.grid_sample`` per image) or ``"auto"`` (per camera: ``"gather"`` when the touched pixels
-            fill fewer cache lines than ``grid_sample`` would read, else ``"grid"``). Equal results.
+            (``F.grid_sample`` per image) or ``"auto"`` (= ``"gather"``, 2-6x faster on CPU). Equal
+            results.
 
     Returns:
         ``(N, V, C)`` sampled features.
@@ -118,15 +118,16 @@ def bilinear_sample(
     # Every camera: the 4 bilinear corners of every point, the distinct in-map corner pixels gathered
     # once (sorted reads along each channel plane), one embedding_bag over that compact table (the
     # "sample" plan of the touched method). For NCHW maps this reads each needed pixel once instead of
-    # 4 scattered channel planes per point (grid_sample): measured 1.3-5x faster when points share
-    # corners; "auto" falls back to grid_sample per camera when they do not (_GRID_LINES_PER_POINT).
+    # 4 scattered channel planes per point (grid_sample): measured 2-6x faster on one core for 10^3-10^4
+    # points on 256-channel NCHW P2/P3 levels, clustered or spread.
     ones = uv.new_ones(n, 1, 1)
     rows = []
     for cam in range(v):
-        s = _touched_level(image[:, cam : cam + 1], batch_index, uv[:, cam].view(n, 1, 1, 2), ones, None, None, 1,
-                           "grid" if method == "auto" else "sample")
-        if s is None or method == "grid":
+        if method == "grid":
             s = _bilinear_sample_grid(image[:, cam : cam + 1], uv[:, cam : cam + 1], batch_index)[:, 0]
+        else:
+            s = _touched_level(image[:, cam : cam + 1], batch_index, uv[:, cam].view(n, 1, 1, 2), ones, None, None,
+                               1, "sample")
         rows.append(s)
     out = torch.stack(rows, 1)  # (N, V, C)
     if valid is not None:
@@ -444,12 +445,6 @@ _DIRECT_BAG_COST = 6.0
 # "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
-# bilinear_sample on NCHW maps is bound by cache-line reads per channel plane: grid_sample reads ~2
-# lines (rows y0, y1) per point, the gather of the U distinct corner pixels reads the lines holding
-# them, ``pixels / 16 * (1 - (1 - U / pixels) ** 16)`` for float32, with some more overhead per line.
-# Measured on one core (256 channels, 2.5k-8k points, P2-P5 of a 1216 x 1936 image): the gather wins
-# while it reads fewer than 1.5 lines per point (points sharing corners, coarse levels; 1.3-5x faster).
-_GRID_LINES_PER_POINT = 1.5
 
 
 def _row_table(value: Tensor) -> Optional[Tensor]:
@@ -558,13 +553,6 @@ def _touched_level(
     inner = mark[:, 2 : h + 2, 2 : w + 2]
     touched = inner.reshape(-1).nonzero().squeeze(1)  # (U,) sorted raw pixel ids
     u = touched.numel()
-    if plan == "grid":
-        # bilinear_sample's choice: with few shared corners the gather of scattered NCHW pixels costs
-        # more than grid_sample's reads (measured, see bilinear_sample); None tells it to use grid_sample.
-        lines = n_pix / 16.0 * (1.0 - (1.0 - u / n_pix) ** 16)  # 64-byte lines per plane holding touched pixels
-        if lines > _GRID_LINES_PER_POINT * q * m * p:
-            return None
-        plan = "sample"
     if plan is None:
         costs = {
             "dense": n_pix * e,
