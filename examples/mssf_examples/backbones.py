@@ -570,10 +570,15 @@ class PointPillarsBackbone(nn.Module):
     @staticmethod
     def _coarsen(v: SparseVoxels, s: int) -> SparseVoxels:
         """The lift voxels at the BEV map's x/y resolution (stride ``(1, s, s)``)."""
-        c = v.coords.clone()
-        c[:, 2:] = torch.div(c[:, 2:], s, rounding_mode="floor")
-        c = torch.unique(c, dim=0)
+        c = v.coords.long()
         d, h, w = v.spatial_shape
+        hs, ws = -(-h // s), -(-w // s)
+        # One int64 key per voxel, monotone in (batch, z, y, x): the same sorted rows as
+        # torch.unique(dim=0), several times faster (a 1-d sort instead of a lexicographic one).
+        key = ((c[:, 0] * d + c[:, 1]) * hs + torch.div(c[:, 2], s, rounding_mode="floor")) * ws + torch.div(
+            c[:, 3], s, rounding_mode="floor")
+        key = torch.unique(key)
+        c = torch.stack([key // (d * hs * ws), key // (hs * ws) % d, key // ws % hs, key % ws], 1).to(v.coords.dtype)
         return SparseVoxels(
             features=v.features.new_zeros(c.shape[0], 1), coords=c, spatial_shape=(d, -(-h // s), -(-w // s)),
             batch_size=v.batch_size, voxel_size=v.voxel_size, point_range_min=v.point_range_min, stride=(1, s, s),

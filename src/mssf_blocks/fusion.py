@@ -170,6 +170,8 @@ def _factory(device, dtype) -> dict:
 def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor) -> Tensor:
     """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
     rows = visible.nonzero().squeeze(1)
+    if rows.numel() == x.shape[0]:  # every voxel seen (the usual case): no gather / scatter copies
+        return norm(linear(x))
     y = norm(linear(x[rows]))
     out = y.new_zeros(x.shape[0], y.shape[1])
     return out.index_put((rows,), y)

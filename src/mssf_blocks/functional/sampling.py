@@ -174,6 +174,8 @@ def camera_mean(x: Tensor, valid: Tensor) -> Tensor:
     check_floating(x, "x")
     check_shape(valid, "valid", ("N", "V"), dims)
     check_dtype(valid, "valid", (torch.bool,))
+    if x.shape[1] == 1:  # one camera: the mean is the valid entry itself (same numbers, one pass)
+        return torch.where(valid, x[:, 0], x.new_zeros(()))
     total = torch.where(valid[..., None], x, x.new_zeros(())).sum(dim=1)
     count = valid.sum(dim=1, keepdim=True).clamp(min=1).to(x.dtype)
     return total / count
