@@ -500,3 +500,19 @@ def test_msdff_touched_pixels_equals_reference_with_all_gradients(dtype, layout)
             assert_close(a, b, msg=f"grad {name}")
     by_name = dict(zip(names, results["reference"][1]))
     assert by_name["value_proj.weight"].abs().sum() > 0 and by_name["value_proj.bias"].abs().sum() > 0
+
+
+@pytest.mark.parametrize("method", ["auto", "fast", "reference"])
+def test_msdff_one_camera_all_seen_matches_reference(method):
+    # MSDFF's shortcut for one camera that sees every voxel (no gather/scatter) against the reference
+    gen = torch.Generator().manual_seed(23)
+    levels, uv, valid, bidx = scene(gen, v=1, n=8, chans=(3, 3))
+    valid[:] = True
+    uv[2] = torch.tensor([0.01, 0.99], dtype=D64)  # partly outside
+    mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64).eval()
+    randomize_msdff(mod, gen)
+    query = torch.randn(8, 8, generator=gen, dtype=D64)
+    want, _, _ = reference_msdff(mod, query, levels, uv, valid, bidx)
+    assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
+    assert gradcheck64(lambda q, l0, u: mod(q, [l0, levels[1]], make_projection(u, valid, bidx)),
+                       (query, levels[0], uv))

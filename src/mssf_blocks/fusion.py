@@ -475,13 +475,17 @@ class MSDFF(nn.Module):
 
         # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
         # depend on the query only, so they are computed per voxel and gathered.
-        n_idx, v_idx = valid.nonzero(as_tuple=True)
-        locations, weights = self.sampling_locations_and_weights(
-            query, uv.new_zeros(n, 2), [tuple(lvl.shape[-2:]) for lvl in levels]
-        )
-        locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
-        weights = weights[n_idx]
-        image_index = batch_index[n_idx] * v + v_idx
+        sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
+        one_each = v == 1 and bool(valid.all())
+        if one_each:  # one camera that sees every voxel (the usual case): no gathers or scatters
+            locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
+            image_index = batch_index
+        else:
+            n_idx, v_idx = valid.nonzero(as_tuple=True)
+            locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
+            locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
+            weights = weights[n_idx]
+            image_index = batch_index[n_idx] * v + v_idx
         w_heads = self.value_proj.weight.view(m, self.head_dim, c)
         b_heads = self.value_proj.bias.view(m, self.head_dim)
         if self.method == "auto":
@@ -505,8 +509,11 @@ class MSDFF(nn.Module):
                 projected = self.value_proj(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1))  # (I, H, W, E)
                 values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
             heads = ms_deform_sample(values, image_index, locations, weights, method=self.method)
-        per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
-        attended = camera_mean(per_camera, valid)
+        if one_each:
+            attended = heads.reshape(n, e)
+        else:
+            per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
+            attended = camera_mean(per_camera, valid)
         return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1))
 
     def extra_repr(self) -> str:
