@@ -57,9 +57,10 @@ class DetectorPreset:
         head_channels: hidden width of the centre heads.
         msdff_heads, msdff_points: MSDFF attention heads and points per level (Deformable DETR: 8, 4).
         msdff_value_projection: where MSDFF applies its value projection. Both orders give the same
-            result; with 256-channel FPN levels and 16-128 voxel channels, projecting the pixels first
-            (``"before_sampling"``) is 3-5x cheaper on VoD-sized frames than sampling 256 raw channels
-            per head and point (``benchmarks/detectors.py``). Not from the paper.
+            result (to rounding); with MSDFF's default ``method="auto"`` it picks the cheapest exact plan
+            per level (project every pixel, project only the touched pixels, or sample then project)
+            whatever the order, so this setting no longer changes the speed (see docs/fusion.md). Not
+            from the paper.
         seg_hidden: hidden widths of the semantic-guided head (not from the paper).
     """
 

@@ -194,3 +194,24 @@ def test_bad_settings():
         vox = DynamicVoxelizer(GRID.point_cloud_range, GRID.voxel_size)(pts, pb, 2)
         SECONDBackbone(5, GRID, channels=(4, 4, 8, 8, 8), num_fusion_blocks=1, **FUSION)(vox)
 
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 8])
+def test_pointpillars_coarsen_equals_naive_set(s):
+    """_coarsen = the sorted set of (b, z, y // s, x // s) rows, with the ceil-divided shape."""
+    from mssf_blocks import SparseVoxels
+    from mssf_examples.backbones import PointPillarsBackbone
+
+    g = torch.Generator().manual_seed(s)
+    d, h, w, b = 3, 21, 17, 2
+    n = 60
+    coords = torch.stack([torch.randint(0, b, (n,), generator=g), torch.randint(0, d, (n,), generator=g),
+                          torch.randint(0, h, (n,), generator=g), torch.randint(0, w, (n,), generator=g)], 1).int()
+    coords = torch.unique(coords, dim=0)
+    v = SparseVoxels(features=torch.zeros(coords.shape[0], 1), coords=coords, spatial_shape=(d, h, w), batch_size=b,
+                     voxel_size=(0.2, 0.2, 0.5), point_range_min=(0.0, -2.0, -1.0))
+    out = PointPillarsBackbone._coarsen(v, s)
+    expect = sorted({(bb, z, y // s, x // s) for bb, z, y, x in coords.tolist()})
+    assert out.coords.tolist() == [list(r) for r in expect]
+    assert tuple(out.spatial_shape) == (d, -(-h // s), -(-w // s)) and tuple(out.stride) == (1, s, s)
+    assert out.coords.dtype == coords.dtype and out.batch_size == b
