@@ -40,7 +40,7 @@ IMAGE_H, IMAGE_W = VOD.image_size
 FOCAL = 1260.0  # roughly VoD's camera
 
 
-def vod_frame(num_points: int, seed: int = 0) -> RadarCameraBatch:
+def vod_frame(num_points: int, seed: int = 0, channels_last: bool = False) -> RadarCameraBatch:
     """One frame: radar points in the camera's view, a pinhole camera at the origin looking along +x."""
     g = torch.Generator().manual_seed(seed)
     x = 1.0 + torch.rand(num_points, generator=g) ** 0.7 * 49.0  # denser near the sensor
@@ -60,6 +60,8 @@ def vod_frame(num_points: int, seed: int = 0) -> RadarCameraBatch:
     l2i[0, 0, 0, 0], l2i[0, 0, 1, 0] = IMAGE_W / 2, IMAGE_H / 2
     levels = [torch.randn(1, 1, VOD.fpn_channels, math.ceil(IMAGE_H / s), math.ceil(IMAGE_W / s), generator=g)
               for s in (4, 8, 16, 32)]
+    if channels_last:  # same values, (B, V, H, W, C) memory order (what a channels-last image branch returns)
+        levels = [f.permute(0, 1, 3, 4, 2).contiguous().permute(0, 1, 4, 2, 3) for f in levels]
     return RadarCameraBatch(points=[points], lidar2img=l2i, image_features=levels, image_size=(IMAGE_H, IMAGE_W))
 
 
@@ -69,10 +71,12 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--detectors", nargs="+", default=["second", "centerpoint", "voxelnext", "pointpillars"])
+    ap.add_argument("--channels-last", action="store_true",
+                    help="image features in channels-last memory order (as from ImageBranch(channels_last=True))")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    frame = vod_frame(args.points)
+    frame = vod_frame(args.points, channels_last=args.channels_last)
     configs = [("n=0", 0, "msdff"), ("n=2 msdff", 2, "msdff"), ("n=2 sff", 2, "sff")]
     rows = []
     for name in args.detectors:
