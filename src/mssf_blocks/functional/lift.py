@@ -140,6 +140,19 @@ def voxels_to_bev(
     Returns:
         ``(B, C, H_b, W_b)``; cells without voxels are 0.
     """
+    batch_size, hb, wb, idx = _bev_pillar_index(features, coords, batch_size, bev_shape, stride)
+    c = features.shape[1]
+    b = coords[:, 0].long()
+    cell = idx - b * (hb * wb)
+    # Accumulate straight into a (B, H_b*W_b, C) view of the (B, C, H_b, W_b) result: no final
+    # channels-first copy of the whole map.
+    out = features.new_zeros(batch_size, c, hb * wb)
+    out = out.transpose(1, 2).index_put((b, cell), features, accumulate=True).transpose(1, 2)
+    return out.reshape(batch_size, c, hb, wb)
+
+
+def _bev_pillar_index(features: Tensor, coords: Tensor, batch_size, bev_shape, stride) -> Tuple[int, int, int, Tensor]:
+    """Validate the arguments of the voxels -> BEV functions; return ``(B, H_b, W_b, flat pillar index)``."""
     check_shape(features, "features", ("N", "C"))
     check_floating(features, "features")
     _check_coords(coords, features.shape[0])
@@ -151,15 +164,7 @@ def voxels_to_bev(
     if hb <= 0 or wb <= 0:
         raise MSSFError(f"bev_shape: expected positive (H_b, W_b), got {bev_shape!r}")
     sy, sx = _check_stride2(stride)
-    c = features.shape[1]
-    idx = _pillar_index(coords, batch_size, hb, wb, sy, sx)
-    b = coords[:, 0].long()
-    cell = idx - b * (hb * wb)
-    # Accumulate straight into a (B, H_b*W_b, C) view of the (B, C, H_b, W_b) result: no final
-    # channels-first copy of the whole map.
-    out = features.new_zeros(batch_size, c, hb * wb)
-    out = out.transpose(1, 2).index_put((b, cell), features, accumulate=True).transpose(1, 2)
-    return out.reshape(batch_size, c, hb, wb)
+    return batch_size, hb, wb, _pillar_index(coords, batch_size, hb, wb, sy, sx)
 
 
 def _pillar_index(coords: Tensor, batch_size: int, hb: int, wb: int, sy: int, sx: int) -> Tensor:
@@ -185,18 +190,7 @@ def voxels_to_bev_sparse(
         ``features (M, C)`` (sums per pillar) and ``coords (M, 3)`` int32 ``(b, y, x)`` at the BEV
         stride, one row per occupied pillar, sorted by ``(b, y, x)``.
     """
-    check_shape(features, "features", ("N", "C"))
-    check_floating(features, "features")
-    _check_coords(coords, features.shape[0])
-    batch_size = check_positive_int(batch_size, "batch_size")
-    try:
-        hb, wb = (int(v) for v in bev_shape)
-    except (TypeError, ValueError):
-        raise MSSFError(f"bev_shape: expected (H_b, W_b), got {bev_shape!r}") from None
-    if hb <= 0 or wb <= 0:
-        raise MSSFError(f"bev_shape: expected positive (H_b, W_b), got {bev_shape!r}")
-    sy, sx = _check_stride2(stride)
-    idx = _pillar_index(coords, batch_size, hb, wb, sy, sx)
+    batch_size, hb, wb, idx = _bev_pillar_index(features, coords, batch_size, bev_shape, stride)
     keys, inverse = torch.unique(idx, sorted=True, return_inverse=True)
     out = features.new_zeros(keys.numel(), features.shape[1]).index_add(0, inverse, features)
     b = torch.div(keys, hb * wb, rounding_mode="floor")
