@@ -121,6 +121,23 @@ class BlurCurves:
 
 
 # -- classification ---------------------------------------------------------------------------------
+def _check_per_centroid(centroids: Tensor, batch_index: Tensor, uv: Tensor, valid, gt_boxes):
+    """Shared checks: one batch index and one projection row per centroid, batch indices < len(gt_boxes).
+
+    Returns the normalised ``(uv, valid)``.
+    """
+    n = centroids.shape[0]
+    check_shape(batch_index, "batch_index", (n,))
+    check_dtype(batch_index, "batch_index", _INT_DTYPES)
+    uv, valid = _normalize_uv(uv, valid)
+    if uv.shape[0] != n:
+        raise MSSFError(f"uv: expected {n} rows (one per centroid), got shape {tuple(uv.shape)}")
+    if isinstance(gt_boxes, Tensor) or not isinstance(gt_boxes, Sequence):
+        raise MSSFError(f"gt_boxes: expected a list with one (G_b, 7) tensor per sample, got {type(gt_boxes).__name__}")
+    check_index_range(batch_index, "batch_index", len(gt_boxes), "len(gt_boxes)")
+    return uv, valid
+
+
 def _normalize_uv(uv: Tensor, valid: Optional[Tensor]) -> Tuple[Tensor, Tensor]:
     check_floating(check_finite(_tensor(uv, "uv"), "uv"), "uv")
     if uv.dim() == 2:
@@ -268,16 +285,8 @@ def classify_feature_blurring(
     check_floating(centroids, "centroids")
     if centroids.shape[1] < 3:
         raise MSSFError(f"centroids: expected shape (N, >=3), got {tuple(centroids.shape)}")
-    n = centroids.shape[0]
-    check_shape(batch_index, "batch_index", (n,))
-    check_dtype(batch_index, "batch_index", _INT_DTYPES)
-    uv, valid = _normalize_uv(uv, valid)
-    if uv.shape[0] != n:
-        raise MSSFError(f"uv: expected {n} rows (one per centroid), got shape {tuple(uv.shape)}")
-    if isinstance(gt_boxes, Tensor) or not isinstance(gt_boxes, Sequence):
-        raise MSSFError(f"gt_boxes: expected a list with one (G_b, 7) tensor per sample, got {type(gt_boxes).__name__}")
+    uv, valid = _check_per_centroid(centroids, batch_index, uv, valid, gt_boxes)
     batch_size = len(gt_boxes)
-    check_index_range(batch_index, "batch_index", batch_size, "len(gt_boxes)")
     if (boxes_2d is None) == (masks is None):
         raise MSSFError("boxes_2d, masks: expected exactly one of them (2D boxes or instance masks), "
                         f"got {'both' if masks is not None else 'neither'}")
@@ -292,7 +301,7 @@ def classify_feature_blurring(
         fore2d = _in_boxes_2d(uv * size - 0.5, valid, b, boxes)
     else:
         fore2d = _in_masks(uv, valid, b, _tensor(masks, "masks"), batch_size)
-    in_box3d = torch.zeros(n, dtype=torch.bool, device=centroids.device)
+    in_box3d = torch.zeros(centroids.shape[0], dtype=torch.bool, device=centroids.device)
     xyz = centroids[:, :3].detach()
     for i, boxes in enumerate(gt_boxes):
         rows = (b == i).nonzero().flatten()
@@ -342,15 +351,7 @@ def instance_foreground_counts(
     """
     check_shape(centroids, "centroids", ("N", None))
     check_floating(centroids, "centroids")
-    n = centroids.shape[0]
-    check_shape(batch_index, "batch_index", (n,))
-    check_dtype(batch_index, "batch_index", _INT_DTYPES)
-    uv, valid = _normalize_uv(uv, valid)
-    if uv.shape[0] != n:
-        raise MSSFError(f"uv: expected {n} rows (one per centroid), got shape {tuple(uv.shape)}")
-    if isinstance(gt_boxes, Tensor) or not isinstance(gt_boxes, Sequence):
-        raise MSSFError(f"gt_boxes: expected a list with one (G_b, 7) tensor per sample, got {type(gt_boxes).__name__}")
-    check_index_range(batch_index, "batch_index", len(gt_boxes), "len(gt_boxes)")
+    uv, valid = _check_per_centroid(centroids, batch_index, uv, valid, gt_boxes)
     h, w = _check_image_size(image_size)
     boxes2 = _check_boxes_2d(boxes_2d, len(gt_boxes), uv.shape[1])
     pixel = uv.detach() * torch.tensor([w, h], dtype=uv.dtype, device=uv.device) - 0.5
