@@ -67,6 +67,11 @@ def test_anchor_assignment_without_ground_truth():
     assert t.matched_gt.tolist() == [-1, -1]
     with pytest.raises(MSSFError, match="matched_thresholds"):
         assign_anchor_targets(anchors, torch.tensor([0, 1]), no_boxes, no_labels, [0.6], 0.45, 2)
+    # the same GT checks as the centre heads: labels in range, positive sizes (log-encoded)
+    with pytest.raises(MSSFError, match="gt_labels"):
+        assign_anchor_targets(anchors, torch.tensor([0, 1]), torch.ones(1, 7), torch.tensor([2]), 0.6, 0.45, 2)
+    with pytest.raises(MSSFError, match="sizes"):
+        assign_anchor_targets(anchors, torch.tensor([0, 1]), torch.zeros(1, 7), torch.tensor([0]), 0.6, 0.45, 2)
 
 
 def test_gaussian_radius_hand_worked():

@@ -128,14 +128,7 @@ def assign_anchor_targets(
     dims: dict = {}
     check_shape(anchors, "anchors", ("A", 7), dims)
     check_shape(anchor_classes, "anchor_classes", ("A",), dims)
-    check_shape(gt_boxes, "gt_boxes", ("G", 7), dims)
-    check_shape(gt_labels, "gt_labels", ("G",), dims)
-    check_floating(gt_boxes, "gt_boxes")
-    if gt_labels.numel() and (int(gt_labels.min()) < 0 or int(gt_labels.max()) >= num_classes):
-        raise MSSFError(
-            f"gt_labels: expected values in [0, {num_classes}), got values in "
-            f"[{int(gt_labels.min())}, {int(gt_labels.max())}]"
-        )
+    _check_gt(gt_boxes, gt_labels, num_classes)
     matched = _per_class(matched_thresholds, num_classes, "matched_thresholds")
     unmatched = _per_class(unmatched_thresholds, num_classes, "unmatched_thresholds")
     device = anchors.device
