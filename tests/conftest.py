@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 _EXAMPLES = str(REPO_ROOT / "examples")
@@ -37,3 +38,17 @@ def realdata_root() -> Path:
             f"{DEFAULT_REALDATA}); they are licence-restricted and not part of the repository"
         )
     return root
+
+
+@pytest.fixture
+def one_thread():
+    """Run the test with one intra-op thread and restore the previous count afterwards.
+
+    Test modules opt in with ``pytestmark = pytest.mark.usefixtures("one_thread")`` and say why
+    (tiny tensors where OpenMP spinning dominates on a loaded machine; spconv's threaded CPU kernels
+    are not bit-deterministic between calls).
+    """
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

@@ -14,7 +14,6 @@ from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.sparse import SparseVoxels  # noqa: E402
 from mssf_blocks.testing import assert_close  # noqa: E402
 
-pytestmark = pytest.mark.spconv
 
 VOXEL_SIZE = (0.5, 0.5, 0.5)
 RANGE_MIN = (0.0, -4.0, -1.0)
@@ -22,13 +21,8 @@ SHAPE = (4, 16, 20)  # z 2 m, y 8 m, x 10 m
 IMAGE = (48, 64)
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    # Tiny tensors on a shared 2-core machine: OpenMP spinning dominates otherwise (see test_fusion).
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Tiny tensors on a shared 2-core machine: OpenMP spinning dominates otherwise (see test_fusion).
+pytestmark = [pytest.mark.spconv, pytest.mark.usefixtures("one_thread")]
 
 
 def make_scene(seed=0, b=2, c=8, v=2, image_channels=6, num_points=60, stride=(1, 1, 1), shape=SHAPE):

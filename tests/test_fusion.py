@@ -20,14 +20,9 @@ from mssf_blocks.testing import assert_close, gradcheck64
 D64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    # Tiny tensors: with 2 OpenMP threads on a loaded 2-core machine, each train-mode batch_norm call
-    # spins for ~10-50 ms (measured), which makes gradcheck 100x slower. One thread is plenty here.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Tiny tensors: with 2 OpenMP threads on a loaded 2-core machine, each train-mode batch_norm call
+# spins for ~10-50 ms (measured), which makes gradcheck 100x slower. One thread is plenty here.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def make_projection(uv, valid, batch_index):

@@ -21,14 +21,9 @@ from mssf_examples.voxelize import DynamicVoxelizer, VoxelGrid  # noqa: E402
 
 GRID = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (0.4, 0.4, 0.125))
 PILLARS = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (0.4, 0.4, 5.0))
-@pytest.fixture(autouse=True)
-def _single_thread():
-    # spconv's multi-threaded CPU kernels are not bit-deterministic between calls (differences of
-    # ~1e-5 relative); comparisons of two forward passes below need one thread.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# spconv's multi-threaded CPU kernels are not bit-deterministic between calls (differences of
+# ~1e-5 relative); comparisons of two forward passes below need one thread.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 FUSION = dict(image_channels=[8, 8, 8, 8], msdff_heads=2, msdff_points=2, seg_hidden=(8,))

@@ -50,14 +50,9 @@ def make_batch(seed: int = 0, batch_size: int = 2, points_per_box: int = 15, bac
                             gt_boxes=boxes, gt_labels=labels)
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    # Tiny tensors: intra-op threads cost far more than they save (5-10x slower steps with 2 threads on
-    # a loaded 2-core machine), and spconv's threaded CPU kernels are not bit-deterministic.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# Tiny tensors: intra-op threads cost far more than they save (5-10x slower steps with 2 threads on
+# a loaded 2-core machine), and spconv's threaded CPU kernels are not bit-deterministic.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
