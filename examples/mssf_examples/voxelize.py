@@ -81,6 +81,11 @@ class VoxelGrid:
     def point_range_min(self) -> Tuple[float, float, float]:
         return self.point_cloud_range[:3]
 
+    def sparse_voxels(self, features: Tensor, coords: Tensor, batch_size: int) -> SparseVoxels:
+        """``features (N, C)`` at ``coords (N, 4)`` of this grid (stride 1) as :class:`SparseVoxels`."""
+        return SparseVoxels(features=features, coords=coords, spatial_shape=self.spatial_shape, batch_size=batch_size,
+                            voxel_size=self.voxel_size, point_range_min=self.point_range_min)
+
 
 @dataclass
 class Voxelization:
@@ -177,14 +182,7 @@ class DynamicVoxelizer(nn.Module):
 
     def forward(self, points: Tensor, points_batch: Tensor, batch_size: int) -> SparseVoxels:
         vox = dynamic_voxelize(points, points_batch, batch_size, self.grid)
-        return SparseVoxels(
-            features=vox.features,
-            coords=vox.coords,
-            spatial_shape=self.grid.spatial_shape,
-            batch_size=batch_size,
-            voxel_size=self.grid.voxel_size,
-            point_range_min=self.grid.point_range_min,
-        )
+        return self.grid.sparse_voxels(vox.features, vox.coords, batch_size)
 
     def extra_repr(self) -> str:
         return f"point_cloud_range={self.grid.point_cloud_range}, voxel_size={self.grid.voxel_size}"
@@ -264,14 +262,7 @@ class PillarFeatureNet(nn.Module):
         if points.dim() == 2 and points.shape[1] != self.in_channels:
             raise MSSFError(f"points: expected {self.in_channels} columns, got shape {tuple(points.shape)}")
         feats, vox = pillar_feature_net(points, points_batch, batch_size, self.grid, self.linear, self.norm)
-        return SparseVoxels(
-            features=feats,
-            coords=vox.coords,
-            spatial_shape=self.grid.spatial_shape,
-            batch_size=batch_size,
-            voxel_size=self.grid.voxel_size,
-            point_range_min=self.grid.point_range_min,
-        )
+        return self.grid.sparse_voxels(feats, vox.coords, batch_size)
 
     def extra_repr(self) -> str:
         return (
