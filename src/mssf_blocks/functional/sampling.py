@@ -447,6 +447,38 @@ _DIRECT_BAG_COST = 6.0
 # "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
+# With gradients: the backward of embedding_bag over raw rows (per-corner weight gradients: one D-long
+# dot product per corner) costs _BAG_BACKWARD forward passes; "project" also zero-fills a dense
+# (pixels, E) map and its gradient for grid_sample, _FILL_COST per element (measured, one core).
+_BAG_BACKWARD = 3.0
+_FILL_COST = 0.1
+
+
+def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
+    """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.
+
+    ``maps (I, H, W, M, d)`` (a projected level, e.g. a view of ``(I * H * W, M * d)`` rows),
+    ``loc (Q, M, P, 2)`` normalised, ``wt (Q, M, P)``. Zero padding, ``align_corners=False``: the
+    arithmetic of :func:`ms_deform_sample_reference`.
+    """
+    num_images, _, _, m, d = maps.shape
+    q = loc.shape[0]
+    heads = maps.permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view: grid_sample reads any strides
+    grid = (2.0 * loc - 1.0).transpose(0, 1)  # (M, Q, P, 2)
+    wo = wt.transpose(0, 1)[:, None]  # (M, 1, Q, P)
+
+    def sample(i: int, g: Tensor, w: Tensor) -> Tensor:  # (M, d, q_i, P) -> (M, q_i, d)
+        s = F.grid_sample(heads[i], g, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return (s * w).sum(-1).transpose(1, 2)
+
+    if num_images == 1:
+        return sample(0, grid, wo).reshape(m * q, d)
+    out = maps.new_zeros(m, q, d)
+    for i in range(num_images):
+        sel = (image_index == i).nonzero().squeeze(1)
+        if sel.numel():
+            out = out.index_copy(1, sel, sample(i, grid[:, sel], wo[:, :, sel]))
+    return out.view(m * q, d)
 
 
 def _row_table(value: Tensor) -> Optional[Tensor]:
@@ -493,6 +525,20 @@ def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> List[Tensor]:
     return rows
 
 
+def _project_rows(
+    value: Tensor, w_all: Tensor, b_all: Optional[Tensor], touched: Optional[Tensor]
+) -> List[Tensor]:
+    """``(rows, E)`` projection, in pieces, of every pixel of ``value (I, 1, D, H, W)`` (``touched=None``: sequential
+    reads, one GEMM per image) or of the sorted pixel ids ``touched`` only (gathered in cache-sized
+    pieces, each projected at once)."""
+    if touched is None:
+        dch, h, w = value.shape[2:]
+        raws = [value[i, 0].reshape(dch, h * w).t() for i in range(value.shape[0])]  # transposed views for NCHW
+    else:
+        raws = _touched_rows(value, touched, _PROJECT_CHUNK)
+    return [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in raws]
+
+
 def _touched_level(
     value: Tensor,
     image_index: Tensor,
@@ -502,6 +548,7 @@ def _touched_level(
     b_all: Optional[Tensor],
     m: int,
     plan: Optional[str],
+    needs_grad: bool = False,
 ) -> Tensor:
     """One level of the ``"touched"`` method: ``(M * Q, d)`` head-major output.
 
@@ -517,6 +564,11 @@ def _touched_level(
     ``(U + 1, M * d)`` table whose last row is zero and which padding cells map to (grid_sample's zero
     padding, bias included); every corner then reads its head's ``d`` channels of its row in one
     ``embedding_bag`` weighted by ``bilinear weight * attention weight``.
+
+    With ``needs_grad`` the plan costs include the backward pass, and the projected plans sample with
+    ``F.grid_sample`` from a dense projected map instead (touched rows scattered into zeros for
+    ``"project"``): its fused backward is several times cheaper than ``embedding_bag``'s (per-corner
+    weight gradients and a sorted table gradient).
     """
     num_images, _, dch, h, w = value.shape
     q, _, p, _ = loc.shape
@@ -533,14 +585,6 @@ def _touched_level(
     y = _pixel_coordinate(lo[..., 1], h)
     x0 = x.detach().floor()
     y0 = y.detach().floor()
-    fx = x - x0
-    fy = y - y0
-    wo = wt.transpose(0, 1)
-    ay0, ay1 = (1.0 - fy) * wo, fy * wo
-    ax0, ax1 = 1.0 - fx, fx
-    # (M, Q, 4, P) corner weights, in the order of the cell offsets (0, 1, Wp, Wp + 1) below. Stacks of
-    # contiguous products: several times faster than one broadcasting product on the CPU.
-    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), 2).view(m, q * 4 * p)
     # Clamping the top-left corner to [-2, W] keeps every in-map decision (x0 = -2 and x0 = W have
     # both corners outside) and bounds the integers; the padded cell is (y0 + 2, x0 + 2). int64 cells
     # (index_fill_ wants them); the rows read by embedding_bag are int32 (its fast path).
@@ -556,14 +600,34 @@ def _touched_level(
     touched = inner.reshape(-1).nonzero().squeeze(1)  # (U,) sorted raw pixel ids
     u = touched.numel()
     if plan is None:
+        corners = m * q * 4 * p
+        bag = 1.0 + _BAG_BACKWARD if needs_grad else 1.0  # forward (+ backward) passes over the corners
+        gemm = 2.0 if needs_grad else 1.0  # the projection (+ its weight gradient)
         costs = {
-            "dense": n_pix * e,
-            "project": u * (e + _GATHER_COST),
-            "sample": u * (_GATHER_COST + _COPY_COST) + m * q * 4 * p * _BAG_COST + q * e,
+            "dense": n_pix * e * gemm,
+            "project": u * (e * gemm + _GATHER_COST) + (n_pix * e * _FILL_COST if needs_grad else 0.0),
+            "sample": u * (_GATHER_COST + _COPY_COST) + corners * _BAG_COST * bag + q * e * gemm,
         }
         if _is_row_table(value):
-            costs["direct"] = m * q * 4 * p * _DIRECT_BAG_COST + q * e
+            costs["direct"] = corners * _DIRECT_BAG_COST * bag + q * e * gemm
         plan = min(costs, key=costs.get)
+    if needs_grad and plan in ("dense", "project"):
+        # Project (every pixel, or the touched ones scattered into zeros: untouched pixels are never
+        # read, weight-0 corners included), then grid_sample per head: its fused backward is several
+        # times cheaper than embedding_bag's.
+        parts = _project_rows(value, w_all, b_all, None if plan == "dense" else touched)
+        projected = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+        if plan == "project":
+            projected = projected.new_zeros(n_pix, e).index_copy(0, touched, projected)
+        return _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, loc, wt)
+    fx = x - x0
+    fy = y - y0
+    wo = wt.transpose(0, 1)
+    ay0, ay1 = (1.0 - fy) * wo, fy * wo
+    ax0, ax1 = 1.0 - fx, fx
+    # (M, Q, 4, P) corner weights, in the order of the cell offsets (0, 1, Wp, Wp + 1). Stacks of
+    # contiguous products: several times faster than one broadcasting product on the CPU.
+    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), 2).view(m, q * 4 * p)
     n_rows = n_pix if plan in ("dense", "direct") else u
     idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
     remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
@@ -573,16 +637,11 @@ def _touched_level(
         remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
         plan = "sample"
     elif plan == "dense":
-        # Many pixels are read: project the whole level (sequential reads, one GEMM per image).
-        parts = []
-        for i in range(num_images):
-            flat = value[i, 0].reshape(dch, h * w).t()  # (H*W, D); a transposed view for NCHW
-            parts.append(flat @ w_all.t() if b_all is None else torch.addmm(b_all, flat, w_all.t()))
+        parts = _project_rows(value, w_all, b_all, None)
         remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
     else:
-        # Few pixels are read: gather only those raw rows ("project": in cache-sized pieces, each
-        # projected at once).
-        parts = _touched_rows(value, touched, _PROJECT_CHUNK)
+        parts = _project_rows(value, w_all, b_all, touched) if plan == "project" else (
+            _touched_rows(value, touched, _PROJECT_CHUNK))
         remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
     if plan != "sample":
         remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
@@ -606,8 +665,6 @@ def _touched_level(
         if b_all is not None:
             out = out + psw.view(m, q, 4 * p).sum(-1, keepdim=True) * b_all.view(m, 1, d)
         return out.view(m * q, d)
-    if plan == "project":
-        parts = [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in parts]
     parts.append(w_all.new_zeros(1, e))
     table = torch.cat(parts, 0).view(-1, d)  # ((rows + 1) * M, d): row r * M + head
     rows += torch.arange(m, dtype=idt, device=dev).view(m, 1)
@@ -631,9 +688,13 @@ def _ms_deform_sample_touched(
     if q == 0:  # keep a graph (of zeros) so that an empty batch can still be backpropagated
         out = locations.new_zeros(0, m, d) + 0.0 * (locations.sum() + weights.sum() + w_all.sum())
         return out if b_all is None else out + 0.0 * b_all.sum()
+    needs_grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
+    )
     out = None
     for lvl, val in enumerate(levels):
-        part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m, plan)
+        part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m, plan,
+                              needs_grad)
         out = part if out is None else out + part
     return out.view(m, q, d).transpose(0, 1)
 
