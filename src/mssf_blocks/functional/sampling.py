@@ -448,8 +448,9 @@ _DIRECT_BAG_COST = 6.0
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
 # With gradients: the backward of embedding_bag over raw rows (per-corner weight gradients: one D-long
-# dot product per corner) costs _BAG_BACKWARD forward passes; "project" also zero-fills a dense
-# (pixels, E) map and its gradient for grid_sample, _FILL_COST per element (measured, one core).
+# dot product per corner) costs about _BAG_BACKWARD forward passes (measured on one core: 4-5x the
+# forward for fwd+bwd); "project" also zero-fills a dense (pixels, E) map and its gradient for
+# grid_sample, _FILL_COST per element.
 _BAG_BACKWARD = 3.0
 _FILL_COST = 0.1
 
@@ -528,15 +529,48 @@ def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> List[Tensor]:
 def _project_rows(
     value: Tensor, w_all: Tensor, b_all: Optional[Tensor], touched: Optional[Tensor]
 ) -> List[Tensor]:
-    """``(rows, E)`` projection, in pieces, of every pixel of ``value (I, 1, D, H, W)`` (``touched=None``: sequential
-    reads, one GEMM per image) or of the sorted pixel ids ``touched`` only (gathered in cache-sized
-    pieces, each projected at once)."""
+    """``(rows, E)`` projection, in pieces, of every pixel of ``value (I, 1, D, H, W)`` (``touched=None``:
+    sequential reads, one GEMM per image) or of the sorted pixel ids ``touched`` only (gathered in
+    cache-sized pieces, each projected at once)."""
     if touched is None:
         dch, h, w = value.shape[2:]
         raws = [value[i, 0].reshape(dch, h * w).t() for i in range(value.shape[0])]  # transposed views for NCHW
     else:
         raws = _touched_rows(value, touched, _PROJECT_CHUNK)
     return [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in raws]
+
+
+class _GatherProject(torch.autograd.Function):
+    """``(U, E)`` projection ``rows @ weight.T + bias`` of the touched raw rows of ``value (I, 1, D, H, W)``
+    (sorted flat pixel ids ``touched``) that does not keep the gathered ``(U, D)`` rows for backward:
+    the weight gradient gathers them again, piece by piece (one more gather instead of ``U * D``
+    saved elements, e.g. 53 MiB for 35 % of a 256-channel P2)."""
+
+    @staticmethod
+    def forward(ctx, value: Tensor, touched: Tensor, weight: Tensor, bias: Optional[Tensor]) -> Tensor:
+        ctx.save_for_backward(value, touched, weight)
+        ctx.has_bias = bias is not None
+        parts = _project_rows(value, weight, bias, touched)
+        return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor):
+        value, touched, weight = ctx.saved_tensors
+        grad_value = grad_weight = grad_bias = None
+        if ctx.needs_input_grad[2]:
+            grad_weight = torch.zeros_like(weight)
+            start = 0
+            for raw in _touched_rows(value, touched, _PROJECT_CHUNK):
+                grad_weight.addmm_(grad[start : start + raw.shape[0]].t(), raw)
+                start += raw.shape[0]
+        if ctx.has_bias and ctx.needs_input_grad[3]:
+            grad_bias = grad.sum(0)
+        if ctx.needs_input_grad[0]:
+            num_images, _, dch, h, w = value.shape
+            rows = value.new_zeros(num_images * h * w, dch).index_add_(0, touched, grad @ weight)
+            grad_value = rows.view(num_images, h, w, 1, dch).permute(0, 3, 4, 1, 2)
+        return grad_value, None, grad_weight, grad_bias
 
 
 def _touched_level(
@@ -605,7 +639,8 @@ def _touched_level(
         gemm = 2.0 if needs_grad else 1.0  # the projection (+ its weight gradient)
         costs = {
             "dense": n_pix * e * gemm,
-            "project": u * (e * gemm + _GATHER_COST) + (n_pix * e * _FILL_COST if needs_grad else 0.0),
+            # (with gradients the touched rows are gathered again for the weight gradient)
+            "project": u * (e + _GATHER_COST) * gemm + (n_pix * e * _FILL_COST if needs_grad else 0.0),
             "sample": u * (_GATHER_COST + _COPY_COST) + corners * _BAG_COST * bag + q * e * gemm,
         }
         if _is_row_table(value):
@@ -615,9 +650,11 @@ def _touched_level(
         # Project (every pixel, or the touched ones scattered into zeros: untouched pixels are never
         # read, weight-0 corners included), then grid_sample per head: its fused backward is several
         # times cheaper than embedding_bag's.
-        parts = _project_rows(value, w_all, b_all, None if plan == "dense" else touched)
-        projected = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
-        if plan == "project":
+        if plan == "dense":
+            parts = _project_rows(value, w_all, b_all, None)
+            projected = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+        else:
+            projected = _GatherProject.apply(value, touched, w_all, b_all)
             projected = projected.new_zeros(n_pix, e).index_copy(0, touched, projected)
         return _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, loc, wt)
     fx = x - x0
@@ -724,13 +761,14 @@ def ms_deform_sample_project(
       (chunk, level) block is recomputed in backward (activation checkpointing), so memory is
       ``O(chunk_size * M * (D + L * P))`` instead of ``O(Q * M * L * P * D)`` at the price of one
       more sampling pass in backward. Cost ``O(Q * M * L * P * 4 * D)`` scattered row reads.
-    * ``"touched"`` (``Mv = 1`` only): per level, project only the pixels that some in-map bilinear
-      corner reads (``U <= min(I * H_l * W_l, Q * M * P * 4)`` rows, one GEMM for all heads), then
-      sample ``d`` channels per head and point from that table. Cost
-      ``O(U * D * M * d)`` (dense GEMM speed) ``+ O(U * D)`` gathered reads ``+ O(Q * M * P * 4 * d)``.
-      A level is projected densely instead when that is cheaper by the cost model
-      ``U * (M * d + 48) > I * H_l * W_l * M * d`` (one gathered element costs about 48 GEMM
-      multiply-adds on a CPU; e.g. at ``M * d = 16`` a level with more than 1/4 of its pixels touched). Memory ``O(U * M * d + Q * M * P * 4)`` per level;
+    * ``"touched"`` (``Mv = 1`` only): per level, mark the pixels that some in-map bilinear corner
+      reads (``U <= min(I * H_l * W_l, Q * M * P * 4)``) and run the cheapest of four exact plans by a
+      cost model measured on a CPU (``docs/fusion.md``): project every pixel, project only the ``U``
+      touched pixels (one GEMM for all heads), then sample ``d`` channels per head and point; or
+      sample the touched pixels' ``D`` raw channels (from a gathered table, or in place for
+      channels-last levels), then project per head. When gradients are needed the costs include the
+      backward and the projected plans sample with ``F.grid_sample`` (cheaper backward). Memory
+      ``O(U * M * d + Q * M * P * 4)`` per level (plus the dense projected map with gradients);
       ``chunk_size`` is ignored.
     * ``"auto"``: ``"touched"`` when ``Mv = 1``, else ``"chunked"``.
 
