@@ -16,7 +16,6 @@ from torch import Tensor
 
 from ._checks import (
     check_dtype,
-    check_finite,
     check_floating,
     check_index_range,
     check_positive_int,

@@ -613,7 +613,6 @@ def _touched_level(
     if w_all is None:
         plan = "sample" if plan is None else plan
     hp, wp = h + 4, w + 4
-    n_cells = num_images * hp * wp
     lo = loc.permute(1, 0, 2, 3)  # (M, Q, P, 2): head-major, the layout of the per-head output
     x = _pixel_coordinate(lo[..., 0], w)
     y = _pixel_coordinate(lo[..., 1], h)
