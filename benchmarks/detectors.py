@@ -72,7 +72,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--detectors", nargs="+", default=["second", "centerpoint", "voxelnext", "pointpillars"])
     ap.add_argument("--channels-last", action="store_true",
-                    help="image features in channels-last memory order (as from ImageBranch(channels_last=True))")
+                    help="image features in channels-last memory order (what ImageBranch(channels_last=True) returns)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)

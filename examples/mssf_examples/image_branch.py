@@ -217,6 +217,9 @@ class ImageBranch(nn.Module):
         num_outs: FPN output levels.
         frozen: freeze the whole branch (paper: the image branch is pre-trained and frozen); the
             forward then runs without autograd and every BatchNorm stays in eval mode.
+        channels_last: run the convolutions on channels-last memory and return channels-last levels
+            (the same values; ``stride(2) == 1``). MSDFF then reads every pixel's channels as one
+            contiguous row (its ``direct`` plan, cheaper gathers; ``docs/performance.md``).
 
     Shapes:
         - images ``(B, V, 3, H, W)`` -> list of ``num_outs`` levels ``(B, V, fpn_channels, H_l, W_l)``
@@ -233,9 +236,11 @@ class ImageBranch(nn.Module):
         frozen: bool = False,
         frozen_stages: int = -1,
         norm_eval: bool = False,
+        channels_last: bool = False,
     ) -> None:
         super().__init__()
         self.backbone = ResNet(depth, base_channels, out_indices, frozen_stages, norm_eval)
+        self.channels_last = bool(channels_last)
         self.neck = FPN([self.backbone.out_channels[i] for i in out_indices], fpn_channels, num_outs)
         self.frozen = bool(frozen)
         if self.frozen:
@@ -254,8 +259,13 @@ class ImageBranch(nn.Module):
         check_shape(images, "images", (None, None, 3, None, None))
         check_floating(images, "images")
         b, v = images.shape[:2]
+        x = images.flatten(0, 1)
+        if self.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
         with torch.set_grad_enabled(torch.is_grad_enabled() and not self.frozen):
-            feats = self.neck(self.backbone(images.flatten(0, 1)))
+            feats = self.neck(self.backbone(x))
+        if self.channels_last:  # (convolutions keep the format; make sure of every level, e.g. after upsampling)
+            feats = [f.contiguous(memory_format=torch.channels_last) for f in feats]
         return [f.unflatten(0, (b, v)) for f in feats]
 
     @staticmethod

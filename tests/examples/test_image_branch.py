@@ -97,6 +97,24 @@ def test_state_dict_round_trip_and_torchvision_names():
         assert k in keys
 
 
+def test_channels_last_branch_same_values_row_layout_and_msdff_reads_rows():
+    # channels_last=True: the same features (float64, same weights), each level with contiguous
+    # per-pixel channel rows, which MSDFF's sampler reads as a free (pixels, C) table.
+    from mssf_blocks.functional.sampling import _row_table
+
+    torch.manual_seed(5)
+    a = ImageBranch(depth=18, base_channels=4, fpn_channels=8).double().eval()
+    _randomise_bn(a)
+    b = ImageBranch(depth=18, base_channels=4, fpn_channels=8, channels_last=True).double().eval()
+    b.load_state_dict(a.state_dict())
+    x = torch.randn(2, 2, 3, 64, 96, dtype=torch.float64)
+    for u, w in zip(a(x), b(x)):
+        assert_close(w, u)
+        assert w.stride(2) == 1 and u.stride(2) != 1
+        assert _row_table(w.reshape(4, 1, *w.shape[2:])) is not None
+        assert _row_table(u.reshape(4, 1, *u.shape[2:])) is None
+
+
 def test_frozen_branch_has_no_grad_and_fixed_bn():
     br = ImageBranch(depth=18, base_channels=4, fpn_channels=8, frozen=True)
     br.train()
