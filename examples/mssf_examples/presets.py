@@ -61,7 +61,8 @@ class DetectorPreset:
             per level (project every pixel, project only the touched pixels, or sample then project)
             whatever the order, so this setting no longer changes the speed (see docs/fusion.md). Not
             from the paper.
-        seg_hidden: hidden widths of the semantic-guided head (not from the paper).
+        seg_hidden: hidden widths of the semantic-guided head (not in the paper; (256, 256) is the
+            default of mmdet3d's ForegroundSegmentationHead, which the public MSSF code uses).
     """
 
     name: str
