@@ -119,28 +119,23 @@ class ImagePath(nn.Module):
         heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
         return self.output_proj(heads.reshape(query.shape[0], -1))
 
-    def touched(self, query, uv, feats):
+    def _sample_project(self, query, uv, feats, **method):
+        """``ms_deform_sample_project`` on the raw maps (Mv = 1) with this path's per-head value_proj."""
         loc, wt = self.locations_and_weights(query, uv, [f.shape[-2:] for f in feats])
         values = [f.view(1, 1, IMAGE_CHANNELS, *f.shape[-2:]) for f in feats]
         img_index = torch.zeros(query.shape[0], dtype=torch.long)
         heads = ms_deform_sample_project(
             values, img_index, loc, wt,
             self.value_proj.weight.view(self.m, self.d, IMAGE_CHANNELS), self.value_proj.bias.view(self.m, self.d),
-            method="touched",
+            **method,
         )
         return self.output_proj(heads.reshape(query.shape[0], -1))
+
+    def touched(self, query, uv, feats):
+        return self._sample_project(query, uv, feats, method="touched")
 
     def fused(self, query, uv, feats, chunk_size=1024):
-        loc, wt = self.locations_and_weights(query, uv, [f.shape[-2:] for f in feats])
-        values = [f.view(1, 1, IMAGE_CHANNELS, *f.shape[-2:]) for f in feats]
-        img_index = torch.zeros(query.shape[0], dtype=torch.long)
-        heads = ms_deform_sample_project(
-            values, img_index, loc, wt,
-            self.value_proj.weight.view(self.m, self.d, IMAGE_CHANNELS), self.value_proj.bias.view(self.m, self.d),
-            chunk_size=chunk_size,
-        )
-        return self.output_proj(heads.reshape(query.shape[0], -1))
-
+        return self._sample_project(query, uv, feats, chunk_size=chunk_size)
 
 def make_features(height: int, width: int, seed: int = 0):
     g = torch.Generator().manual_seed(seed)

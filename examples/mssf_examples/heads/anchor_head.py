@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks._checks import check_floating, check_positive_int, check_shape
 from mssf_blocks.errors import MSSFError
 
 from ..ops.boxes import decode_residual, encode_residual, limit_period, residual_code_size
@@ -132,8 +132,7 @@ class AnchorHead(nn.Module):
         super().__init__()
         if not isinstance(grid, BEVGrid):
             raise MSSFError(f"grid: expected a BEVGrid, got {type(grid).__name__}")
-        if isinstance(in_channels, bool) or not isinstance(in_channels, int) or in_channels <= 0:
-            raise MSSFError(f"in_channels: expected a positive int, got {in_channels!r}")
+        check_positive_int(in_channels, "in_channels")
         if len(anchor_sizes) == 0 or any(len(s) != 3 or min(map(float, s)) <= 0 for s in anchor_sizes):
             raise MSSFError(f"anchor_sizes: expected one positive (dx, dy, dz) per class, got {anchor_sizes!r}")
         if len(anchor_z_centers) != len(anchor_sizes):

@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks._checks import check_floating, check_positive_int, check_shape
 from mssf_blocks.errors import MSSFError
 
 from ..ops.boxes import CENTER_CODE_SIZE, decode_center
@@ -69,10 +69,9 @@ class _CenterHeadBase(nn.Module):
         super().__init__()
         if not isinstance(grid, BEVGrid):
             raise MSSFError(f"grid: expected a BEVGrid, got {type(grid).__name__}")
-        sizes = (("in_channels", in_channels), ("num_classes", num_classes), ("head_channels", head_channels))
-        for name, value in sizes:
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise MSSFError(f"{name}: expected a positive int, got {value!r}")
+        for name, value in (("in_channels", in_channels), ("num_classes", num_classes),
+                            ("head_channels", head_channels)):
+            check_positive_int(value, name)
         if not 0.0 < min_overlap < 1.0:
             raise MSSFError(f"min_overlap: expected a value in (0, 1), got {min_overlap}")
         code_weights = [1.0] * CENTER_CODE_SIZE if code_weights is None else list(map(float, code_weights))
