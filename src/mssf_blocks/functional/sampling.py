@@ -124,7 +124,9 @@ def bilinear_sample(
     rows = []
     for cam in range(v):
         if method == "grid":
-            s = _bilinear_sample_grid(image[:, cam : cam + 1], uv[:, cam : cam + 1], batch_index)[:, 0]
+            # (one head, level and point per voxel: the per-image grid_sample of the reference)
+            s = ms_deform_sample_reference([image[:, cam : cam + 1]], batch_index, uv[:, cam].view(n, 1, 1, 1, 2),
+                                           ones.view(n, 1, 1, 1))[:, 0]
         else:
             s = _touched_level(image[:, cam : cam + 1], batch_index, uv[:, cam].view(n, 1, 1, 2), ones, None, None,
                                1, "sample")
@@ -133,23 +135,6 @@ def bilinear_sample(
     if valid is not None:
         # Exact zeros even if the image holds inf/NaN near the replaced point; no gradient either.
         out = torch.where(valid[..., None], out, out.new_zeros(()))
-    return out
-
-
-def _bilinear_sample_grid(image: Tensor, uv: Tensor, batch_index: Tensor) -> Tensor:
-    """``F.grid_sample`` formulation of :func:`bilinear_sample` (reference; no validation, all valid).
-
-    ``image (B, V, C, H, W)``, ``uv (N, V, 2)`` -> ``(N, V, C)``; one ``grid_sample`` per (image, camera).
-    """
-    b, v, c = image.shape[:3]
-    grid = 2.0 * uv - 1.0  # grid_sample's [-1, 1] convention
-    out = image.new_zeros(uv.shape[0], v, c)
-    for bi in range(b):
-        sel = (batch_index == bi).nonzero().squeeze(1)
-        for cam in range(v):
-            s = F.grid_sample(image[bi, cam][None], grid[sel, cam][None, :, None, :], mode="bilinear",
-                              padding_mode="zeros", align_corners=False)  # (1, C, n_i, 1)
-            out = out.index_put((sel, torch.full_like(sel, cam)), s[0, :, :, 0].t())
     return out
 
 
@@ -439,7 +424,6 @@ def _sample_project_level(
 # touched pixel (e.g. few queries and E = 128), "project" in between.
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
-_PLANS = ("dense", "project", "sample", "direct")
 # "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
 # view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. Random 1 KiB rows of a 10^5-row table
 # miss the cache, hence more than _BAG_COST per element (measured).
@@ -453,33 +437,6 @@ _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 c
 # grid_sample, _FILL_COST per element.
 _BAG_BACKWARD = 3.0
 _FILL_COST = 0.1
-
-
-def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
-    """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.
-
-    ``maps (I, H, W, M, d)`` (a projected level, e.g. a view of ``(I * H * W, M * d)`` rows),
-    ``loc (Q, M, P, 2)`` normalised, ``wt (Q, M, P)``. Zero padding, ``align_corners=False``: the
-    arithmetic of :func:`ms_deform_sample_reference`.
-    """
-    num_images, _, _, m, d = maps.shape
-    q = loc.shape[0]
-    heads = maps.permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view: grid_sample reads any strides
-    grid = (2.0 * loc - 1.0).transpose(0, 1)  # (M, Q, P, 2)
-    wo = wt.transpose(0, 1)[:, None]  # (M, 1, Q, P)
-
-    def sample(i: int, g: Tensor, w: Tensor) -> Tensor:  # (M, d, q_i, P) -> (M, q_i, d)
-        s = F.grid_sample(heads[i], g, mode="bilinear", padding_mode="zeros", align_corners=False)
-        return (s * w).sum(-1).transpose(1, 2)
-
-    if num_images == 1:
-        return sample(0, grid, wo).reshape(m * q, d)
-    out = maps.new_zeros(m, q, d)
-    for i in range(num_images):
-        sel = (image_index == i).nonzero().squeeze(1)
-        if sel.numel():
-            out = out.index_copy(1, sel, sample(i, grid[:, sel], wo[:, :, sel]))
-    return out.view(m * q, d)
 
 
 def _row_table(value: Tensor) -> Optional[Tensor]:
@@ -655,7 +612,9 @@ def _touched_level(
         else:
             projected = _GatherProject.apply(value, touched, w_all, b_all)
             projected = projected.new_zeros(n_pix, e).index_copy(0, touched, projected)
-        return _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, loc, wt)
+        heads = projected.view(num_images, h, w, m, d).permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view
+        out = ms_deform_sample_reference([heads], image_index, loc[:, :, None], wt[:, :, None])  # (Q, M, d)
+        return out.transpose(0, 1).reshape(m * q, d)
     fx = x - x0
     fy = y - y0
     wo = wt.transpose(0, 1)
