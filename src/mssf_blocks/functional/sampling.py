@@ -626,18 +626,18 @@ def _touched_level(
     n_rows = n_pix if plan in ("dense", "direct") else u
     idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
     remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
+    if plan in ("dense", "direct"):  # every pixel has a row: its raw pixel id
+        remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
+    else:  # the touched pixels' rows, in order
+        remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
     if plan == "direct":
         # Channels-last maps are a free (I * H * W, D) row table: sample it in place, no gather.
         parts = [_row_table(value)]
-        remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
         plan = "sample"
-    elif plan == "dense":
-        parts = _project_rows(value, w_all, b_all, None)
-        remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
+    elif plan == "sample":
+        parts = _touched_rows(value, touched, _PROJECT_CHUNK)
     else:
-        parts = _project_rows(value, w_all, b_all, touched) if plan == "project" else (
-            _touched_rows(value, touched, _PROJECT_CHUNK))
-        remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
+        parts = _project_rows(value, w_all, b_all, None if plan == "dense" else touched)
     if plan != "sample":
         remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
     rows = remap.view(-1).index_select(0, cells).view(m, -1)  # (M, Q * 4 * P); n_rows: the zero row
