@@ -492,16 +492,15 @@ class MSDFF(nn.Module):
             image_index = batch_index[n_idx] * v + v_idx
         w_heads = self.value_proj.weight.view(m, self.head_dim, c)
         b_heads = self.value_proj.bias.view(m, self.head_dim)
+        raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
         if self.method == "auto":
             # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
             # of project-all / project-touched / sample-touched-then-project (exact, bias included).
-            values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
-            heads = ms_deform_sample_project(values, image_index, locations, weights, w_heads, b_heads,
+            heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
                                              method="touched")
         elif self.value_projection == "after_sampling":
-            values = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]
             sampled, mass = ms_deform_sample(
-                values, image_index, locations, weights, method=self.method, return_mass=True
+                raw, image_index, locations, weights, method=self.method, return_mass=True
             )  # (Q, M, C), (Q, M)
             # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
             # contributes only where the bilinear corners were inside the image (zero padding).
