@@ -439,6 +439,35 @@ _BAG_BACKWARD = 3.0
 _FILL_COST = 0.1
 
 
+def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
+    """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.
+
+    ``maps (I, H, W, M, d)`` (a projected level, e.g. a view of ``(I * H * W, M * d)`` rows),
+    ``loc (Q, M, P, 2)`` normalised, ``wt (Q, M, P)``. Zero padding, ``align_corners=False``: the
+    arithmetic of :func:`ms_deform_sample_reference`, laid out head-major (no per-image gather and
+    index_add for one image). Calling the reference instead gives the same values up to rounding, but
+    not bit for bit, and the demo's 2000 training steps amplify that (+13.42 -> +14.33 mAP).
+    """
+    num_images, _, _, m, d = maps.shape
+    q = loc.shape[0]
+    heads = maps.permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view: grid_sample reads any strides
+    grid = (2.0 * loc - 1.0).transpose(0, 1)  # (M, Q, P, 2)
+    wo = wt.transpose(0, 1)[:, None]  # (M, 1, Q, P)
+
+    def sample(i: int, g: Tensor, w: Tensor) -> Tensor:  # (M, d, q_i, P) -> (M, q_i, d)
+        s = F.grid_sample(heads[i], g, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return (s * w).sum(-1).transpose(1, 2)
+
+    if num_images == 1:
+        return sample(0, grid, wo).reshape(m * q, d)
+    out = maps.new_zeros(m, q, d)
+    for i in range(num_images):
+        sel = (image_index == i).nonzero().squeeze(1)
+        if sel.numel():
+            out = out.index_copy(1, sel, sample(i, grid[:, sel], wo[:, :, sel]))
+    return out.view(m * q, d)
+
+
 def _row_table(value: Tensor) -> Optional[Tensor]:
     """``value (I, 1, D, H, W)`` as a free ``(I * H * W, D)`` table with contiguous rows, or ``None``.
 
@@ -612,9 +641,7 @@ def _touched_level(
         else:
             projected = _GatherProject.apply(value, touched, w_all, b_all)
             projected = projected.new_zeros(n_pix, e).index_copy(0, touched, projected)
-        heads = projected.view(num_images, h, w, m, d).permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view
-        out = ms_deform_sample_reference([heads], image_index, loc[:, :, None], wt[:, :, None])  # (Q, M, d)
-        return out.transpose(0, 1).reshape(m * q, d)
+        return _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, loc, wt)
     fx = x - x0
     fy = y - y0
     wo = wt.transpose(0, 1)
