@@ -91,6 +91,16 @@ def check_dtype(x: Tensor, name: str, dtypes: Sequence[torch.dtype], hint: str =
     return x
 
 
+def autocast_on(device_type: str) -> bool:
+    """Whether ``torch.autocast`` is enabled for ``device_type`` (``"cpu"``, ``"cuda"``, ...)."""
+    try:
+        return bool(torch.is_autocast_enabled(device_type))
+    except TypeError:  # torch < 2.4 has no device argument
+        if device_type == "cpu":
+            return bool(torch.is_autocast_cpu_enabled())
+        return bool(torch.is_autocast_enabled())
+
+
 def check_finite(x: Tensor, name: str) -> Tensor:
     if x.is_floating_point() and x.numel() and not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).sum())

@@ -21,19 +21,25 @@ Conventions shared by all three (``docs/fusion.md`` has the details):
   averaged; a voxel valid in no camera gets ``f_img = 0`` exactly (no bias, no normalisation shift), so
   the fusion block passes its voxel feature through unchanged, and it sends no gradient to the image;
 * the ``Linear + BatchNorm1d`` output stage runs on the voxels seen by at least one camera only, so the
-  batch statistics are those of real image features.
+  batch statistics are those of real image features;
+* the sampling (``uv``, MSDFF's locations and attention weights, the bilinear sums) runs in float32, or
+  in float64 for a float64 module, never in half precision, also under ``torch.autocast``: image levels
+  in float16 / bfloat16 are read as float32, and ``uv`` is converted to the sampling dtype.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import List, Optional, Sequence, Tuple, Type, Union
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from ._checks import (
+    autocast_on,
     check_dtype,
     check_floating,
     check_index_range,
@@ -167,6 +173,35 @@ def _factory(device, dtype) -> dict:
     return {k: v for k, v in (("device", device), ("dtype", dtype)) if v is not None}
 
 
+def _sampling_dtype(param_or_tensor: Tensor) -> torch.dtype:
+    """float64 for float64, else float32: the dtype image sampling runs in (never half precision).
+
+    A normalised coordinate in bfloat16 has a resolution of 2^-8 near 1, about 4 pixels of a
+    1,000-pixel-wide level; in float16, 2^-11 (half a pixel).
+    """
+    return torch.float64 if param_or_tensor.dtype == torch.float64 else torch.float32
+
+
+def _to_sampling_dtype(x: Tensor, dtype: torch.dtype, name: str, owner: str) -> Tensor:
+    """``x`` converted up to the sampling ``dtype`` (float16 / bfloat16 / float32 -> float32 / float64).
+
+    A float64 ``x`` for a float32 sampling is refused rather than rounded: the module is float32.
+    """
+    if x.dtype == dtype:
+        return x
+    if x.dtype == torch.float64:
+        raise MSSFError(
+            f"{name}: expected dtype {dtype} or lower (the precision {owner} samples in with its "
+            f"parameters), got torch.float64; convert the module with .double() or the tensor with .float()"
+        )
+    return x.to(dtype)
+
+
+def _autocast_off(device_type: str):
+    """A context that disables autocast for ``device_type`` when it is on (else does nothing)."""
+    return torch.autocast(device_type, enabled=False) if autocast_on(device_type) else contextlib.nullcontext()
+
+
 def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor) -> Tensor:
     """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
     rows = visible.nonzero().squeeze(1)
@@ -188,11 +223,14 @@ def sample_at_projection(image_feature: Tensor, projection: CentroidProjection) 
             ``valid (N, V)``, ``batch_index (N,)``.
 
     Returns:
-        ``(N, C)``; zeros (and no gradient into the image) for voxels valid in no camera.
+        ``(N, C)`` in float32 (float64 for a float64 level); zeros (and no gradient into the image) for
+        voxels valid in no camera.
     """
     (level,) = check_image_features([image_feature], name="image_feature")
     uv, valid, batch_index = _check_projection(projection, level.shape[0], level.shape[1])
-    return camera_mean(bilinear_sample(level, uv, batch_index, valid), valid)
+    dtype = _sampling_dtype(level)
+    with _autocast_off(level.device.type):
+        return camera_mean(bilinear_sample(level.to(dtype), uv.to(dtype), batch_index, valid), valid)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -298,14 +336,24 @@ class SFF(nn.Module):
         return len(self.in_channels)
 
     def sample(self, image_features: Sequence[Tensor], projection: CentroidProjection) -> Tensor:
-        """The raw concatenated samples ``cat_l Sample(F_l, c_img)``, ``(N, sum C_l)``, camera-averaged."""
+        """The raw concatenated samples ``cat_l Sample(F_l, c_img)``, ``(N, sum C_l)``, camera-averaged.
+
+        In float32 (float64 for a float64 module), whatever the levels' precision (see the module doc).
+        """
         levels = check_image_features(image_features, num_levels=self.num_levels, channels=self.in_channels)
         uv, valid, batch_index = _check_projection(projection, levels[0].shape[0], levels[0].shape[1])
-        parts = [camera_mean(bilinear_sample(lvl, uv, batch_index, valid), valid) for lvl in levels]
-        return torch.cat(parts, dim=1)
+        dtype = _sampling_dtype(self.linear.weight)
+        uv = uv.to(dtype)
+        with _autocast_off(uv.device.type):
+            parts = [
+                camera_mean(bilinear_sample(_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "SFF"), uv,
+                                            batch_index, valid), valid)
+                for i, lvl in enumerate(levels)
+            ]
+            return torch.cat(parts, dim=1)
 
     def forward(self, image_features: Sequence[Tensor], projection: CentroidProjection) -> Tensor:
-        sampled = self.sample(image_features, projection)
+        sampled = self.sample(image_features, projection).to(self.linear.weight.dtype)
         return _linear_bn_visible(self.linear, self.norm, sampled, projection.valid.any(dim=1))
 
     def extra_repr(self) -> str:
@@ -451,17 +499,23 @@ class MSDFF(nn.Module):
         """
         q = query.shape[0]
         m, l, p = self.num_heads, self.num_levels, self.num_points
-        weights = self.attention_weights(query).view(q, m, l * p).softmax(dim=-1).view(q, m, l, p)
-        # Offsets are in pixels of each level, location = uv + offset / (W_l, H_l). Both steps are
-        # folded into one affine map of [query, uv]: the rows of sampling_offsets scaled by
-        # (1 / W_l, 1 / H_l) plus a 0/1 selector that adds u (v) to every x (y) output. One GEMM
-        # instead of a broadcast division and addition over the (Q, M, L, P, 2) output (measured 4-6x
-        # faster on the CPU); equal up to float rounding.
-        inv = torch.tensor([[1.0 / w, 1.0 / h] for h, w in level_sizes], dtype=query.dtype, device=query.device)
-        scale = inv.view(1, l, 1, 2).expand(m, l, p, 2).reshape(-1, 1)  # (M * L * P * 2, 1)
-        select = torch.eye(2, dtype=query.dtype, device=query.device).repeat(m * l * p, 1)  # (M * L * P * 2, 2)
-        weight = torch.cat([self.sampling_offsets.weight * scale, select], 1)
-        locations = torch.addmm(self.sampling_offsets.bias * scale[:, 0], torch.cat([query, uv], 1), weight.t())
+        dtype = _sampling_dtype(self.value_proj.weight)
+        with _autocast_off(query.device.type):  # locations in float32 at least (see the module doc)
+            query = _to_sampling_dtype(query, dtype, "query", "MSDFF")
+            uv = uv.to(dtype)
+            aw, so = self.attention_weights, self.sampling_offsets
+            weights = F.linear(query, aw.weight.to(dtype), aw.bias.to(dtype))
+            weights = weights.view(q, m, l * p).softmax(dim=-1).view(q, m, l, p)
+            # Offsets are in pixels of each level, location = uv + offset / (W_l, H_l). Both steps are
+            # folded into one affine map of [query, uv]: the rows of sampling_offsets scaled by
+            # (1 / W_l, 1 / H_l) plus a 0/1 selector that adds u (v) to every x (y) output. One GEMM
+            # instead of a broadcast division and addition over the (Q, M, L, P, 2) output (measured
+            # 4-6x faster on the CPU); equal up to float rounding.
+            inv = torch.tensor([[1.0 / w, 1.0 / h] for h, w in level_sizes], dtype=dtype, device=query.device)
+            scale = inv.view(1, l, 1, 2).expand(m, l, p, 2).reshape(-1, 1)  # (M * L * P * 2, 1)
+            select = torch.eye(2, dtype=dtype, device=query.device).repeat(m * l * p, 1)  # (M * L * P * 2, 2)
+            weight = torch.cat([so.weight.to(dtype) * scale, select], 1)
+            locations = torch.addmm(so.bias.to(dtype) * scale[:, 0], torch.cat([query, uv], 1), weight.t())
         return locations.view(q, m, l, p, 2), weights
 
     def forward(
@@ -477,46 +531,54 @@ class MSDFF(nn.Module):
         check_floating(query, "query")
         m, e, c = self.num_heads, self.embed_dim, self.value_channels
 
-        # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
-        # depend on the query only, so they are computed per voxel and gathered.
-        sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
-        one_each = v == 1 and bool(valid.all())
-        if one_each:  # one camera that sees every voxel (the usual case): no gathers or scatters
-            locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
-            image_index = batch_index
-        else:
-            n_idx, v_idx = valid.nonzero(as_tuple=True)
-            locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
-            locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
-            weights = weights[n_idx]
-            image_index = batch_index[n_idx] * v + v_idx
-        w_heads = self.value_proj.weight.view(m, self.head_dim, c)
-        b_heads = self.value_proj.bias.view(m, self.head_dim)
-        raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-        if self.method == "auto":
-            # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
-            # of project-all / project-touched / sample-touched-then-project (exact, bias included).
-            heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
-                                             method="touched")
-        elif self.value_projection == "after_sampling":
-            sampled, mass = ms_deform_sample(
-                raw, image_index, locations, weights, method=self.method, return_mass=True
-            )  # (Q, M, C), (Q, M)
-            # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
-            # contributes only where the bilinear corners were inside the image (zero padding).
-            heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
-        else:
-            values = []
-            for lvl in levels:
-                h, w = lvl.shape[-2:]
-                projected = self.value_proj(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1))  # (I, H, W, E)
-                values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
-            heads = ms_deform_sample(values, image_index, locations, weights, method=self.method)
-        if one_each:
-            attended = heads.reshape(n, e)
-        else:
-            per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
-            attended = camera_mean(per_camera, valid)
+        # The sampling runs in float32 (float64 for a float64 module), autocast or not: lower-precision
+        # levels are read as float32 and the locations are never rounded to half precision.
+        dtype = _sampling_dtype(self.value_proj.weight)
+        levels = [_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "MSDFF") for i, lvl in enumerate(levels)]
+        uv = uv.to(dtype)
+        with _autocast_off(uv.device.type):
+            # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
+            # depend on the query only, so they are computed per voxel and gathered.
+            sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
+            one_each = v == 1 and bool(valid.all())
+            if one_each:  # one camera that sees every voxel (the usual case): no gathers or scatters
+                locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
+                image_index = batch_index
+            else:
+                n_idx, v_idx = valid.nonzero(as_tuple=True)
+                locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
+                locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
+                weights = weights[n_idx]
+                image_index = batch_index[n_idx] * v + v_idx
+            w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
+            b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
+            raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
+            if self.method == "auto":
+                # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
+                # of project-all / project-touched / sample-touched-then-project (exact, bias included).
+                heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
+                                                 method="touched")
+            elif self.value_projection == "after_sampling":
+                sampled, mass = ms_deform_sample(
+                    raw, image_index, locations, weights, method=self.method, return_mass=True
+                )  # (Q, M, C), (Q, M)
+                # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
+                # contributes only where the bilinear corners were inside the image (zero padding).
+                heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+            else:
+                values = []
+                for lvl in levels:
+                    h, w = lvl.shape[-2:]
+                    projected = F.linear(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1), w_heads.reshape(e, c),
+                                         b_heads.reshape(e))  # (I, H, W, E)
+                    values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
+                heads = ms_deform_sample(values, image_index, locations, weights, method=self.method)
+            if one_each:
+                attended = heads.reshape(n, e)
+            else:
+                per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
+                attended = camera_mean(per_camera, valid)
+        attended = attended.to(self.output_proj.weight.dtype)
         return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1))
 
     def extra_repr(self) -> str:

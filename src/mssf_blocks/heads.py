@@ -15,6 +15,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ._checks import autocast_on
 from .errors import MSSFError
 from .functional.heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .sparse import SparseVoxels
@@ -25,14 +26,6 @@ __all__ = [
     "points_in_boxes",
     "voxel_foreground_labels",
 ]
-
-
-def _autocast_on(device_type: str) -> bool:
-    """Under autocast, mixed feature/parameter dtypes are expected and handled by torch."""
-    try:
-        return bool(torch.is_autocast_enabled(device_type))
-    except TypeError:  # torch < 2.4 has no device argument
-        return bool(torch.is_autocast_enabled() or torch.is_autocast_cpu_enabled())
 
 
 class SemanticGuidedHead(nn.Module):
@@ -123,7 +116,7 @@ class SemanticGuidedHead(nn.Module):
             got = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
             raise MSSFError(f"features: expected shape (N, C={self.in_channels}), got {got}")
         weight_dtype = self.classifier.weight.dtype
-        if features.dtype != weight_dtype and not _autocast_on(features.device.type):
+        if features.dtype != weight_dtype and not autocast_on(features.device.type):
             raise MSSFError(
                 f"features: expected dtype {weight_dtype} (the head's parameters; convert the head with "
                 f".to(dtype) or the features), got {features.dtype}"
