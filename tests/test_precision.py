@@ -14,7 +14,7 @@ import torch
 from mssf_blocks.blocks import FusionBlock
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
-from mssf_blocks.geometry import CentroidProjection
+from mssf_blocks.geometry import CentroidProjection, VoxelCentroidProjector
 from mssf_blocks.heads import SemanticGuidedHead
 from mssf_blocks.sparse import SparseVoxels
 
@@ -164,3 +164,21 @@ def test_fusion_block_trains_under_autocast():
     assert all(torch.isfinite(a).all() for a in grads16)
     i = next(k for k, p in enumerate(params) if p is block.fusion.sampling_offsets.weight)
     assert grads16[i].abs().max() > 0 and grads32[i].abs().max() > 0
+
+
+@pytest.mark.parametrize("low", LOW)
+def test_projector_computes_half_precision_points_in_float32(low):
+    g = torch.Generator().manual_seed(5)
+    coords = torch.unique(torch.stack([torch.zeros(80), torch.randint(0, 4, (80,), generator=g),
+                                       torch.randint(0, 40, (80,), generator=g),
+                                       torch.randint(0, 40, (80,), generator=g)], 1).int(), dim=0)
+    vox = SparseVoxels(torch.zeros(coords.shape[0], 2), coords, (4, 40, 40), 1, (0.5, 0.5, 0.5), (20.0, -10.0, -1.0))
+    # many points per voxel at x = 20-40 m: a bfloat16 sum of 40 m coordinates is off by metres
+    pts = vox.voxel_centers()[torch.randint(0, coords.shape[0], (2000,), generator=g)]
+    pts = (pts + (torch.rand(2000, 3, generator=g) - 0.5) * 0.5).to(low)
+    l2i = torch.tensor([[[320.0, -400.0, 0.0, 0.0], [240.0, 0.0, -400.0, 0.0], [1.0, 0.0, 0.0, 0.0]]])
+    pb = torch.zeros(2000, dtype=torch.long)
+    got = VoxelCentroidProjector()(vox, pts, pb, l2i, (480, 640))
+    ref = VoxelCentroidProjector()(vox, pts.float(), pb, l2i, (480, 640))  # the same coordinates, float32
+    assert got.uv.dtype == got.centroid.dtype == torch.float32
+    assert torch.equal(got.uv, ref.uv) and torch.equal(got.centroid, ref.centroid)

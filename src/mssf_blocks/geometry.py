@@ -59,7 +59,8 @@ class VoxelCentroidProjector(nn.Module):
         - voxels: N voxels at any stride; points ``(P, 3+)``; points_batch ``(P,)``.
         - lidar2img ``(B, V, 3, 4)`` or ``(B, 3, 4)``; points_to_sensor ``(B, 4, 4)``.
         - output: :class:`CentroidProjection` with ``uv (N, V, 2)``, ``depth (N, V)``, ``valid (N, V)``,
-          ``centroid (N, 3)``, ``has_points (N,)``.
+          ``centroid (N, 3)``, ``has_points (N,)``, in the dtype of ``points`` (float32 for float16 /
+          bfloat16 points: half-precision centroids would be off by decimetres).
 
     Example:
         >>> import torch
@@ -103,6 +104,10 @@ class VoxelCentroidProjector(nn.Module):
             check_shape(points_to_sensor, "points_to_sensor", (voxels.batch_size, 4, 4))
         check_shape(points, "points", ("P", None))
         check_floating(points, "points")
+        if points.dtype in (torch.float16, torch.bfloat16):
+            # Centroids (sums of coordinates) and projections in half precision would be off by
+            # decimetres and pixels: compute them in float32 (the coordinates themselves are exact).
+            points = points[:, :3].float()
         centroid, has_points = voxel_centroids(
             points, points_batch, voxels.coords, voxels.spatial_shape, voxels.batch_size,
             voxels.voxel_size, voxels.point_range_min, voxels.stride, self.point_range_max,
