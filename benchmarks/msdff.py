@@ -37,6 +37,10 @@ layout PyTorch's CPU convolutions produce fastest, so that the fast path reads t
 ``(pixels, 256)`` view; the reference reads them through a free permuted view as well. Voxels are
 spread uniformly over the image (the worst case for memory locality).
 
+A last table bounds what any exact method can reach with PyTorch's CPU primitives
+(:func:`primitive_floor`): per level the cheaper of a GEMM over the touched pixels and an
+``embedding_bag`` over the raw corner rows, index work free; ``fwd bound`` = reference / floor.
+
 Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)`` (``--threads``). Peak extra memory:
 rise of the resident-set high-water mark over a call (see ``benchmarks/_common.py``). That method
 makes glibc ``mmap`` every allocation above 64 KiB, so every such allocation pays its page faults in
@@ -56,6 +60,7 @@ import sys
 from pathlib import Path
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -137,6 +142,53 @@ class ImagePath(nn.Module):
     def fused(self, query, uv, feats, chunk_size=1024):
         return self._sample_project(query, uv, feats, chunk_size=chunk_size)
 
+def corner_rows(loc: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """``(Q * M, P * 4)`` pixel ids ``y * W + x`` of the 4 bilinear corners of ``loc (Q, M, P, 2)``
+    (align_corners=False); corners outside the map read pixel 0 (a valid row: only speed matters)."""
+    x = loc[..., 0] * w - 0.5
+    y = loc[..., 1] * h - 0.5
+    x0, y0 = x.floor().long(), y.floor().long()
+    ids = []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            xx, yy = x0 + dx, y0 + dy
+            inside = (xx >= 0) & (xx < w) & (yy >= 0) & (yy < h)
+            ids.append(torch.where(inside, yy * w + xx, 0))
+    return torch.stack(ids, -1).reshape(loc.shape[0] * loc.shape[1], -1)
+
+
+def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
+    """Forward time below which no exact method built from PyTorch's CPU primitives can go.
+
+    Per level, an exact method must either project the ``U_l`` pixels that some bilinear corner
+    reads (a GEMM over ``U_l`` rows: timed on a contiguous stand-in, no gather counted) or read the
+    raw channels of every corner (``embedding_bag`` over the level's channels-last rows at the real
+    corner ids, no weights or per-head projection counted); the floor is the cheaper of the two per
+    level, plus the locations/weights and ``output_proj`` that every formulation computes. The index
+    work (corner weights, cell ids) and the rest of either route are free here, so the bound is
+    generous. Returns ``(floor seconds, [(touched fraction, gemm s, bag s) per level])``.
+    """
+    with torch.no_grad():
+        sizes = [f.shape[-2:] for f in feats]
+        shared = measure(lambda: path.locations_and_weights(query, uv, sizes), repeats)[0]
+        shared += measure(lambda: path.output_proj(query), repeats)[0]
+        loc, _ = path.locations_and_weights(query, uv, sizes)
+        levels = []
+        for lvl, f in enumerate(feats):
+            h, w = f.shape[-2:]
+            rows = corner_rows(loc[:, :, lvl], h, w)
+            touched = torch.zeros(h * w, dtype=torch.bool)
+            touched[rows.reshape(-1)] = True
+            u = int(touched.sum())
+            table = f.permute(0, 2, 3, 1).reshape(h * w, IMAGE_CHANNELS)  # free view of channels-last maps
+            stand_in = torch.randn(u, IMAGE_CHANNELS)
+            t_gemm = measure(lambda: F.linear(stand_in, path.value_proj.weight), repeats)[0]
+            psw = torch.rand(rows.shape)
+            t_bag = measure(lambda: F.embedding_bag(rows, table, per_sample_weights=psw, mode="sum"), repeats)[0]
+            levels.append((u / (h * w), t_gemm, t_bag))
+    return shared + sum(min(g, b) for _, g, b in levels), levels
+
+
 def make_features(height: int, width: int, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     feats = []
@@ -211,6 +263,11 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
         row[f"{kind} fwd MiB"] = res[kind, "fwd"][1]
         row[f"{kind} fwd+bwd MiB"] = res[kind, "fwdbwd"][1]
         row[f"{kind} 2x-area fwd"] = res[kind, "fwd2x"][0] / res[kind, "fwd"][0]
+    floor, levels = primitive_floor(path, query, uv, feats, repeats)
+    row["floor fwd ms"] = 1e3 * floor
+    row["fwd bound"] = res["reference", "fwd"][0] / floor
+    row["floor per level (touched, gemm ms, bag ms)"] = "; ".join(
+        f"P{i + 2} {t:.0%} {1e3 * g:.1f} {1e3 * b:.1f}" for i, (t, g, b) in enumerate(levels))
     for kind in ours:
         row[f"{kind} fwd speed-up"] = res["reference", "fwd"][0] / res[kind, "fwd"][0]
         row[f"{kind} fwd+bwd speed-up"] = res["reference", "fwdbwd"][0] / res[kind, "fwdbwd"][0]
@@ -263,9 +320,12 @@ def main() -> None:
     times = key + [f"{k} {w}" for w in ("fwd ms", "fwd+bwd ms") for k in kinds]
     memory = key + [f"{k} {w}" for w in ("fwd MiB", "fwd+bwd MiB") for k in kinds]
     ratios = key + [f"{k} {w}" for k in ours for w in RATIO_KEYS] + ["reference 2x-area fwd"]
+    floor = key + ["reference fwd ms", "floor fwd ms", "fwd bound", "floor per level (touched, gemm ms, bag ms)"]
     tables = {}
     for title, cols in (("agreement with the reference", agreement), ("median time (ms)", times),
-                        ("peak extra memory (MiB)", memory), ("ratios", ratios)):
+                        ("peak extra memory (MiB)", memory), ("ratios", ratios),
+                        ("forward floor of PyTorch primitives (fwd bound = reference / floor: the largest "
+                         "forward speed-up any exact method built from them can reach)", floor)):
         print(f"\n{title}")
         tables[title] = print_table(rows, cols)
     if args.json:

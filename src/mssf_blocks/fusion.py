@@ -302,6 +302,9 @@ class SFF(nn.Module):
         - projection: ``uv (N, V, 2)``, ``valid (N, V)``, ``batch_index (N,)``.
         - output: ``(N, out_channels)``; exact zeros for voxels seen by no camera.
 
+    The sampling runs in float32 (float64 for a float64 module), also under ``torch.autocast``;
+    float16 / bfloat16 levels are read as float32.
+
     Example:
         >>> import torch
         >>> from mssf_blocks.geometry import CentroidProjection
@@ -407,6 +410,10 @@ class MSDFF(nn.Module):
         - query: ``(N, E)``; image_features: ``L`` levels ``(B, [V,] C, H_l, W_l)``;
           projection: ``uv (N, V, 2)``, ``valid (N, V)``, ``batch_index (N,)``.
         - output: ``(N, E)``; exact zeros for voxels seen by no camera.
+
+    Precision: the locations, attention weights and sampling run in float32 (float64 for a float64
+    module), also under ``torch.autocast``; float16 / bfloat16 levels are read as float32
+    (``docs/fusion.md``, "Precision and mixed-precision training").
 
     Parameter names and shapes are those of Deformable DETR's ``MSDeformAttn`` (``sampling_offsets``,
     ``attention_weights``, ``value_proj``, ``output_proj``), so pretrained weights map across; the norm
