@@ -1,0 +1,553 @@
+"""Every ```python block of README.md and docs/*.md runs against the current code (or is a listed fragment).
+
+Each block is classified here, keyed by ``(file, first code line)``:
+
+* ``@snippet(...)`` blocks run, each as its own test case: the case builds the names the block assumes
+  (a small preamble), executes the block's text exactly as written (``exec`` with the doc file as the
+  code's filename, so a traceback points into the docs), then asserts what the block promises. A line
+  that shows a tensor in a comment (``expr   # tensor([[ 5.0000, ...]])``) is re-evaluated and compared
+  with the shown value to its printed precision.
+* ``FRAGMENTS`` lists the blocks that cannot sensibly run, with the reason.
+
+A block that is in neither (a new block, or an old one whose first line changed) fails
+``test_every_python_block_is_classified`` until someone classifies it; a classification whose block is
+gone fails too. Blocks that need spconv skip without it; the real-data block skips without
+``../shared/realdata``.
+"""
+
+from __future__ import annotations
+
+import re
+import textwrap
+import types
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Dict, List, Optional, Tuple
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parent.parent
+DOC_FILES = [REPO / "README.md"] + sorted((REPO / "docs").glob("*.md"))
+
+# Tiny tensors and spconv's CPU kernels: one intra-op thread is faster on the shared 2-core machine.
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+# ---------------------------------------------------------------------------------------------------
+# reading the blocks
+# ---------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Block:
+    file: str  # relative to the repository, e.g. "docs/fusion.md"
+    index: int  # 0-based among the file's python blocks
+    line: int  # 1-based line of the opening fence
+    code: str
+
+    @property
+    def first_line(self) -> str:
+        return next(l.strip() for l in self.code.splitlines() if l.strip())
+
+    @property
+    def key(self) -> Tuple[str, str]:
+        return (self.file, self.first_line)
+
+    @property
+    def id(self) -> str:
+        return f"{self.file}#{self.index}:{self.first_line[:40]}"
+
+
+_FENCE = re.compile(r"^(\s*)(```+)\s*([\w+-]*)")
+
+
+def python_blocks(path: Path) -> List[Block]:
+    """The fenced ```python blocks of a Markdown file (indented fences included, body dedented)."""
+    blocks, lines = [], path.read_text(encoding="utf-8").splitlines()
+    i = 0
+    while i < len(lines):
+        m = _FENCE.match(lines[i])
+        if not m:
+            i += 1
+            continue
+        fence, lang, start = m.group(2), m.group(3).lower(), i
+        i += 1
+        body = []
+        while i < len(lines) and not lines[i].strip().startswith(fence):
+            body.append(lines[i])
+            i += 1
+        i += 1  # the closing fence
+        if lang in ("python", "py", "python3"):
+            rel = path.relative_to(REPO).as_posix()
+            count = sum(b.file == rel for b in blocks)
+            blocks.append(Block(rel, count, start + 1, textwrap.dedent("\n".join(body)) + "\n"))
+    return blocks
+
+
+ALL_BLOCKS = [b for f in DOC_FILES for b in python_blocks(f)]
+BLOCKS_BY_KEY: Dict[Tuple[str, str], Block] = {b.key: b for b in ALL_BLOCKS}
+
+
+# ---------------------------------------------------------------------------------------------------
+# classification
+# ---------------------------------------------------------------------------------------------------
+_SIGNATURES = "API signature listing (shapes and `-> result` annotations, not Python)"
+
+FRAGMENTS: Dict[Tuple[str, str], str] = {
+    ("docs/diagnostics.md", "classify_feature_blurring(centroids (N, 3+), batch_index (N,), uv (N, V, 2) | (N, 2),"):
+        _SIGNATURES,
+    ("docs/evaluation.md", "from mssf_examples.evaluation import evaluate, format_table, VOD_IOU_THRESHOLDS, DEFAULT_REGIONS"):
+        "data-format sketch: `(K, 7)` / `...` stand for tensors and more frames, `baseline_results` for a "
+        "second run (tests/examples/test_evaluation.py covers evaluate / format_table)",
+    ("docs/fusion.md", "FusionInputs(image_features, lidar2img, image_size, points, points_batch, points_to_sensor=None)"):
+        _SIGNATURES,
+    ("docs/heads.md", "SemanticGuidedHead(in_channels: int, hidden: Sequence[int] = (256, 256), use_loss: bool = True,"):
+        _SIGNATURES,
+    ("docs/heads.md", 'sigmoid_focal_loss(logits, targets, ignore=None, alpha=0.25, gamma=2.0, reduction="positives") -> Tensor'):
+        _SIGNATURES,
+    ("docs/heads.md", 'points_in_boxes(points (P, 3+), boxes (G, 7+), origin="center", margin=0.0, eps=1e-6) -> (P, G) bool'):
+        _SIGNATURES,
+    ("docs/heads.md", "voxel_foreground_labels(centroids (N, 3+), batch_index (N,), gt_boxes: list[(G_b, 7+)], margin=0.1,"):
+        _SIGNATURES,
+    ("docs/pillar.md", "HeightEmbedding(num_z: int, channels: int, device=None, dtype=None)"):
+        _SIGNATURES,
+    ("docs/real-data.md", "from vod.evaluation import Evaluation"):
+        "needs the third-party VoD devkit (`vod`, not a dependency), the full VoD label folder and the "
+        "prediction folder of a training run",
+}
+
+Runner = Callable[[Dict[str, object]], Dict[str, object]]
+SNIPPETS: Dict[Tuple[str, str], Callable] = {}
+
+
+def snippet(file: str, first_line: str):
+    """Register ``fn(run, tmp_path)`` as the test of the block of ``file`` starting with ``first_line``."""
+
+    def register(fn):
+        key = (file, first_line)
+        assert key not in SNIPPETS, f"{key} registered twice"
+        SNIPPETS[key] = fn
+        return fn
+
+    return register
+
+
+def exec_block(block: Block, namespace: Dict[str, object], insert: Optional[Dict[str, str]] = None) -> Dict[str, object]:
+    """Run ``block`` in ``namespace`` (modified in place and returned).
+
+    ``insert`` maps a line of the block (stripped) to code run just before it: names the block's own
+    later lines assume but only exist after its earlier lines ran (e.g. the backbone's ``stage``).
+    """
+    code = block.code
+    for marker, extra in (insert or {}).items():
+        lines = code.splitlines()
+        hits = [i for i, l in enumerate(lines) if l.strip() == marker]
+        assert len(hits) == 1, f"{block.id}: expected the line {marker!r} once, found it {len(hits)} times"
+        lines[hits[0]:hits[0]] = [extra]
+        code = "\n".join(lines) + "\n"
+    namespace.setdefault("__name__", "__doc_snippet__")
+    exec(compile(code, f"{block.file} (python block {block.index}, line {block.line})", "exec"), namespace)
+    namespace["__shown_tensors_checked__"] = check_shown_tensors(block, namespace)
+    return namespace
+
+
+_SHOWN_TENSOR = re.compile(r"^(?P<expr>[^#]+?)\s*#\s*(?P<out>tensor\(.*\))\s*$")
+
+
+def check_shown_tensors(block: Block, namespace: Dict[str, object]) -> int:
+    """Lines ``expr  # tensor([...])``: ``expr`` evaluates to the shown tensor, to its printed digits.
+
+    Returns the number of lines checked.
+    """
+    checked = 0
+    for line in block.code.splitlines():
+        m = _SHOWN_TENSOR.match(line.strip())
+        if not m:
+            continue
+        got = eval(m.group("expr"), namespace)
+        shown = eval(m.group("out"), {"tensor": lambda data, **_: torch.tensor(data, dtype=torch.float64)})
+        decimals = [len(d) for d in re.findall(r"\d\.(\d+)", m.group("out"))]
+        atol = 0.5 * 10.0 ** -max(decimals) if decimals else 0.0
+        assert tuple(got.shape) == tuple(shown.shape), f"{block.id}: {line.strip()!r} gives shape {tuple(got.shape)}"
+        torch.testing.assert_close(got.to(torch.float64), shown.to(torch.float64), atol=atol * 1.0001, rtol=0,
+                                   msg=lambda msg: f"{block.id}: {line.strip()!r} shows a different value:\n{msg}")
+        checked += 1
+    return checked
+
+
+# ---------------------------------------------------------------------------------------------------
+# shared scene: one front camera (x forward, y left, z up), VoD-like range and voxels
+# ---------------------------------------------------------------------------------------------------
+VOD_RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)
+VOD_VOXEL = (0.05, 0.05, 0.125)
+
+
+def pinhole(batch_size: int, image_size: Tuple[int, int], f: float) -> torch.Tensor:
+    """``(B, 1, 3, 4)`` lidar2img of a camera at the origin looking along +x, principal point at the centre."""
+    h, w = image_size
+    k = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+    sensor_to_cam = torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])  # (right, down, forward)
+    return (k @ sensor_to_cam).expand(batch_size, 1, 3, 4).contiguous()
+
+
+def radar_points(batch_size: int = 2, per_sample: int = 60, seed: int = 0) -> torch.Tensor:
+    """``(P, 1 + 7)`` OpenPCDet-style points ``[b, x, y, z, RCS, v_r, v_rc, t]`` in front of the camera."""
+    g = torch.Generator().manual_seed(seed)
+    rows = []
+    for b in range(batch_size):
+        xyz = torch.rand(per_sample, 3, generator=g) * torch.tensor([25.0, 10.0, 3.0]) + torch.tensor([5.0, -5.0, -2.5])
+        rows.append(torch.cat([torch.full((per_sample, 1), float(b)), xyz, torch.randn(per_sample, 4, generator=g)], 1))
+    return torch.cat(rows)
+
+
+def voxel_coords(points: torch.Tensor, voxel_size, point_range_min) -> torch.Tensor:
+    """Unique ``(b, z, y, x)`` int32 base-grid voxels of ``points`` (``[b, x, y, z, ...]`` rows)."""
+    idx = ((points[:, 1:4] - torch.tensor(point_range_min)) / torch.tensor(voxel_size)).floor().long()
+    return torch.unique(torch.cat([points[:, :1].long(), idx.flip(1)], 1), dim=0).int()
+
+
+def fpn(batch_size: int, image_size, channels: int = 256, strides=(4, 8, 16, 32), cameras: Optional[int] = None, seed: int = 1):
+    g = torch.Generator().manual_seed(seed)
+    h, w = image_size
+    lead = (batch_size,) if cameras is None else (batch_size, cameras)
+    return [torch.randn(*lead, channels, h // s, w // s, generator=g) for s in strides]
+
+
+def spconv_input(points: torch.Tensor, channels: int, spatial_shape, batch_size: int, seed: int = 2):
+    spconv = pytest.importorskip("spconv.pytorch")
+    coords = voxel_coords(points, VOD_VOXEL, VOD_RANGE[:3])
+    feats = torch.randn(coords.shape[0], channels, generator=torch.Generator().manual_seed(seed))
+    return spconv.SparseConvTensor(feats, coords, list(spatial_shape), batch_size)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the runnable blocks
+# ---------------------------------------------------------------------------------------------------
+@snippet("README.md", "import torch, spconv.pytorch as spconv")
+def readme_drop_in(run, tmp_path):
+    spconv = pytest.importorskip("spconv.pytorch")
+    H, W = 320, 512
+    points = radar_points(2)
+    x = spconv_input(points, 16, (40, 1024, 1024), 2)
+    ns = run({"fpn": fpn(2, (H, W)), "lidar2img": pinhole(2, (H, W), 200.0), "H": H, "W": W, "points": points, "x": x})
+    out = ns["x"]
+    assert isinstance(out, spconv.SparseConvTensor)
+    assert out.features.shape[1] == 32 and out.batch_size == 2
+    assert list(out.spatial_shape) == [20, 512, 512]  # the stride-2 SparseConv3d of `down`
+    assert "spconv2" in out.indice_dict and "subm2" in out.indice_dict
+    assert torch.isfinite(out.features).all()
+
+
+@snippet("docs/conventions.md", "v = SparseVoxels(torch.zeros(1, 1), torch.tensor([[0, 2, 64, 12]], dtype=torch.int32), (6, 128, 128), 1,")
+def conventions_voxel_centre(run, tmp_path):
+    from mssf_blocks import SparseVoxels
+
+    ns = run({"torch": torch, "SparseVoxels": SparseVoxels})  # the shown tensor is checked by `run`
+    assert ns["__shown_tensors_checked__"] == 1
+    assert ns["v"].voxel_centers(torch.float64)[0].tolist() == pytest.approx([5.0, 0.2, -0.5], abs=1e-12)
+
+
+def vod_batch(batch_size: int = 2):
+    """A RadarCameraBatch for the VOD preset: 7-feature points, boxes, 4 precomputed FPN levels."""
+    from mssf_examples.data import RadarCameraBatch
+
+    image_size = (1216, 1936)
+    pts = radar_points(batch_size, per_sample=80, seed=3)
+    points = [pts[pts[:, 0] == b, 1:] for b in range(batch_size)]
+    boxes = [torch.tensor([[10.0, 0.0, -1.0, 3.9, 1.6, 1.56, 0.3], [15.0, 3.0, -1.0, 0.8, 0.6, 1.73, 0.0]])] * batch_size
+    labels = [torch.tensor([0, 1])] * batch_size
+    return RadarCameraBatch(points=points, lidar2img=pinhole(batch_size, image_size, 1495.5),
+                            image_features=fpn(batch_size, image_size, strides=(16, 32, 64, 128), cameras=1),
+                            image_size=image_size, gt_boxes=boxes, gt_labels=labels)
+
+
+@snippet("docs/detectors.md", "from mssf_examples.detectors import build_detector")
+def detectors_build(run, tmp_path):
+    pytest.importorskip("spconv")
+    torch.manual_seed(0)
+    ns = run({"batch": vod_batch(2)})
+    losses, dets = ns["losses"], ns["dets"]
+    assert {"det_cls", "det_reg", "seg", "loss"} <= set(losses) <= {"det_cls", "det_reg", "det_dir", "seg", "loss"}
+    assert all(torch.isfinite(v).all() for v in losses.values())
+    assert isinstance(dets, list) and len(dets) == 2
+    for d in dets:
+        k = d["boxes"].shape[0]
+        assert d["boxes"].shape == (k, 7) and d["scores"].shape == (k,) and d["labels"].shape == (k,)
+
+
+def openpcdet_conv2(spconv, nn):
+    """OpenPCDet VoxelBackBone8x ``conv2``: three post-act blocks, the first a stride-2 SparseConv3d."""
+
+    def block(conv, c):
+        return spconv.SparseSequential(conv, nn.BatchNorm1d(c), nn.ReLU())
+
+    return spconv.SparseSequential(
+        block(spconv.SparseConv3d(16, 32, 3, stride=2, padding=1, bias=False, indice_key="spconv2"), 32),
+        block(spconv.SubMConv3d(32, 32, 3, padding=1, bias=False, indice_key="subm2"), 32),
+        block(spconv.SubMConv3d(32, 32, 3, padding=1, bias=False, indice_key="subm2"), 32),
+    )
+
+
+def run_detectors_init(run_block):
+    spconv = pytest.importorskip("spconv.pytorch")
+    from torch import nn
+
+    ns = {"spconv": spconv, "self": types.SimpleNamespace(conv2=openpcdet_conv2(spconv, nn)), "point_cloud_range": VOD_RANGE}
+    return run_block(ns)
+
+
+@snippet("docs/detectors.md", "from mssf_blocks.blocks import FusionBlock")
+def detectors_openpcdet_init(run, tmp_path):
+    from mssf_blocks import FusionBlock, QueryInit, SemanticGuidedHead
+
+    ns = run_detectors_init(run)
+    assert isinstance(ns["self"].conv2, FusionBlock) and isinstance(ns["self"].conv2.query_init, QueryInit)
+    assert isinstance(ns["self"].seg_head, SemanticGuidedHead)
+
+
+@snippet("docs/detectors.md", "inputs = FusionInputs(image_features=img_feats,            # L levels (B, V, C, H_l, W_l)")
+def detectors_openpcdet_forward(run, tmp_path):
+    """Continues the previous block (its `self`, imports and `point_cloud_range`)."""
+    spconv = pytest.importorskip("spconv.pytorch")
+    init = BLOCKS_BY_KEY[("docs/detectors.md", "from mssf_blocks.blocks import FusionBlock")]
+    ns = run_detectors_init(lambda ns: exec_block(init, ns))
+    H, W = 320, 512
+    points = radar_points(2)
+    ns.update(img_feats=fpn(2, (H, W), cameras=1), batch_dict={"lidar2img": pinhole(2, (H, W), 200.0), "points": points},
+              H=H, W=W, aug_inverse=torch.eye(4).expand(2, 4, 4), voxel_size=VOD_VOXEL,
+              x_conv1=spconv_input(points, 16, (41, 1024, 1024), 2))  # OpenPCDet's padded z
+    ns = run(ns)
+    x_conv2, scores = ns["x_conv2"], ns["scores"]
+    assert ns["x"].stride == (2, 2, 2)
+    assert isinstance(x_conv2, spconv.SparseConvTensor) and x_conv2.features.shape[1] == 32
+    assert list(x_conv2.spatial_shape) == [21, 512, 512]
+    assert "spconv2" in x_conv2.indice_dict
+    assert scores.shape == (x_conv2.features.shape[0],) and ((scores > 0) & (scores < 1)).all()
+
+
+def camera_scene(channels: int = 8, stride: int = 1):
+    """One sample, one camera (64 x 96 image, f = 40 px); a car box at x = 10 m, points:
+
+    0: inside the box (3D foreground); 1: 10 m behind the box, in its 2D box (3D-blurred);
+    2: beside the box, outside its 2D box (background); 3: inside the box, near point 0.
+    """
+    from mssf_blocks import SparseVoxels, VoxelCentroidProjector
+    from mssf_blocks.heads import points_in_boxes
+
+    image_size = (64, 96)
+    lidar2img = pinhole(1, image_size, 40.0)
+    points = torch.tensor([[10.0, 0.1, 0.1], [20.0, 0.1, 0.1], [10.0, 9.0, 0.1], [10.6, 0.3, 0.4]])
+    points_batch = torch.zeros(4, dtype=torch.long)
+    gt_boxes = [torch.tensor([[10.0, 0.0, 0.0, 4.0, 2.0, 2.0, 0.0]])]
+    # 2D box: the projected corners' bounding box.
+    corners = torch.tensor([[x, y, z] for x in (8, 12) for y in (-1, 1) for z in (-1, 1)], dtype=torch.float32)
+    uvd = torch.cat([corners, torch.ones(8, 1)], 1) @ lidar2img[0, 0].T
+    uv = uvd[:, :2] / uvd[:, 2:]
+    gt_boxes_2d = [torch.cat([uv.min(0).values, uv.max(0).values])[None]]
+    vs = (0.5, 0.5, 0.5)
+    lo = (0.0, -10.0, -2.0)
+    idx = ((points - torch.tensor(lo)) / (torch.tensor(vs) * stride)).floor().int()
+    coords = torch.unique(torch.cat([torch.zeros(4, 1, dtype=torch.int32), idx.flip(1)], 1), dim=0)
+    voxels = SparseVoxels(torch.randn(coords.shape[0], channels, generator=torch.Generator().manual_seed(0)), coords,
+                          (8 // stride, 40 // stride, 60 // stride), 1, vs, lo, stride=(stride,) * 3)
+    assert points_in_boxes(points, gt_boxes[0])[:, 0].tolist() == [True, False, False, True]
+    return dict(projector=VoxelCentroidProjector(), voxels=voxels, points=points, points_batch=points_batch,
+                lidar2img=lidar2img, image_size=image_size, gt_boxes=gt_boxes, gt_boxes_2d=gt_boxes_2d)
+
+
+@snippet("docs/diagnostics.md", "proj = projector(voxels, points, points_batch, lidar2img, image_size)")
+def diagnostics_mask_blur(run, tmp_path):
+    from mssf_blocks import SFF
+    from mssf_blocks.diagnostics import classify_projection, mask_blur_projection
+
+    ns = camera_scene()
+    levels = [torch.rand(1, 4, 64 // s, 96 // s) + 0.5 for s in (1, 2)]  # positive: a seen voxel reads non-zero
+    ns.update(classify_projection=classify_projection, mask_blur_projection=mask_blur_projection,
+              sff=SFF([4, 4], 8).eval(), image_features=levels)
+    ns = run(ns)
+    proj, cls = ns["proj"], ns["cls"]
+    centroid_x = proj.centroid[:, 0].tolist()
+    blurred = [x == pytest.approx(20.0, abs=0.5) for x in centroid_x]  # only the voxel behind the car
+    assert cls.blurred.tolist() == blurred and sum(blurred) == 1
+    assert not proj.valid[cls.blurred].any() and (proj.uv[cls.blurred] == -1).all()
+    raw = ns["sff"].sample(levels, proj)
+    assert (raw[cls.blurred] == 0).all() and (raw[~cls.blurred].abs().sum(1) > 0).all()
+    assert ns["f_img"].shape == (len(centroid_x), 8)
+
+
+@snippet("docs/fusion.md", "from mssf_blocks.fusion import MSDFF")
+def fusion_value_projection_orders(run, tmp_path):
+    ns = camera_scene(channels=64)
+    proj = ns["projector"](ns["voxels"], ns["points"], ns["points_batch"], ns["lidar2img"], ns["image_size"])
+    torch.manual_seed(0)
+    levels = fpn(1, (64, 96), strides=(1, 2, 4, 8))
+    ns = run({"torch": torch, "query": torch.randn(proj.uv.shape[0], 64), "levels": levels, "projection": proj})
+    assert ns["a"](ns["query"], levels, proj).shape == (proj.uv.shape[0], 64)  # the block's assert_close did the check
+
+
+@snippet("docs/fusion.md", "from mssf_blocks.blocks import FusionBlock")
+def fusion_swap_openpcdet(run, tmp_path):
+    spconv = pytest.importorskip("spconv.pytorch")
+    import swap_openpcdet_stage as ex
+
+    torch.manual_seed(0)
+    grid = [round((hi - lo) / v) for lo, hi, v in zip(ex.POINT_CLOUD_RANGE[:3], ex.POINT_CLOUD_RANGE[3:], ex.VOXEL_SIZE)]
+    backbone = ex.VoxelResBackBone8x(7, grid).eval()
+    feats, coords, frame = ex.random_frame(batch_size=2, points_per_frame=200)
+    x = backbone.conv1(backbone.conv_input(spconv.SparseConvTensor(feats, coords, backbone.sparse_shape, 2)))
+    ns = {"backbone": backbone, "spconv": spconv, "point_cloud_range": ex.POINT_CLOUD_RANGE, "voxel_size": ex.VOXEL_SIZE,
+          "fpn_levels": fpn(2, ex.IMAGE_SIZE, cameras=1), "lidar2img": frame.lidar2img, "image_size": ex.IMAGE_SIZE,
+          "points": frame.points, "points_batch": frame.points_batch, "x": x}
+    with torch.no_grad():  # spconv 2.3 on CPU has no backward
+        ns = run(ns, insert={"x = stage(x, inputs) if isinstance(stage, FusionBlock) else stage(x)": "stage = backbone.conv2"})
+        out = ns["x"]
+        assert isinstance(out, spconv.SparseConvTensor) and out.features.shape[1] == 32
+        assert {"spconv2", "res2"} <= set(out.indice_dict)
+        assert backbone.conv3(out).features.shape[1] == 64  # feeds conv3 as before
+
+
+@snippet("docs/heads.md", "head = SemanticGuidedHead(128)")
+def heads_typical_use(run, tmp_path):
+    from mssf_blocks import SemanticGuidedHead, voxel_foreground_labels
+
+    ns = camera_scene(channels=128, stride=2)
+    ns.update(SemanticGuidedHead=SemanticGuidedHead, voxel_foreground_labels=voxel_foreground_labels,
+              x=ns.pop("voxels"), loss_det=torch.tensor(1.5))
+    torch.manual_seed(0)
+    ns = run(ns)
+    proj, labels, loss = ns["proj"], ns["labels"], ns["loss"]
+    # points 0 and 3 share a stride-2 voxel (1 m) inside the car; their mean is the centroid
+    inside = [abs(c[0] - 10.3) < 1e-5 for c in proj.centroid.tolist()]
+    assert labels.tolist() == [1.0 if i else 0.0 for i in inside] and sum(inside) == 1
+    assert not ns["ignore"].any()
+    assert loss.dim() == 0 and torch.isfinite(loss) and loss > 1.5
+    assert ns["scores"].shape == labels.shape and ns["x"].features.shape == (labels.shape[0], 128)
+
+
+@snippet("docs/pillar.md", "vox = voxelize_points(points, points_batch, B, (0.16 * s, 0.16 * s, 0.5), pc_min, pc_max)")
+def pillar_lift_fuse(run, tmp_path):
+    from mssf_blocks import SFF, PillarLift, VoxelCentroidProjector
+    from mssf_blocks.functional.lift import voxelize_points
+
+    B, s, C = 2, 2, 8
+    pc_min, pc_max = (0.0, -12.8, -3.0), (25.6, 12.8, 2.0)
+    pts = radar_points(B, per_sample=40, seed=5)
+    pts = pts[pts[:, 1] < 25.0]
+    image_size = (64, 96)
+    hb, wb = round(25.6 / (0.16 * s)), round(25.6 / (0.16 * s))
+    bev = torch.randn(B, C, hb, wb)
+    ns = run({"voxelize_points": voxelize_points, "PillarLift": PillarLift, "points": pts[:, 1:], "points_batch": pts[:, 0].long(),
+              "B": B, "s": s, "pc_min": pc_min, "pc_max": pc_max, "C": C, "bev": bev, "projector": VoxelCentroidProjector(),
+              "lidar2img": pinhole(B, image_size, 40.0), "image_size": image_size, "sff": SFF([4, 4], C).eval(),
+              "image_features": fpn(B, image_size, channels=4, strides=(4, 8))})
+    out, v = ns["bev"], ns["v"]
+    assert out.shape == bev.shape
+    occupied = torch.zeros(B, hb, wb, dtype=torch.bool)
+    occupied[v.coords[:, 0].long(), v.coords[:, 2].long(), v.coords[:, 3].long()] = True
+    assert (out.permute(0, 2, 3, 1)[~occupied] == 0).all() and occupied.any()
+
+
+def _link_tree(dst: Path, files: Dict[str, Path]) -> None:
+    for sub, src in files.items():
+        (dst / sub).mkdir(parents=True, exist_ok=True)
+        for f in src.iterdir():
+            (dst / sub / f.name).symlink_to(f)
+
+
+REAL_DATA_FIRST_LINE = (
+    "from mssf_examples.kitti_io import KittiFormatDataset, VOD_RADAR, TJ4D_RADAR, TJ4D_CLASSES, frames_to_batch"
+)
+
+
+@snippet("docs/real-data.md", REAL_DATA_FIRST_LINE)
+def real_data_api(run, tmp_path, realdata_root=None):
+    """The block's dataset paths point at trees of symlinks to ``../shared/realdata/vod`` (two frames).
+
+    The TJ4DRadSet tree holds the same VoD files: the block only constructs that dataset (reads no frame).
+    """
+    from mssf_examples.data import RadarCameraBatch
+
+    vod_src = realdata_root / "vod"
+    ids = sorted(p.stem for p in (vod_src / "radar" / "velodyne").glob("*.bin"))
+    files = {"velodyne": vod_src / "radar" / "velodyne", "calib": vod_src / "radar" / "calib",
+             "image_2": vod_src / "image_2", "label_2": vod_src / "label_2"}
+    vod_root, tj4d_root = tmp_path / "view_of_delft", tmp_path / "TJ4DRadSet"
+    _link_tree(vod_root / "radar_5frames" / "training", files)
+    (vod_root / "radar_5frames" / "ImageSets").mkdir()
+    (vod_root / "radar_5frames" / "ImageSets" / "train.txt").write_text("\n".join(ids) + "\n")
+    _link_tree(tj4d_root / "training", files)
+    (tj4d_root / "ImageSets").mkdir()
+    (tj4d_root / "ImageSets" / "val.txt").write_text(ids[0] + "\n")
+    ns = run({}, replace={'"/data/view_of_delft"': repr(str(vod_root)), '"/data/TJ4DRadSet"': repr(str(tj4d_root))})
+    frame, batch, tj4d = ns["frame"], ns["batch"], ns["tj4d"]
+    p, g = frame.points.shape[0], frame.boxes.shape[0]
+    assert frame.points.shape == (p, 7) and frame.boxes.shape == (g, 7) and frame.labels.shape == (g,)
+    assert frame.image.dtype == torch.uint8 and frame.image.shape[0] == 3
+    assert frame.lidar2img.shape == (3, 4) and frame.lidar2img.dtype == torch.float64
+    assert isinstance(batch, RadarCameraBatch) and len(batch.points) == 2 and batch.lidar2img.shape[:2] == (2, 1)
+    assert len(tj4d) == 1
+
+
+real_data_api.needs_realdata = True
+
+
+@snippet("docs/scenes.md", "import torch")
+def scenes_usage(run, tmp_path):
+    from mssf_examples.data import RadarCameraBatch
+
+    ns = run({})  # runs as is
+    scene, batch = ns["scene"], ns["batch"]
+    p = scene.points.shape[0]
+    assert scene.points.shape == (p, 7) and scene.points.dtype == torch.float32
+    assert scene.image.dim() == 3 and scene.image.shape[0] == 3 and scene.image.dtype == torch.float32
+    assert 0 <= scene.image.min() and scene.image.max() <= 1
+    assert scene.lidar2img.shape == (3, 4) and scene.lidar2img.dtype == torch.float64
+    assert len(ns["train"]) == 512 and len(ns["val"]) == 128
+    assert isinstance(batch, RadarCameraBatch) and len(batch.points) == 4 and batch.lidar2img.shape == (4, 1, 3, 4)
+
+
+# ---------------------------------------------------------------------------------------------------
+# the tests
+# ---------------------------------------------------------------------------------------------------
+def test_every_python_block_is_classified():
+    keys = [b.key for b in ALL_BLOCKS]
+    duplicates = sorted({k for k in keys if keys.count(k) > 1})
+    assert not duplicates, f"python blocks with the same first line in one file (give them distinct ones): {duplicates}"
+    both = set(SNIPPETS) & set(FRAGMENTS)
+    assert not both, f"classified as runnable and as fragment: {sorted(both)}"
+    unclassified = [b.id + f" (line {b.line})" for b in ALL_BLOCKS if b.key not in SNIPPETS and b.key not in FRAGMENTS]
+    assert not unclassified, (
+        "python blocks in README.md / docs/*.md that tests/test_docs_snippets.py does not know: run them with "
+        "@snippet(...) or list them in FRAGMENTS with the reason:\n  " + "\n  ".join(unclassified))
+    stale = sorted((set(SNIPPETS) | set(FRAGMENTS)) - set(keys))
+    assert not stale, f"classified blocks no longer in the docs (first line changed or block removed): {stale}"
+
+
+RUNNABLE = [b for b in ALL_BLOCKS if b.key in SNIPPETS]
+
+
+@pytest.mark.parametrize("block", RUNNABLE, ids=[b.id for b in RUNNABLE])
+def test_doc_block_runs(block, tmp_path, request):
+    fn = SNIPPETS[block.key]
+    kwargs = {}
+    if getattr(fn, "needs_realdata", False):
+        kwargs["realdata_root"] = request.getfixturevalue("realdata_root")
+
+    def run(namespace, insert=None, replace=None):
+        b = block
+        for old, new in (replace or {}).items():
+            assert old in b.code, f"{b.id}: {old!r} not in the block"
+            b = Block(b.file, b.index, b.line, b.code.replace(old, new))
+        return exec_block(b, namespace, insert)
+
+    fn(run, tmp_path, **kwargs)
+
+
+_SCRIPT = re.compile(r"\bpython3?\s+((?:examples|benchmarks)/[\w./-]+\.py)\b")
+
+
+def test_mentioned_scripts_exist():
+    """Every ``python examples/...py`` / ``python benchmarks/...py`` in README.md and docs/*.md exists."""
+    mentioned = {(f.relative_to(REPO).as_posix(), m) for f in DOC_FILES for m in _SCRIPT.findall(f.read_text(encoding="utf-8"))}
+    assert mentioned, "found no script mention at all: the pattern is broken"
+    missing = sorted((f, m) for f, m in mentioned if not (REPO / m).is_file())
+    assert not missing, f"scripts mentioned in the docs that do not exist: {missing}"
