@@ -115,7 +115,6 @@ FRAGMENTS: Dict[Tuple[str, str], str] = {
         "prediction folder of a training run",
 }
 
-Runner = Callable[[Dict[str, object]], Dict[str, object]]
 SNIPPETS: Dict[Tuple[str, str], Callable] = {}
 
 
