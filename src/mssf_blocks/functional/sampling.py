@@ -612,12 +612,14 @@ def _touched_level(
     c00 = (image_index.view(1, q, 1) * hp + yc) * wp + xc  # (M, Q, P)
     cells = torch.stack((c00, c00 + 1, c00 + wp, c00 + wp + 1), 2).view(-1)
 
-    # Which in-map pixels are read, as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
-    mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
-    mark.view(-1).index_fill_(0, cells, True)
-    inner = mark[:, 2 : h + 2, 2 : w + 2]
-    touched = inner.reshape(-1).nonzero().squeeze(1)  # (U,) sorted raw pixel ids
-    u = touched.numel()
+    # Which in-map pixels are read (the plans "project" and "sample" need them; the choice needs
+    # their number U), as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
+    inner, u = None, n_pix
+    if plan is None or plan in ("project", "sample"):
+        mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
+        mark.view(-1).index_fill_(0, cells, True)
+        inner = mark[:, 2 : h + 2, 2 : w + 2]
+        u = int(inner.sum())
     if plan is None:
         corners = m * q * 4 * p
         bag = 1.0 + _BAG_BACKWARD if needs_grad else 1.0  # forward (+ backward) passes over the corners
@@ -631,6 +633,7 @@ def _touched_level(
         if _is_row_table(value):
             costs["direct"] = corners * _DIRECT_BAG_COST * bag + q * e * gemm
         plan = min(costs, key=costs.get)
+    touched = inner.reshape(-1).nonzero().squeeze(1) if plan in ("project", "sample") else None  # (U,) sorted
     if needs_grad and plan in ("dense", "project"):
         # Project (every pixel, or the touched ones scattered into zeros: untouched pixels are never
         # read, weight-0 corners included), then grid_sample per head: its fused backward is several
