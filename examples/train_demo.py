@@ -81,17 +81,25 @@ def ground_truths(scenes: List[Scene]) -> List[Dict[str, torch.Tensor]]:
     return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, lidar2cam=s.sensor_to_camera) for s in scenes]
 
 
+def scene_collate(scenes: List[Scene], features=None):
+    """``collate(indices)`` for ``scenes``: ``Scene.collate``, or with precomputed image features
+    (``features[i]`` of ``scenes[i]``) ``collate_with_features``."""
+    if features is None:
+        return lambda idx: Scene.collate([scenes[i] for i in idx])
+    return lambda idx: collate_with_features([scenes[i] for i in idx], [features[i] for i in idx])
+
+
 def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
           collate=None) -> Dict:
     """Train ``model`` in place on a seeded data order; ``collate(indices)`` builds a batch (default:
     ``Scene.collate``). The loop is :func:`mssf_examples.training.train_detector`."""
-    collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
+    collate = collate or scene_collate(scenes)
     order = batch_order(len(scenes), batch_size, steps, seed)
     return train_detector(model, (collate(idx) for idx in order), steps, lr, desc=f"train {desc}")
 
 
 def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None) -> List[Dict[str, torch.Tensor]]:
-    collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
+    collate = collate or scene_collate(scenes)
     chunks = [list(range(i, min(i + batch_size, len(scenes)))) for i in range(0, len(scenes), batch_size)]
     return predict_detections(model, (collate(idx) for idx in chunks), total=len(chunks), desc=f"eval {desc}")
 
@@ -99,7 +107,7 @@ def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None
 @torch.no_grad()
 def semantic_scores(model, scenes: List[Scene], batch_size: int, collate=None):
     """Per scene: the fused voxels' centroids and sigmoid scores; pooled blur classification + scores."""
-    collate = collate or (lambda idx: Scene.collate([scenes[i] for i in idx]))
+    collate = collate or scene_collate(scenes)
     model.eval()
     projector = VoxelCentroidProjector()
     per_scene, classes, scores = [], [], []
@@ -335,8 +343,7 @@ def _run(args) -> int:
     # The image branch: pre-trained on the train scenes' 2D semantics, frozen, features cached (default);
     # or trained end to end with the detector from scratch (--image-branch end-to-end).
     image_pretrain, branch, readout = None, None, None
-    collates = {MODELS[0]: None, MODELS[1]: None}
-    fusion_collate_val = None
+    fusion_collate_train = fusion_collate_val = None
     if args.image_branch == "pretrained":
         torch.manual_seed(args.seed)
         branch = ImageBranch(preset.image_depth, preset.image_base_channels, preset.fpn_channels,
@@ -367,8 +374,8 @@ def _run(args) -> int:
         feats_train = precompute_features(branch, train_scenes, progress=lambda it: tqdm(it, desc="image features train", **bar))
         feats_val = precompute_features(branch, val_scenes, progress=lambda it: tqdm(it, desc="image features val", **bar))
         image_pretrain["total_seconds"] = time.perf_counter() - t0
-        collates[MODELS[0]] = lambda idx: collate_with_features([train_scenes[i] for i in idx], [feats_train[i] for i in idx])
-        fusion_collate_val = lambda idx: collate_with_features([val_scenes[i] for i in idx], [feats_val[i] for i in idx])
+        fusion_collate_train = scene_collate(train_scenes, feats_train)
+        fusion_collate_val = scene_collate(val_scenes, feats_val)
     image_source = "precomputed" if branch is not None else "backbone"
 
     for name, n in blocks.items():
@@ -381,7 +388,7 @@ def _run(args) -> int:
             timings[name] = {"train_seconds": 0.0, "loaded": str(args.load_checkpoint)}
         else:
             log = train(model, train_scenes, args.steps, args.batch_size, args.lr, args.seed, name,
-                        collate=collates[name] if n else None)
+                        collate=fusion_collate_train if n else None)
             timings[name] = {"train_seconds": log["seconds"], "seconds_per_step": log["seconds_per_step"]}
             histories[name] = log["history"]
         t0 = time.perf_counter()
