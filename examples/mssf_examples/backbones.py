@@ -549,10 +549,7 @@ class PointPillarsBackbone(nn.Module):
         lift_voxels = None
         if self.num_fusion_blocks:
             vox = dynamic_voxelize(points, points_batch, batch_size, self.lift_grid)
-            lift_voxels = SparseVoxels(
-                features=vox.features[:, :1], coords=vox.coords, spatial_shape=self.lift_grid.spatial_shape,
-                batch_size=batch_size, voxel_size=self.lift_grid.voxel_size, point_range_min=self.lift_grid.point_range_min,
-            )
+            lift_voxels = self.lift_grid.sparse_voxels(vox.features[:, :1], vox.coords, batch_size)
         ups = []
         for i in range(len(self.down)):
             x = self.down[i](x)
