@@ -66,7 +66,7 @@ from torch import nn
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import measure, print_table, reexec_with_mmap_threshold, write_json  # noqa: E402
 
-from mssf_blocks.functional.sampling import ms_deform_sample, ms_deform_sample_project  # noqa: E402
+from mssf_blocks.functional import ms_deform_sample, ms_deform_sample_project  # noqa: E402
 
 STRIDES = (4, 8, 16, 32, 64)
 IMAGE_CHANNELS = 256

@@ -543,7 +543,8 @@ def test_doc_block_runs(block, tmp_path, request):
 
 _SIGNATURE_START = re.compile(r"^([ \t]*)(\.?)(\w+)\(", re.M)
 _SIGNATURE_MODULES = ("mssf_blocks", "mssf_blocks.diagnostics", "mssf_blocks.fusion", "mssf_blocks.heads",
-                      "mssf_blocks.lift", "mssf_blocks.functional.lift", "mssf_blocks.functional.sampling")
+                      "mssf_blocks.lift", "mssf_blocks.functional.lift", "mssf_blocks.functional.sampling",
+                      "mssf_blocks.functional.deform_project")
 
 
 def _top_level_split(text: str) -> List[str]:

@@ -100,7 +100,7 @@ def test_state_dict_round_trip_and_torchvision_names():
 def test_channels_last_branch_same_values_row_layout_and_msdff_reads_rows():
     # channels_last=True: the same features (float64, same weights), each level with contiguous
     # per-pixel channel rows, which MSDFF's sampler reads as a free (pixels, C) table.
-    from mssf_blocks.functional.sampling import _row_table
+    from mssf_blocks.functional.touched import _row_table
 
     torch.manual_seed(5)
     a = ImageBranch(depth=18, base_channels=4, fpn_channels=8).double().eval()

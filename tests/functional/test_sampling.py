@@ -8,12 +8,8 @@ import pytest
 import torch
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional.sampling import (
-    bilinear_sample,
-    camera_mean,
-    ms_deform_sample,
-    ms_deform_sample_project,
-)
+from mssf_blocks.functional.deform_project import ms_deform_sample_project
+from mssf_blocks.functional.sampling import bilinear_sample, camera_mean, ms_deform_sample
 from mssf_blocks.testing import assert_close, gradcheck64
 
 F64 = torch.float64
@@ -391,7 +387,7 @@ def project_reference(values, image_index, locations, weights, proj_w, proj_b):
 
 def touched(values, image_index, locations, weights, proj_w, proj_b, branch):
     """The "touched" method with its per-level plan forced (or the cost model's, branch "auto")."""
-    from mssf_blocks.functional import sampling
+    from mssf_blocks.functional import touched as sampling
 
     if branch == "auto":
         return ms_deform_sample_project(values, image_index, locations, weights, proj_w, proj_b, method="touched")

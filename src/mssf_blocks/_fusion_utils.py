@@ -1,0 +1,161 @@
+"""Validation, dtype and output-stage helpers shared by the image samplers (SFF, MSDFF, QueryInit)."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import List, Optional, Sequence, Tuple, Type
+
+import torch
+from torch import Tensor, nn
+
+from ._checks import autocast_on, check_dtype, check_floating, check_index_range, check_shape
+from .errors import MSSFError
+from .geometry import CentroidProjection
+
+__all__ = ["check_image_features"]
+
+_INT_DTYPES = (torch.int32, torch.int64)
+
+
+def check_image_features(
+    image_features: Sequence[Tensor],
+    name: str = "image_features",
+    num_levels: Optional[int] = None,
+    channels: Optional[Sequence[int]] = None,
+    batch_size: Optional[int] = None,
+    num_cameras: Optional[int] = None,
+) -> List[Tensor]:
+    """Validate multi-scale image features and return them as ``(B, V, C_l, H_l, W_l)`` views.
+
+    Args:
+        image_features: ``L`` levels, each ``(B, C_l, H_l, W_l)`` (V = 1) or ``(B, V, C_l, H_l, W_l)``.
+        name: argument name used in error messages (``image_features[l]`` names a level).
+        num_levels: expected ``L`` (``None``: any ``L >= 1``).
+        channels: expected ``C_l`` of every level.
+        batch_size: expected ``B``.
+        num_cameras: expected ``V``.
+
+    Returns:
+        The levels as 5-d ``(B, V, C_l, H_l, W_l)`` tensors (views, no copy).
+
+    Raises:
+        MSSFError: naming the level, the expected and the received shape.
+    """
+    if isinstance(image_features, Tensor) or not isinstance(image_features, Sequence):
+        raise MSSFError(
+            f"{name}: expected a sequence (list/tuple) of level tensors (B, C_l, H_l, W_l) or "
+            f"(B, V, C_l, H_l, W_l), got {type(image_features).__name__}"
+            + (f" of shape {tuple(image_features.shape)} (wrap a single level in a list)"
+               if isinstance(image_features, Tensor) else "")
+        )
+    if len(image_features) == 0:
+        raise MSSFError(f"{name}: expected at least one level, got an empty sequence")
+    if num_levels is not None and len(image_features) != num_levels:
+        raise MSSFError(f"{name}: expected {num_levels} levels (num_levels), got {len(image_features)}")
+    if channels is not None and len(channels) != len(image_features):
+        raise MSSFError(
+            f"{name}: expected {len(channels)} levels with channels {tuple(channels)}, "
+            f"got {len(image_features)} levels"
+        )
+    dims = {}
+    if batch_size is not None:
+        dims["B"] = int(batch_size)
+    if num_cameras is not None:
+        dims["V"] = int(num_cameras)
+    out = []
+    dtype = None
+    for l, level in enumerate(image_features):
+        lname = f"{name}[{l}]"
+        if not isinstance(level, Tensor):
+            raise MSSFError(f"{lname}: expected a torch.Tensor, got {type(level).__name__}")
+        c = None if channels is None else int(channels[l])
+        if level.dim() == 4:
+            check_shape(level, lname, ("B", c, None, None), dims)
+            if dims.setdefault("V", 1) != 1:
+                raise MSSFError(
+                    f"{lname}: a 4-d level (B, C, H, W) means one camera, but V={dims['V']} "
+                    f"(from lidar2img or another level); pass (B, V, C, H, W), got shape {tuple(level.shape)}"
+                )
+            level = level[:, None]
+        elif level.dim() == 5:
+            check_shape(level, lname, ("B", "V", c, None, None), dims)
+        else:
+            raise MSSFError(
+                f"{lname}: expected shape (B, C_l, H_l, W_l) or (B, V, C_l, H_l, W_l), "
+                f"got shape {tuple(level.shape)}"
+            )
+        check_floating(level, lname)
+        if level.shape[-1] == 0 or level.shape[-2] == 0:
+            raise MSSFError(f"{lname}: expected a non-empty feature map, got shape {tuple(level.shape)}")
+        if dtype is None:
+            dtype = level.dtype
+        elif level.dtype != dtype:
+            raise MSSFError(f"{lname}: expected dtype {dtype} (as {name}[0]), got {level.dtype}")
+        out.append(level)
+    return out
+
+
+def _check_projection(projection: CentroidProjection, batch_size: int, num_cameras: int,
+                      name: str = "projection") -> Tuple[Tensor, Tensor, Tensor]:
+    for attr in ("uv", "valid", "batch_index"):
+        if not hasattr(projection, attr):
+            raise MSSFError(
+                f"{name}: expected a CentroidProjection (with .{attr}), got {type(projection).__name__}"
+            )
+    dims = {"V": num_cameras}
+    uv = check_shape(projection.uv, f"{name}.uv", ("N", "V", 2), dims)
+    check_floating(uv, f"{name}.uv")
+    valid = check_shape(projection.valid, f"{name}.valid", ("N", "V"), dims)
+    check_dtype(valid, f"{name}.valid", (torch.bool,))
+    batch_index = check_shape(projection.batch_index, f"{name}.batch_index", ("N",), dims)
+    check_dtype(batch_index, f"{name}.batch_index", _INT_DTYPES)
+    check_index_range(batch_index, f"{name}.batch_index", batch_size, "image batch size B")
+    return uv, valid, batch_index.long()
+
+
+def _norm(norm_layer: Type[nn.Module], channels: int, factory: dict) -> nn.Module:
+    # Factory kwargs only when given, so norm layers without device/dtype arguments still work.
+    return norm_layer(channels, **factory) if factory else norm_layer(channels)
+
+
+def _factory(device, dtype) -> dict:
+    return {k: v for k, v in (("device", device), ("dtype", dtype)) if v is not None}
+
+
+def _sampling_dtype(param_or_tensor: Tensor) -> torch.dtype:
+    """float64 for float64, else float32: the dtype image sampling runs in (never half precision).
+
+    A normalised coordinate in bfloat16 has a resolution of 2^-8 near 1, about 4 pixels of a
+    1,000-pixel-wide level; in float16, 2^-11 (half a pixel).
+    """
+    return torch.float64 if param_or_tensor.dtype == torch.float64 else torch.float32
+
+
+def _to_sampling_dtype(x: Tensor, dtype: torch.dtype, name: str, owner: str) -> Tensor:
+    """``x`` converted up to the sampling ``dtype`` (float16 / bfloat16 / float32 -> float32 / float64).
+
+    A float64 ``x`` for a float32 sampling is refused rather than rounded: the module is float32.
+    """
+    if x.dtype == dtype:
+        return x
+    if x.dtype == torch.float64:
+        raise MSSFError(
+            f"{name}: expected dtype {dtype} or lower (the precision {owner} samples in with its "
+            f"parameters), got torch.float64; convert the module with .double() or the tensor with .float()"
+        )
+    return x.to(dtype)
+
+
+def _autocast_off(device_type: str):
+    """A context that disables autocast for ``device_type`` when it is on (else does nothing)."""
+    return torch.autocast(device_type, enabled=False) if autocast_on(device_type) else contextlib.nullcontext()
+
+
+def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor) -> Tensor:
+    """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
+    rows = visible.nonzero().squeeze(1)
+    if rows.numel() == x.shape[0]:  # every voxel seen (the usual case): no gather / scatter copies
+        return norm(linear(x))
+    y = norm(linear(x[rows]))
+    out = y.new_zeros(x.shape[0], y.shape[1])
+    return out.index_put((rows,), y)

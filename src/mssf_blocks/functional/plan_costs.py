@@ -1,0 +1,33 @@
+"""Cost constants of the MSDFF sampling planner (the ``"touched"`` plans), per device.
+
+Every machine-dependent choice of the planner lives here. The CPU values below were measured with
+``benchmarks/msdff.py`` (its ``plan_costs`` / ``primitive_floor`` tables) on the development machine.
+"""
+
+# Cost model of the "touched" method, per level, in multiply-adds of a dense GEMM (D input channels,
+# E = M * d output channels, U touched pixels of the level's I * H * W, Q * M * P * 4 corners):
+#   "dense"   project every pixel, then sample d per head:          pixels * D * E
+#   "project" gather the U touched raw rows, project them:          U * D * (E + _GATHER_COST)
+#   "sample"  gather the U touched raw rows into a compact table,
+#             sample its D channels per corner, project per head:   U * D * (_GATHER_COST + _COPY_COST)
+#                                                                   + corners * D * _BAG_COST + Q * D * E
+# Measured on one core (Xeon, torch 2.13, D = 256, 10^4-10^5-pixel maps, NCHW and channels-last): a
+# GEMM multiply-add costs 0.03-0.04 ns, a gathered element 1.4-3 ns (about 48 multiply-adds), an
+# element of embedding_bag over a compact (U, D) table 0.15 ns (about 5). The smallest wins: "dense"
+# when most pixels are touched and E is small, "sample" when E is large against the corners per
+# touched pixel (e.g. few queries and E = 128), "project" in between.
+_GATHER_COST = 48.0
+_BAG_COST = 5.0
+# "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
+# view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. Random 1 KiB rows of a 10^5-row table
+# miss the cache, hence more than _BAG_COST per element (measured).
+_DIRECT_BAG_COST = 6.0
+# "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
+_COPY_COST = 8.0
+_PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
+# With gradients: the backward of embedding_bag over raw rows (per-corner weight gradients: one D-long
+# dot product per corner) costs about _BAG_BACKWARD forward passes (measured on one core: 4-5x the
+# forward for fwd+bwd); "project" also zero-fills a dense (pixels, E) map and its gradient for
+# grid_sample, _FILL_COST per element.
+_BAG_BACKWARD = 3.0
+_FILL_COST = 0.1
