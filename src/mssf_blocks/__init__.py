@@ -13,6 +13,7 @@ from .deploy import static_path
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit
 from .geometry import CentroidProjection, VoxelCentroidProjector, augmentation_matrix
+from .geometry import apply_image_augmentation, image_augmentation_matrix
 from .heads import SemanticGuidedHead, points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import HeightEmbedding, PillarLift
 from .sparse import SparseVoxels
@@ -36,4 +37,6 @@ __all__ = [
     "HeightEmbedding",
     "PillarLift",
     "static_path",
+    "image_augmentation_matrix",
+    "apply_image_augmentation",
 ]
