@@ -113,7 +113,9 @@ def _check_projection(projection: CentroidProjection, batch_size: int, num_camer
     return uv, valid, batch_index.long()
 
 
-def _norm(norm_layer: Type[nn.Module], channels: int, factory: dict) -> nn.Module:
+def _norm(norm_layer: Optional[Type[nn.Module]], channels: int, factory: dict) -> nn.Module:
+    if norm_layer is None:  # no normalisation (e.g. the MSSF authors' MSDFF): no parameters, no keys
+        return nn.Identity()
     # Factory kwargs only when given, so norm layers without device/dtype arguments still work.
     return norm_layer(channels, **factory) if factory else norm_layer(channels)
 

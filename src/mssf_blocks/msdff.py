@@ -6,7 +6,7 @@ Paper: *MSSF*, Sec. III-C. See :mod:`mssf_blocks.fusion` for the conventions sha
 from __future__ import annotations
 
 import math
-from typing import Sequence, Tuple, Type, Union
+from typing import Optional, Sequence, Tuple, Type, Union
 
 import torch
 import torch.nn.functional as F
@@ -45,7 +45,11 @@ class MSDFF(nn.Module):
     * head ``m`` reads ``sum_{l,p} w * Sample(value_proj_m(F_l), location)``;
 
     heads are concatenated, averaged over the valid cameras, and ``Linear_BN`` = ``output_proj`` + norm
-    gives ``f_img`` (eq. 10). Sampling is linear in the values, so the value projection may be applied
+    gives ``f_img`` (eq. 10). Widths: ``value_proj: value_channels -> value_dim`` (the heads split
+    ``value_dim``, ``value_dim / M`` channels each) and ``output_proj: value_dim -> embed_dim``; the
+    default ``value_dim = value_channels`` is the paper's and the authors' layout (256 -> 256 for an
+    FPN, then 256 -> ``C_vox``); ``value_dim = embed_dim`` projects the image down to the voxel width
+    before the attention (the narrow layout of this library's earlier releases). Sampling is linear in the values, so the value projection may be applied
     to the pixels (all of them, or only those a bilinear corner reads) or after sampling (raw channels
     sampled per head, projected with that head's rows of ``value_proj.weight``, plus
     ``value_proj.bias`` times the in-image bilinear weight mass): all are exactly equal, and the
@@ -53,25 +57,29 @@ class MSDFF(nn.Module):
     voxels read, not with the image.
 
     Args:
-        embed_dim: query and output channels ``E`` (the voxel channels); divisible by ``num_heads``.
+        embed_dim: query and output channels ``E`` (the voxel channels); any positive int.
         value_channels: channels of the image levels; all levels must have the same (FPN) channels,
             an int or a sequence of equal ints.
+        value_dim: ``D_v``, channels the heads attend over (``value_proj``'s output, ``output_proj``'s
+            input); divisible by ``num_heads``. ``None`` (default): ``value_channels``.
         num_heads: ``M``.
         num_levels: ``L``, number of image levels read.
         num_points: ``P``, sampling points per head and level.
-        norm_layer: normalisation after ``output_proj``.
+        norm_layer: normalisation after ``output_proj``; ``None`` for none (the authors' module has
+            none, see :mod:`mssf_blocks.compat.mssf_official`).
         method: ``"auto"`` (default): whatever ``value_projection``, per level the cheapest exact plan
             of :func:`~mssf_blocks.functional.ms_deform_sample_project` ``method="touched"`` (project
             every pixel, project only the ``U_l`` pixels some bilinear corner reads, or sample those
             pixels' raw channels and project per head; cost
-            ``O(min(pixels_l * E, U_l * (E + G), U_l * G + N * M * P * 4 * B) * C)``, see
+            ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
             ``docs/fusion.md``). ``"fast"`` / ``"reference"``: the literal order of
             ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path.
         value_projection: the order used by ``method`` ``"fast"`` / ``"reference"``:
             ``"after_sampling"`` (default; sample the raw channels per head, then project; cost
             ``O(N * M * L * P * C)``, independent of the image size) or ``"before_sampling"``
-            (Deformable DETR's order: ``value_proj`` on every pixel, then sample ``E / M`` channels per
-            head; ``O(pixels * C * E + N * M * L * P * E / M)``). All give the same result (tested).
+            (Deformable DETR's order: ``value_proj`` on every pixel, then sample ``D_v / M`` channels
+            per head; ``O(pixels * C * D_v + N * M * L * P * D_v / M)``). All give the same result
+            (tested).
         device, dtype: factory arguments of the parameters.
 
     Shapes:
@@ -83,19 +91,25 @@ class MSDFF(nn.Module):
     module), also under ``torch.autocast``; float16 / bfloat16 levels are read as float32
     (``docs/fusion.md``, "Precision and mixed-precision training").
 
-    Parameter names and shapes are those of Deformable DETR's ``MSDeformAttn`` (``sampling_offsets``,
-    ``attention_weights``, ``value_proj``, ``output_proj``), so pretrained weights map across; the norm
-    is ``norm``.
+    Weights: ``sampling_offsets (M*L*P*2, E)``, ``attention_weights (M*L*P, E)``, ``value_proj
+    (D_v, C)``, ``output_proj (E, D_v)`` (plus biases) have the names and layout of Deformable DETR's
+    ``MSDeformAttn`` and of mmcv's / the MSSF authors' ``MSDeformableAttention`` (their
+    ``query_embed_dims`` = ``E``, ``value_embed_dims`` = ``C`` = ``D_v``, ``output_embed_dims`` = ``E``):
+    the tensors copy across unchanged, offsets ordered ``(M, L, P, xy)`` and head ``m`` reading
+    ``value_proj`` rows ``[m * D_v / M, (m + 1) * D_v / M)`` in both. Deformable DETR itself has
+    ``E = C = D_v``. The norm (``norm``) is ours; the authors' module has none and adds the query back
+    (:mod:`mssf_blocks.compat.mssf_official` maps their checkpoints and lists the switches).
     """
 
     def __init__(
         self,
         embed_dim: int,
         value_channels: Union[int, Sequence[int]],
+        value_dim: Optional[int] = None,
         num_heads: int = 8,
         num_levels: int = 4,
         num_points: int = 4,
-        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        norm_layer: Optional[Type[nn.Module]] = nn.BatchNorm1d,
         method: str = "auto",
         value_projection: str = "after_sampling",
         device=None,
@@ -106,10 +120,6 @@ class MSDFF(nn.Module):
         self.num_heads = check_positive_int(num_heads, "num_heads")
         self.num_levels = check_positive_int(num_levels, "num_levels")
         self.num_points = check_positive_int(num_points, "num_points")
-        if self.embed_dim % self.num_heads:
-            raise MSSFError(
-                f"embed_dim: expected a multiple of num_heads={self.num_heads}, got {self.embed_dim}"
-            )
         if isinstance(value_channels, int):
             self.value_channels = check_positive_int(value_channels, "value_channels")
         else:
@@ -120,6 +130,13 @@ class MSDFF(nn.Module):
                     f"(FPN outputs; value_proj is shared across levels), got {chans}"
                 )
             self.value_channels = chans[0]
+        self.value_dim = self.value_channels if value_dim is None else check_positive_int(value_dim, "value_dim")
+        if self.value_dim % self.num_heads:
+            hint = "; value_dim defaults to value_channels" if value_dim is None else ""
+            raise MSSFError(
+                f"value_dim: expected a multiple of num_heads={self.num_heads} (the heads split it{hint}), "
+                f"got {self.value_dim}"
+            )
         if method not in _METHODS:
             raise MSSFError(f"method: expected one of {_METHODS}, got {method!r}")
         self.method = method
@@ -130,14 +147,14 @@ class MSDFF(nn.Module):
         m, l, p = self.num_heads, self.num_levels, self.num_points
         self.sampling_offsets = nn.Linear(self.embed_dim, m * l * p * 2, **factory)
         self.attention_weights = nn.Linear(self.embed_dim, m * l * p, **factory)
-        self.value_proj = nn.Linear(self.value_channels, self.embed_dim, **factory)
-        self.output_proj = nn.Linear(self.embed_dim, self.embed_dim, **factory)
+        self.value_proj = nn.Linear(self.value_channels, self.value_dim, **factory)
+        self.output_proj = nn.Linear(self.value_dim, self.embed_dim, **factory)
         self.norm = _norm(norm_layer, self.embed_dim, factory)
         self.reset_parameters()
 
     @property
     def head_dim(self) -> int:
-        return self.embed_dim // self.num_heads
+        return self.value_dim // self.num_heads
 
     def reset_parameters(self) -> None:
         """Deformable-DETR initialisation.
@@ -204,7 +221,7 @@ class MSDFF(nn.Module):
         n = uv.shape[0]
         check_shape(query, "query", (n, self.embed_dim))
         check_floating(query, "query")
-        m, e, c = self.num_heads, self.embed_dim, self.value_channels
+        m, e, c = self.num_heads, self.value_dim, self.value_channels
 
         # The sampling runs in float32 (float64 for a float64 module), autocast or not: lower-precision
         # levels are read as float32 and the locations are never rounded to half precision.
@@ -258,7 +275,8 @@ class MSDFF(nn.Module):
 
     def extra_repr(self) -> str:
         return (
-            f"embed_dim={self.embed_dim}, value_channels={self.value_channels}, num_heads={self.num_heads}, "
+            f"embed_dim={self.embed_dim}, value_channels={self.value_channels}, value_dim={self.value_dim}, "
+            f"num_heads={self.num_heads}, "
             f"num_levels={self.num_levels}, num_points={self.num_points}, method={self.method!r}, "
             f"value_projection={self.value_projection!r}"
         )
