@@ -23,14 +23,17 @@ from ._fusion_utils import (
     _to_sampling_dtype,
     check_image_features,
 )
+from ._static import use_static_path
 from .errors import MSSFError
 from .functional.deform_project import ms_deform_sample_project
+from .functional.plan_costs import msdff_auto_method
 from .functional.sampling import camera_mean, ms_deform_sample
+from .functional.static import grid_sample_static
 from .geometry import CentroidProjection
 
 __all__ = ["MSDFF"]
 
-_METHODS = ("auto", "reference", "fast")
+_METHODS = ("auto", "reference", "fast", "grid")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
@@ -72,8 +75,14 @@ class MSDFF(nn.Module):
             every pixel, project only the ``U_l`` pixels some bilinear corner reads, or sample those
             pixels' raw channels and project per head; cost
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
-            ``docs/fusion.md``). ``"fast"`` / ``"reference"``: the literal order of
-            ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path.
+            ``docs/fusion.md``) on the CPU; ``"grid"`` on other devices (CUDA) and while a graph is
+            captured (``torch.compile``, ``torch.export``, ONNX, tracing; ``functional/plan_costs.py``).
+            ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
+            host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
+            and keeps its own). ``"fast"`` / ``"reference"``: the literal order of
+            ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path
+            (``"reference"`` becomes ``"grid"`` while a graph is captured: it sizes per-image lists by the
+            data).
         value_projection: the order used by ``method`` ``"fast"`` / ``"reference"``:
             ``"after_sampling"`` (default; sample the raw channels per head, then project; cost
             ``O(N * M * L * P * C)``, independent of the image size) or ``"before_sampling"``
@@ -228,15 +237,33 @@ class MSDFF(nn.Module):
         dtype = _sampling_dtype(self.value_proj.weight)
         levels = [_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "MSDFF") for i, lvl in enumerate(levels)]
         uv = uv.to(dtype)
+        static = use_static_path()
+        method = self.method
+        if method == "auto" or (static and method == "reference"):
+            method = msdff_auto_method(uv.device.type, static)
+        static = static or method == "grid"  # (the grid plan never synchronises with the device)
         with _autocast_off(uv.device.type):
             # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
             # depend on the query only, so they are computed per voxel and gathered.
             sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
-            one_each = v == 1 and bool(valid.all())
-            if one_each:  # one camera that sees every voxel (the usual case): no gathers or scatters
+            if static:
+                # Static shapes: a query for every (voxel, camera) pair, invalid ones at uv = -1 (finite;
+                # masked out by camera_mean, no gradient), no gather of the valid pairs.
+                one_each = False
+                uv = torch.where(valid[..., None], uv, uv.new_full((), -1.0))
+                if v == 1:
+                    locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
+                else:
+                    locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
+                    locations = (locations[:, None] + uv[:, :, None, None, None, :]).flatten(0, 1)
+                    weights = weights[:, None].expand((n, v) + weights.shape[1:]).flatten(0, 1)
+                image_index = (batch_index[:, None] * v + torch.arange(v, device=uv.device)).reshape(-1)
+            elif v == 1 and bool(valid.all()):
+                one_each = True  # one camera that sees every voxel (the usual case): no gathers or scatters
                 locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
                 image_index = batch_index
             else:
+                one_each = False
                 n_idx, v_idx = valid.nonzero(as_tuple=True)
                 locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
                 locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
@@ -245,14 +272,19 @@ class MSDFF(nn.Module):
             w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
             b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
             raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-            if self.method == "auto":
+            if method == "grid":
+                # Project every pixel (all heads in one GEMM), then grid_sample per head.
+                values = [F.linear(r[:, 0].permute(0, 2, 3, 1), w_heads.flatten(0, 1), b_heads.flatten())
+                          .unflatten(-1, w_heads.shape[:2]).permute(0, 3, 4, 1, 2) for r in raw]  # (I, M, d, H, W)
+                heads = grid_sample_static(values, image_index, locations, weights)
+            elif method == "touched":
                 # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
                 # of project-all / project-touched / sample-touched-then-project (exact, bias included).
                 heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
                                                  method="touched")
             elif self.value_projection == "after_sampling":
                 sampled, mass = ms_deform_sample(
-                    raw, image_index, locations, weights, method=self.method, return_mass=True
+                    raw, image_index, locations, weights, method=method, return_mass=True
                 )  # (Q, M, C), (Q, M)
                 # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
                 # contributes only where the bilinear corners were inside the image (zero padding).
@@ -264,14 +296,16 @@ class MSDFF(nn.Module):
                     projected = F.linear(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1), w_heads.reshape(e, c),
                                          b_heads.reshape(e))  # (I, H, W, E)
                     values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
-                heads = ms_deform_sample(values, image_index, locations, weights, method=self.method)
+                heads = ms_deform_sample(values, image_index, locations, weights, method=method)
             if one_each:
                 attended = heads.reshape(n, e)
+            elif static:
+                attended = camera_mean(heads.reshape(n, v, e), valid)
             else:
                 per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
                 attended = camera_mean(per_camera, valid)
         attended = attended.to(self.output_proj.weight.dtype)
-        return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1))
+        return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
 
     def extra_repr(self) -> str:
         return (
