@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -19,7 +19,10 @@ from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
 from .sparse import SparseVoxels
 
-__all__ = ["VoxelCentroidProjector", "CentroidProjection", "augmentation_matrix"]
+__all__ = [
+    "VoxelCentroidProjector", "CentroidProjection", "augmentation_matrix", "image_augmentation_matrix",
+    "apply_image_augmentation",
+]
 
 
 @dataclass(frozen=True)
@@ -54,6 +57,15 @@ class VoxelCentroidProjector(nn.Module):
         eps: depths ``<= eps`` are invalid (behind the camera).
         point_range_max: optional ``(x, y, z)`` upper corner of the point-cloud range; points at or
             above it are ignored (by default, points beyond the grid are ignored).
+        half_pixel: ``True`` (default): ``uv = ((u + 0.5) / W, (v + 0.5) / H)``, pixel ``i``'s centre at
+            ``(i + 0.5) / W`` (every FPN level samples the same spot). ``False``: ``uv = (u / W, v / H)``,
+            the paper's ``c = (u / W, v / H)`` taken literally and the MSSF authors' reference points
+            (half a base pixel to the left and up; :mod:`mssf_blocks.compat.mssf_official`).
+        inside_image_only: ``True`` (default): ``valid`` needs the point inside the image; a voxel
+            outside gets an exact zero image feature. ``False``: ``valid`` is ``depth > eps`` only, so
+            an out-of-image voxel in front of the camera is sampled (zero padding; MSDFF offsets may
+            reach into the image) and goes through the samplers' output layers, as in the authors'
+            code.
 
     Shapes:
         - voxels: N voxels at any stride; points ``(P, 3+)``; points_batch ``(P,)``.
@@ -74,8 +86,13 @@ class VoxelCentroidProjector(nn.Module):
         (tensor([[0.2500, 0.5000, 0.7500]]), tensor([[[0.1875, 0.2500]]]))
     """
 
-    def __init__(self, eps: float = 1e-5, point_range_max: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, eps: float = 1e-5, point_range_max: Optional[Sequence[float]] = None,
+                 half_pixel: bool = True, inside_image_only: bool = True) -> None:
         super().__init__()
+        for name, flag in (("half_pixel", half_pixel), ("inside_image_only", inside_image_only)):
+            if not isinstance(flag, bool):
+                raise MSSFError(f"{name}: expected a bool, got {flag!r}")
+        self.half_pixel, self.inside_image_only = half_pixel, inside_image_only
         if not (isinstance(eps, (int, float)) and eps >= 0):
             raise MSSFError(f"eps: expected a non-negative float, got {eps!r}")
         self.eps = float(eps)
@@ -114,13 +131,25 @@ class VoxelCentroidProjector(nn.Module):
         )
         batch_index = voxels.batch_index
         proj = project_points(centroid, batch_index, lidar2img, image_size, points_to_sensor, self.eps)
+        uv, valid = proj.uv, proj.valid
+        ok_depth = proj.depth > self.eps
+        if not self.half_pixel:  # u / W (project_points validated image_size)
+            h, w = (int(x) for x in image_size)
+            uv = proj.pixel / torch.tensor([w, h], dtype=proj.pixel.dtype, device=proj.pixel.device)
+            uv = torch.where(ok_depth[..., None], uv, torch.full_like(uv, -1.0))
+        if not self.inside_image_only:
+            valid = ok_depth
+        elif not self.half_pixel:  # inside the image in the u / W coordinates
+            valid = ok_depth & (uv >= 0).all(dim=-1) & (uv <= 1).all(dim=-1)
         return CentroidProjection(
-            uv=proj.uv, depth=proj.depth, valid=proj.valid, centroid=centroid,
+            uv=uv, depth=proj.depth, valid=valid, centroid=centroid,
             has_points=has_points, batch_index=batch_index,
         )
 
     def extra_repr(self) -> str:
-        return f"eps={self.eps}, point_range_max={self.point_range_max}"
+        extra = "" if self.half_pixel and self.inside_image_only else (
+            f", half_pixel={self.half_pixel}, inside_image_only={self.inside_image_only}")
+        return f"eps={self.eps}, point_range_max={self.point_range_max}{extra}"
 
 
 def augmentation_matrix(
@@ -152,3 +181,101 @@ def augmentation_matrix(
     m[:3, :3] *= scale
     m[:3, 3] = torch.tensor(t, dtype=dtype)
     return m
+
+
+def image_augmentation_matrix(
+    image_size: Sequence[int],
+    resize: Optional[Sequence[int]] = None,
+    crop: Optional[Sequence[int]] = None,
+    flip: bool = False,
+    dtype: torch.dtype = torch.float64,
+) -> Tuple[Tensor, Tuple[int, int]]:
+    """``(3, 3)`` pixel affine of an image resize, crop and horizontal flip (in that order), and the new size.
+
+    OpenCV pixel convention (pixel ``i``'s centre at ``i``, its area ``[i - 0.5, i + 0.5)``):
+
+    * resize ``(H, W) -> (H', W')`` with edges aligned (``F.interpolate(..., align_corners=False)``,
+      OpenCV ``resize``): ``u -> s_x (u + 0.5) - 0.5`` with ``s_x = W' / W`` (``v`` alike);
+    * crop ``(top, left, height, width)``: ``u -> u - left``, ``v -> v - top``;
+    * horizontal flip of a ``W``-wide image (``torch.flip(image, [-1])``): ``u -> W - 1 - u``
+      (not ``W - u``: that is the flip in corner-origin pixel coordinates).
+
+    The projection into the augmented image is ``lidar2img' = A @ lidar2img``
+    (:func:`apply_image_augmentation`), and the projector / samplers must be given the returned size.
+    Other orders are products: ``A2 @ A1`` where ``A1``'s output size is ``A2``'s ``image_size``.
+
+    Args:
+        image_size: ``(H, W)`` before the augmentation.
+        resize: optional ``(H', W')`` after resizing.
+        crop: optional ``(top, left, height, width)`` window of the resized image (it may reach past the
+            image: those pixels are padding).
+        flip: mirror the (resized, cropped) image left-right.
+        dtype: floating dtype of ``A``.
+
+    Returns:
+        ``(A, (H_out, W_out))``: ``A (3, 3)`` maps homogeneous ``(u, v, 1)`` of the input image to the output.
+
+    Example:
+        >>> a, size = image_augmentation_matrix((4, 6), flip=True)
+        >>> (a @ torch.tensor([0.0, 1.0, 1.0], dtype=torch.float64)).tolist(), size
+        ([5.0, 1.0, 1.0], (4, 6))
+    """
+    h, w = _check_size(image_size, "image_size")
+    a = torch.eye(3, dtype=dtype)
+    if resize is not None:
+        nh, nw = _check_size(resize, "resize")
+        sx, sy = nw / w, nh / h
+        s = torch.tensor([[sx, 0.0, 0.5 * (sx - 1.0)], [0.0, sy, 0.5 * (sy - 1.0)], [0.0, 0.0, 1.0]], dtype=dtype)
+        a, (h, w) = s @ a, (nh, nw)
+    if crop is not None:
+        if not (isinstance(crop, (tuple, list)) and len(crop) == 4 and all(isinstance(c, int) for c in crop)):
+            raise MSSFError(f"crop: expected (top, left, height, width) ints, got {crop!r}")
+        top, left, ch, cw = crop
+        _check_size((ch, cw), "crop height/width")
+        c = torch.tensor([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]], dtype=dtype)
+        a, (h, w) = c @ a, (ch, cw)
+    if flip:
+        f = torch.tensor([[-1.0, 0.0, w - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
+        a = f @ a
+    return a, (h, w)
+
+
+def apply_image_augmentation(lidar2img: Tensor, matrix: Tensor) -> Tensor:
+    """``lidar2img' = A @ lidar2img``: the projection into the augmented image (computed in float64).
+
+    Args:
+        lidar2img: ``(B, V, 3, 4)`` or ``(B, 3, 4)``.
+        matrix: ``(3, 3)`` (every sample and camera), ``(B, 3, 3)`` (per sample) or ``(B, V, 3, 3)``
+            pixel affine from :func:`image_augmentation_matrix`; its last row must be ``(0, 0, 1)``.
+
+    Returns:
+        ``lidar2img'`` of the shape and dtype of ``lidar2img``.
+    """
+    if not isinstance(lidar2img, Tensor) or lidar2img.dim() not in (3, 4) or tuple(lidar2img.shape[-2:]) != (3, 4):
+        got = tuple(lidar2img.shape) if isinstance(lidar2img, Tensor) else type(lidar2img).__name__
+        raise MSSFError(f"lidar2img: expected shape (B, V, 3, 4) or (B, 3, 4), got {got}")
+    check_floating(lidar2img, "lidar2img")
+    if not isinstance(matrix, Tensor) or matrix.dim() < 2 or tuple(matrix.shape[-2:]) != (3, 3):
+        got = tuple(matrix.shape) if isinstance(matrix, Tensor) else type(matrix).__name__
+        raise MSSFError(f"matrix: expected shape (3, 3), (B, 3, 3) or (B, V, 3, 3), got {got}")
+    check_floating(matrix, "matrix")
+    b = lidar2img.shape[0]
+    allowed = {(3, 3), (b, 3, 3)} | ({(b, lidar2img.shape[1], 3, 3)} if lidar2img.dim() == 4 else set())
+    if tuple(matrix.shape) not in allowed:
+        raise MSSFError(f"matrix: expected one of {sorted(allowed, key=len)} for lidar2img "
+                        f"{tuple(lidar2img.shape)}, got {tuple(matrix.shape)}")
+    m = matrix.to(torch.float64)
+    last = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=m.device)
+    if not torch.equal(m[..., 2, :], last.expand_as(m[..., 2, :])):
+        raise MSSFError(f"matrix: expected a pixel affine with last row (0, 0, 1), got {m[..., 2, :].tolist()}")
+    if lidar2img.dim() == 4 and m.dim() == 3:
+        m = m[:, None]
+    out = m.to(lidar2img.device) @ lidar2img.to(torch.float64)
+    return out.to(lidar2img.dtype)
+
+
+def _check_size(size, name: str) -> Tuple[int, int]:
+    if not (isinstance(size, (tuple, list, torch.Size)) and len(size) == 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+        raise MSSFError(f"{name}: expected (H, W) positive ints, got {size!r}")
+    return int(size[0]), int(size[1])
