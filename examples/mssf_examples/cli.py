@@ -355,26 +355,13 @@ def _runtime(ap: argparse.ArgumentParser, args, batch_size: int) -> "distributed
         return distributed.Runtime.from_args(args, batch_size)
     except MSSFError as exc:
         ap.error(str(exc))
-    raise AssertionError("unreachable")  # pragma: no cover
-
-
-#: Options a resumed run must share with the run it continues (device, processes, --accumulate may differ).
-_RESUME_KEYS = ("dataset", "split", "detector", "fusion_blocks", "fusion", "preset_name", "image_scale",
-                "train_image_branch", "steps", "batch_size", "lr", "seed", "preset")
 
 
 def _resume_state(ap: argparse.ArgumentParser, path: Path, config: Dict) -> Dict:
-    try:
-        state = load_resume_state(path)
+    try:  # the options that must match: training.RESUME_KEYS (device, processes, --accumulate may differ)
+        return load_resume_state(path, expect_config=config)
     except (FileNotFoundError, MSSFError) as exc:
         ap.error(f"--resume: {exc}")
-    differ = [k for k in _RESUME_KEYS if state["config"].get(k) != config.get(k)]
-    if differ:
-        ap.error(f"--resume {path}: expected the options of the run it continues; these differ: "
-                 + ", ".join(f"{k} (checkpoint {state['config'].get(k)!r}, now {config.get(k)!r})"
-                             for k in differ if k != "preset")
-                 + (" (and the preset they imply)" if "preset" in differ else ""))
-    return state
 
 
 class _Collate:

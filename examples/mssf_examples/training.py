@@ -56,7 +56,7 @@ except ImportError:  # pragma: no cover - tqdm is in the examples extra
             pass
 
 __all__ = ["batch_order", "train_detector", "predict", "save_checkpoint", "load_checkpoint", "load_resume_state",
-           "CHECKPOINT_FORMAT"]
+           "CHECKPOINT_FORMAT", "RESUME_KEYS"]
 
 #: Value of the ``"format"`` entry of the checkpoints written here.
 CHECKPOINT_FORMAT = "mssf-examples-detector/1"
@@ -257,18 +257,34 @@ def _load(path: PathLike) -> Dict:
     return ckpt
 
 
-def load_resume_state(path: PathLike) -> Dict:
+#: Configuration entries a resumed run must share with the run it continues (the model, the data and
+#: the schedule; the device, the number of processes and the accumulation steps may differ).
+RESUME_KEYS = ("dataset", "split", "detector", "fusion_blocks", "fusion", "preset_name", "image_scale",
+               "train_image_branch", "steps", "batch_size", "lr", "seed", "preset")
+
+
+def load_resume_state(path: PathLike, expect_config: Optional[Dict] = None) -> Dict:
     """A resumable checkpoint: ``{"model", "config", "train_state", "step"}``, tensors on the CPU.
+
+    With ``expect_config`` (the new run's configuration) its :data:`RESUME_KEYS` entries must equal
+    the checkpoint's.
 
     Raises:
         FileNotFoundError: the file does not exist.
-        MSSFError: not a :func:`save_checkpoint` file, or one without a training state (a final
-            checkpoint of a finished run).
+        MSSFError: not a :func:`save_checkpoint` file, one without a training state (a final
+            checkpoint of a finished run), or options that differ (naming them).
     """
     ckpt = _load(path)
     if "train_state" not in ckpt:
         raise MSSFError(f"{path}: expected a checkpoint with a training state (written every --checkpoint-every "
                         f"steps, under <out>/checkpoints/), got a final checkpoint without one")
+    if expect_config is not None:
+        old = ckpt["config"]
+        differ = [k for k in RESUME_KEYS if old.get(k) != expect_config.get(k)]
+        if differ:
+            named = [f"{k} (checkpoint {old.get(k)!r}, now {expect_config.get(k)!r})" for k in differ if k != "preset"]
+            raise MSSFError(f"{path}: expected the options of the run it continues; these differ: "
+                            + (", ".join(named) if named else "the preset"))
     return ckpt
 
 

@@ -83,6 +83,13 @@ class MSDFF(nn.Module):
     module), also under ``torch.autocast``; float16 / bfloat16 levels are read as float32
     (``docs/fusion.md``, "Precision and mixed-precision training").
 
+    Host synchronisation (what stalls a GPU), all data-dependent and so inherent: the projection's
+    batch-index range check; ``valid.all()`` (one camera seeing every voxel takes a path without
+    gathers); with several cameras the ``(voxel, camera)`` pairs (``nonzero``); the visible rows of the
+    output BatchNorm (``nonzero``); ``method="auto"`` and ``"fast"`` also size their per-level gathers
+    by the pixels the voxels touch. None grows with the number of voxels (``tests/test_devices.py``
+    counts them on CUDA).
+
     Parameter names and shapes are those of Deformable DETR's ``MSDeformAttn`` (``sampling_offsets``,
     ``attention_weights``, ``value_proj``, ``output_proj``), so pretrained weights map across; the norm
     is ``norm``.

@@ -185,10 +185,10 @@ def voxel_centroids(
     # read back (points of no voxel, or outside the range with key -1, land in slots nobody reads).
     voxel_keys = _grid_keys(coords, spatial_shape)
     point_keys = _point_keys(points, points_batch, voxel_size, lo, hi, stride, spatial_shape)
-    _, slot = torch.unique(torch.cat([voxel_keys, point_keys]), sorted=True, return_inverse=True)
+    keys, slot = torch.unique(torch.cat([voxel_keys, point_keys]), sorted=True, return_inverse=True)
     row_slot, point_slot = slot[:n], slot[n:]
 
-    m = int(slot.max()) + 1
+    m = keys.shape[0]  # slot.max() + 1, known on the host already (no second synchronisation)
     sums = torch.zeros(m, 3, dtype=dtype, device=device).index_add_(0, point_slot, points[:, :3])
     counts = torch.zeros(m, dtype=dtype, device=device).index_add_(
         0, point_slot, torch.ones_like(point_slot, dtype=dtype)
