@@ -84,7 +84,7 @@ def sff_ref(levels, uv, valid, bidx, p):
 def msdff_ref(query, levels, uv, valid, bidx, p, m, pts):
     """Deformable DETR's formula, project-every-pixel order, one (voxel, camera, head, level, point) at a time."""
     n, v = valid.shape
-    e = query.shape[1]
+    e = p["value_proj.weight"].shape[0]  # value_dim, split over the heads
     d = e // m
     nl = len(levels)
     offsets = (query @ p["sampling_offsets.weight"].t() + p["sampling_offsets.bias"]).view(n, m, nl, pts, 2)

@@ -35,12 +35,14 @@ import torch.nn.functional as F
 from mssf_blocks.errors import MSSFError
 
 from . import distributed
+from .augment import add_augmentation_arguments, augment_batches, augmentation_from_args
 from .detectors import DETECTOR_NAMES, build_detector
 from .evaluation import DEFAULT_REGIONS, TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
 from .kitti_export import kitti_lines, write_kitti_file
 from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch
-from .presets import TJ4D, VOD, DetectorPreset, tiny_preset
+from .presets import TJ4D, TJ4D_RECIPE, VOD, VOD_RECIPE, DetectorPreset, TrainingRecipe, authors_preset, tiny_preset
 from .training import batch_order, load_checkpoint, load_resume_state, predict, save_checkpoint, train_detector
+from .threads import DEFAULT_THREADS
 
 __all__ = ["DatasetSpec", "DATASETS", "cli_tiny_preset", "build_parser", "main"]
 
@@ -67,6 +69,9 @@ DATASETS: Dict[str, DatasetSpec] = {
     "vod": DatasetSpec(VOD_RADAR, VOD, "radar_5frames", VOD_IOU_THRESHOLDS),
     "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS),
 }
+
+#: The training recipe (augmentation, learning rate) of each ``--dataset`` (docs/training.md).
+RECIPES: Dict[str, TrainingRecipe] = {"vod": VOD_RECIPE, "tj4d": TJ4D_RECIPE}
 
 
 def cli_tiny_preset(base: DetectorPreset, image_size: Tuple[int, int]) -> DetectorPreset:
@@ -124,7 +129,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="sensor sub-folder (VoD: radar, radar_3frames, radar_5frames [default]; 'none' for a "
                         "root holding training/ directly, the TJ4DRadSet default)")
     p.add_argument("--batch-size", type=_positive_int, default=argparse.SUPPRESS, help="frames per batch (default 4)")
-    p.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--threads", type=_positive_int, default=DEFAULT_THREADS,
+                   help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
     p.add_argument("--workers", type=_non_negative_int, default=0,
                    help="data-loading worker processes (default 0: load in the main process)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
@@ -147,8 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--fusion-blocks", type=_non_negative_int, default=2,
                    help="n fusion blocks (paper default 2; 0 = radar only)")
     t.add_argument("--fusion", choices=("msdff", "sff"), default="msdff")
-    t.add_argument("--preset", choices=("paper", "tiny"), default="paper",
-                   help="paper: the dataset's paper preset; tiny: few channels and coarse voxels for CPU smoke runs")
+    t.add_argument("--preset", choices=("paper", "authors", "tiny"), default="paper",
+                   help="paper: the dataset's paper preset; authors: where the authors' config differs (TJ4D "
+                        "voxel z 0.15 m); tiny: few channels and coarse voxels for CPU smoke runs")
     t.add_argument("--train-image-branch", action="store_true",
                    help="train the image branch (the paper's is pre-trained and frozen)")
     t.add_argument("--image-weights", type=Path, default=None,
@@ -157,10 +164,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resize images by this factor before the image branch (lidar2img is scaled to match)")
     t.add_argument("--epochs", type=_positive_float, default=80.0, help="passes over the split (default 80)")
     t.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (overrides --epochs)")
-    t.add_argument("--lr", type=_positive_float, default=3e-3, help="one-cycle peak learning rate (default 3e-3)")
+    t.add_argument("--lr", type=_positive_float, default=None,
+                   help="one-cycle peak learning rate (default: the recipe's, 10 x its initial lr: VoD n=2 5e-3, "
+                        "otherwise 1e-2; docs/training.md)")
     t.add_argument("--seed", type=_non_negative_int, default=0, help="initialisation and data-order seed")
     t.add_argument("--score-threshold", type=_unit_float, default=0.1, help="detections kept in eval (default 0.1)")
     t.add_argument("--out", type=Path, required=True, help="output folder")
+    add_augmentation_arguments(t)
     t.set_defaults(parser=t)
 
     e = sub.add_parser("eval", help="write KITTI prediction files and VoD-protocol metrics",
@@ -287,7 +297,8 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     first = ds.load(ds.frame_ids[0], with_labels=False)
     h, w = first.image_size
     image_size = (max(1, round(h * args.image_scale)), max(1, round(w * args.image_scale)))
-    base = spec.preset if args.preset == "paper" else cli_tiny_preset(spec.preset, image_size)
+    base = {"paper": spec.preset, "authors": authors_preset(spec.preset)}.get(args.preset) or \
+        cli_tiny_preset(spec.preset, image_size)
     preset = dataclasses.replace(base, image_size=image_size,
                                  freeze_image_branch=base.freeze_image_branch and not args.train_image_branch)
     torch.manual_seed(args.seed)  # the same initial weights in every process
@@ -296,6 +307,17 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     if args.image_weights is not None and model.image_branch is not None:
         model.image_branch.load_state_dict(torch.load(args.image_weights, map_location="cpu", weights_only=True))
 
+    recipe = RECIPES[args.dataset]
+    if recipe.feature_names != tuple(spec.point_format.features):
+        ap.error(f"--dataset {args.dataset}: the recipe names point columns {recipe.feature_names}, the point "
+                 f"format has {spec.point_format.features}")
+    gt_range = preset.pillar_range if args.detector == "pointpillars" else preset.point_cloud_range
+    try:
+        augmentation = augmentation_from_args(args, recipe.augmentation, gt_range)
+    except MSSFError as exc:
+        ap.error(f"augmentation options: {exc}")
+    if args.lr is None:
+        args.lr = recipe.peak_lr(args.fusion_blocks)
     config = dict(
         command="train", dataset=args.dataset, data_root=str(args.data_root), sensor=sensor, split=args.split,
         detector=args.detector, fusion_blocks=args.fusion_blocks, fusion=args.fusion, preset_name=args.preset,
@@ -303,6 +325,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         image_weights=None if args.image_weights is None else str(args.image_weights), steps=steps,
         epochs=steps * batch_size / len(ds), batch_size=batch_size, lr=args.lr, seed=args.seed,
         score_threshold=args.score_threshold, num_frames=len(ds), preset=_preset_to_json(preset),
+        augmentation=dataclasses.asdict(augmentation), recipe=recipe.name,
     )
     run = _runtime(ap, args, batch_size)
     resume = _resume_state(ap, args.resume, _jsonable(config)) if args.resume is not None else None
@@ -329,7 +352,12 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         if dist.is_main:
             save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config), state, step)
 
-    log = train_detector(model, _loader(_Frames(ds, True), order, args.workers, collate, device), steps, args.lr,
+    batches = _loader(_Frames(ds, True), order, args.workers, collate, device)
+    if not augmentation.is_identity:  # drawn in this process, after the loader: the seed alone fixes the draws
+        # every process its own stream (rank 0's is a single process's); a resumed run draws afresh
+        batches = augment_batches(batches, recipe.feature_kinds, augmentation,
+                                  args.seed + 1_000_003 * dist.rank + 7_919 * start)
+    log = train_detector(model, batches, steps, args.lr,
                          desc=f"train {args.detector}", progress=not args.no_progress and dist.is_main,
                          device=device, amp_dtype=run.amp_dtype, accumulate=args.accumulate, start_step=start,
                          state=None if resume is None else resume["train_state"], checkpoint=checkpoint,

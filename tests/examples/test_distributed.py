@@ -48,7 +48,7 @@ def tree(tmp_path_factory):
 
 
 def _args(root, out, *extra):
-    return ["train", "--dataset", "vod", "--data-root", str(root), "--preset", "tiny", "--steps", "3",
+    return ["train", "--dataset", "vod", "--data-root", str(root), "--preset", "tiny", "--steps", "3", "--no-augment",
             "--batch-size", "2", "--threads", "1", "--no-progress", "--fusion-blocks", "1", "--out", str(out), *extra]
 
 
