@@ -36,3 +36,9 @@ clean-venv:
 .PHONY: demo-augmentation
 demo-augmentation: $(STAMP)
 	$(PY) examples/train_demo.py --augmentation compare --out outputs/demo_augmentation
+
+# The device check on a GPU machine (tests on CUDA, MSDFF benchmark, one step per detector; docs/gpus.md).
+# It installs what it needs into the environment it runs in (spconv for the GPU's CUDA version).
+.PHONY: gpu-check
+gpu-check: $(STAMP)
+	$(PY) benchmarks/gpu_check.py --out outputs/gpu_check
