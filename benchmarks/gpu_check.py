@@ -19,8 +19,10 @@ on one modern GPU:
    DETR's) against ours (``method="auto"``), forward and forward+backward, float32 and bfloat16
    autocast, N = 2,500 / 8,000 / 40,000 voxels; CUDA-event timing (median of repeats after a
    warm-up), peak memory (``torch.cuda.max_memory_allocated``), the output difference;
-3. one training step (forward + backward + AdamW step) of each example detector on a VoD-sized
-   synthetic frame (2,500 radar points, 1216 x 1936 image): median step time, peak memory.
+3. one training step (forward + backward + AdamW step) of each example detector (VoD paper preset,
+   n = 2 MSDFF blocks) on a VoD-sized synthetic frame (2,500 radar points, 1216 x 1936 image): median
+   step time, peak memory; and the same step under bf16 and fp16 autocast (whether spconv's CUDA
+   kernels take them is what this answers).
 
 Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.md`` (GPU, driver, torch, CUDA, spconv
 versions; the tables). ``--smoke`` runs every stage at toy sizes on ``--device cpu`` (the test suite
@@ -307,9 +309,10 @@ def detector_steps(device, smoke: bool, repeats: int) -> List[Dict[str, object]]
             model = build_detector(name, preset, num_fusion_blocks=2).to(device).train()
             opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
 
-            def step():
+            def step(dtype=None):
                 opt.zero_grad(set_to_none=True)
-                loss = model(batch)["loss"]
+                with torch.autocast(device.type, dtype=dtype) if dtype is not None else _null():
+                    loss = model(batch)["loss"]
                 loss.backward()
                 opt.step()
                 return loss
@@ -319,6 +322,18 @@ def detector_steps(device, smoke: bool, repeats: int) -> List[Dict[str, object]]
             row["loss_finite"] = bool(torch.isfinite(step()).item())
         except Exception as exc:  # noqa: BLE001 - the report says what failed, the other detectors still run
             row["error"] = f"{type(exc).__name__}: {str(exc)[:300]}"
+        # the same step under autocast (what --amp bf16 / fp16 run; spconv on CUDA is the open question)
+        for tag, dtype in (("bf16", torch.bfloat16), ("fp16", torch.float16)):
+            if "error" in row:
+                break
+            if device.type == "cpu" and name != "pointpillars":
+                row[f"{tag}_step_ms"] = "n/a (spconv CPU)"
+                continue
+            try:
+                row[f"{tag}_step_ms"] = time_it(lambda: step(dtype), repeats) * 1e3
+                row[f"{tag}_loss_finite"] = bool(torch.isfinite(step(dtype)).item())
+            except Exception as exc:  # noqa: BLE001
+                row[f"{tag}_step_ms"] = f"{type(exc).__name__}: {str(exc)[:120]}"
         rows.append(row)
         print(f"  {name}: " + (f"{row['step_ms']:.1f} ms/step" if "step_ms" in row else row["error"]), flush=True)
     return rows
@@ -356,7 +371,8 @@ def markdown(result: Dict[str, object]) -> str:
                                            "max_abs_diff"]), ""]
     if result.get("detectors"):
         parts += ["## One training step per detector (n = 2 MSDFF blocks)", "",
-                  _table(result["detectors"], ["detector", "step_ms", "peak_MiB", "loss_finite", "error"]), ""]
+                  _table(result["detectors"], ["detector", "step_ms", "peak_MiB", "loss_finite", "bf16_step_ms",
+                                               "bf16_loss_finite", "fp16_step_ms", "fp16_loss_finite", "error"]), ""]
     parts += [f"Total {result['seconds']:.0f} s."]
     return "\n".join(parts) + "\n"
 

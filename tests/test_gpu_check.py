@@ -32,6 +32,9 @@ def test_gpu_check_smoke_on_the_cpu(tmp_path):
         assert row["fwd_ratio"] > 0 and row["fwd_bwd_ratio"] > 0
     assert [d["detector"] for d in result["detectors"]] == ["second", "centerpoint", "voxelnext", "pointpillars"]
     assert all(d["loss_finite"] and d["step_ms"] > 0 for d in result["detectors"])
+    pp = result["detectors"][-1]  # PointPillars (pure torch) also steps under CPU autocast
+    assert pp["bf16_step_ms"] > 0 and pp["bf16_loss_finite"] and pp["fp16_step_ms"] > 0 and pp["fp16_loss_finite"]
+    assert result["detectors"][0]["bf16_step_ms"] == "n/a (spconv CPU)"
     md = (tmp_path / "gpu_check.md").read_text()
     assert "## MSDFF" in md and "## One training step per detector" in md and "pointpillars" in md
 

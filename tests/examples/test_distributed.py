@@ -253,3 +253,14 @@ def test_every_parameter_gets_a_gradient(name, n, fusion):
     opt.zero_grad(set_to_none=True)
     model(batch)["loss"].backward()
     assert [k for k in zero if params[k].grad is None or not params[k].grad.abs().max() > 0] == []
+
+
+def test_demo_takes_device_and_amp_and_refuses_what_cannot_run(capsys):
+    sys.path.insert(0, str(REPO / "examples"))
+    import train_demo
+
+    args = train_demo.parse_args(["--quick", "--device", "cpu", "--amp", "bf16"])  # PointPillars: fine
+    assert args.device == torch.device("cpu") and args.amp_dtype == torch.bfloat16
+    with pytest.raises(SystemExit) as exc:
+        train_demo.parse_args(["--quick", "--detector", "second", "--amp", "fp16", "--device", "cpu"])
+    assert exc.value.code == 2 and "--amp fp16: second uses spconv" in capsys.readouterr().err
