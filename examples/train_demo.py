@@ -11,8 +11,8 @@ The project's main demo (``make demo``). On CPU, with the same code, seed and da
 3. train ``--detector`` (default PointPillars, the cheapest) twice: with ``n = 1`` MSDFF fusion block
    plus the semantic-guided head, and with ``n = 0`` (radar only); AdamW with a one-cycle learning
    rate, as in the paper (OpenPCDet's ``adam_onecycle``: 40 % warm-up, ``div_factor`` 10);
-4. evaluate both on the val split (VoD protocol, entire annotated area and driving corridor,
-   :func:`mssf_examples.evaluation.evaluate`) and print the paper-style table;
+4. evaluate both on the val split (the official VoD protocol, ``protocol="vod"``: entire annotated area
+   and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and print the paper-style table;
 5. write ``metrics.json`` (metrics, configuration, timings) and PNG figures to ``--out``: BEV views with
    radar points, GT and predicted boxes for both models, the fusion model's semantic scores per lifted
    voxel (paper Fig. 5), the blur-ratio / foreground-recall curves (paper Fig. 7) and the image
@@ -54,6 +54,7 @@ from mssf_examples.image_branch import ImageBranch  # noqa: E402
 from mssf_examples.image_pretrain import (  # noqa: E402
     SemanticReadout, collate_with_features, precompute_features, pretrain_image_branch, segmentation_metrics,
     semantic_map)
+from mssf_examples.kitti_io import Calibration  # noqa: E402
 from mssf_examples.presets import VOD, VOD_RECIPE, DetectorPreset, tiny_preset  # noqa: E402
 from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig, SyntheticDataset  # noqa: E402
 from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
@@ -88,8 +89,16 @@ def demo_preset(scene_cfg: SceneConfig, quick: bool = False) -> DetectorPreset:
     )
 
 
-def ground_truths(scenes: List[Scene]) -> List[Dict[str, torch.Tensor]]:
-    return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, lidar2cam=s.sensor_to_camera) for s in scenes]
+def ground_truths(scenes: List[Scene], scene_cfg: SceneConfig) -> List[Dict]:
+    """Per val scene the GT dict of the official VoD protocol: sensor boxes plus the calibration of
+    VoD's full-resolution camera (the scenes render a scaled-down image of it), so that the kit's 40 px
+    image-box rule means what it means on the real 1216-pixel-high images."""
+    fx, fy, cx, cy = scene_cfg.full_intrinsics
+    p2 = torch.tensor([[fx, 0.0, cx, 0.0], [0.0, fy, cy, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, image_size=tuple(scene_cfg.full_image_size),
+                 calib=Calibration(P2=p2, R0_rect=torch.eye(3, dtype=torch.float64),
+                                   Tr_velo_to_cam=s.sensor_to_camera.to(torch.float64)[:3].clone()))
+            for s in scenes]
 
 
 def scene_collate(scenes: List[Scene], features=None):
@@ -364,7 +373,7 @@ def _run(args) -> int:
     train_scenes = [train_ds[i] for i in tqdm(range(len(train_ds)), desc="scenes train", unit="scene")]
     val_scenes = [val_ds[i] for i in tqdm(range(len(val_ds)), desc="scenes val", unit="scene")]
     t_scenes = time.perf_counter() - t0
-    gts = ground_truths(val_scenes)
+    gts = ground_truths(val_scenes, scene_cfg)
 
     blocks = {MODELS[0]: args.fusion_blocks, MODELS[1]: 0}
     # the recipe's augmentation; GT boxes whose centre leaves the grid after it are dropped

@@ -11,9 +11,10 @@ Run from the repository root (``examples/`` must be on the import path)::
 with :func:`mssf_examples.training.train_detector` and writes ``<out>/checkpoint.pt`` and
 ``<out>/config.json``; with ``--val-split`` it then evaluates like ``eval`` into ``<out>/eval_<split>/``.
 ``eval`` writes ``<out>/predictions/<frame id>.txt`` (KITTI format, score last; an empty file for a frame
-without detections) for every frame and, when the split has labels, prints the VoD-protocol table
-(entire annotated area and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and writes
-``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
+without detections) for every frame and, when the split has labels, scores them with the dataset's
+official protocol (:func:`mssf_examples.evaluation.evaluate`: ``protocol="vod"``, the VoD kit's entire
+annotated area and driving corridor, R11; ``protocol="tj4d"``, the TJ4DRadSet range bins, R40) on the
+label files and the prediction files as written, prints the table and writes ``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
 """
 
 from __future__ import annotations
@@ -37,9 +38,9 @@ from mssf_blocks.errors import MSSFError
 from . import distributed
 from .augment import add_augmentation_arguments, augment_batches, augmentation_from_args
 from .detectors import DETECTOR_NAMES, build_detector
-from .evaluation import DEFAULT_REGIONS, TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
+from .evaluation import TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
 from .kitti_export import kitti_lines, write_kitti_file
-from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch
+from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch, parse_labels
 from .presets import TJ4D, TJ4D_RECIPE, VOD, VOD_RECIPE, DetectorPreset, TrainingRecipe, authors_preset, tiny_preset
 from .training import batch_order, load_checkpoint, load_resume_state, predict, save_checkpoint, train_detector
 from .threads import DEFAULT_THREADS
@@ -57,6 +58,9 @@ class DatasetSpec:
     preset: DetectorPreset
     default_sensor: Optional[str]
     iou_thresholds: Dict[str, float]
+    #: :func:`mssf_examples.evaluation.evaluate` protocol and the AP its tables report.
+    protocol: str = "vod"
+    table_metrics: Tuple[str, ...] = ("AP3D_R11", "APBEV_R11")
 
     @property
     def class_names(self) -> Tuple[str, ...]:
@@ -67,7 +71,7 @@ class DatasetSpec:
 #: Cyclist. ``tj4d``: KITTI layout (``training/`` under the root), classes Car / Pedestrian / Cyclist / Truck.
 DATASETS: Dict[str, DatasetSpec] = {
     "vod": DatasetSpec(VOD_RADAR, VOD, "radar_5frames", VOD_IOU_THRESHOLDS),
-    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS),
+    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS, "tj4d", ("AP3D_R40", "APBEV_R40")),
 }
 
 #: The training recipe (augmentation, learning rate) of each ``--dataset`` (docs/training.md).
@@ -173,9 +177,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_augmentation_arguments(t)
     t.set_defaults(parser=t)
 
-    e = sub.add_parser("eval", help="write KITTI prediction files and VoD-protocol metrics",
+    e = sub.add_parser("eval", help="write KITTI prediction files and official-protocol metrics",
                        description="Predict every frame of --split, write <out>/predictions/<id>.txt and, with "
-                       "labels, print the VoD-protocol table and write <out>/metrics.json.")
+                       "labels, print the official-protocol table (VoD kit / TJ4DRadSet) and write "
+                       "<out>/metrics.json.")
     e.add_argument("--checkpoint", type=Path, required=True, help="checkpoint.pt written by train")
     _common(e)
     e.add_argument("--split", default="val",
@@ -429,7 +434,8 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
     loader = _loader(_Frames(ds, with_labels), chunks, workers, _CollateWithFrames(config.get("image_scale", 1.0)))
     t0 = time.perf_counter()
     preds: List[Dict] = []
-    gts: List[Dict] = []
+    written: List = []  # the prediction files as the official kit reads them
+    gts: List = []
     frames_seen: List[Frame] = []  # without their images and points: a split's images do not fit in memory
 
     def batches():
@@ -447,7 +453,8 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
         num_det += len(lines)
         write_kitti_file(pred_dir / f"{frame.frame_id}.txt", lines)
         if with_labels:
-            gts.append(dict(boxes=frame.gt_boxes, labels=frame.gt_labels, lidar2cam=frame.calib.sensor_to_camera))
+            written.append(parse_labels("\n".join(lines), source=str(pred_dir / f"{frame.frame_id}.txt")))
+            gts.append(frame.objects)  # every label line, as the kit reads label_2
     seconds = time.perf_counter() - t0
     print(f"wrote {len(frames_seen)} prediction files ({num_det} detections) to {pred_dir}", file=sys.stderr)
     metrics: Dict = dict(split=ds.split, num_frames=len(frames_seen), num_detections=num_det,
@@ -455,11 +462,13 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
                          config=config, environment=dict(torch=torch.__version__, python=platform.python_version(),
                                                          threads=torch.get_num_threads()))
     if with_labels:
-        results = evaluate(preds, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, regions=DEFAULT_REGIONS)
+        results = evaluate(written, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, protocol=spec.protocol)
         name = f"{config['detector']} n={config['fusion_blocks']}"
-        table = "\n\n".join(format_table({name: results}, metric=m) for m in ("AP3D_R11", "APBEV_R11"))
+        table = "\n\n".join(format_table({name: results}, metric=m) for m in spec.table_metrics)
         print("\n" + table)
-        metrics.update(results=results, table=table, num_gt=sum(len(g["labels"]) for g in gts))
+        wanted = {c.lower() for c in spec.class_names}
+        metrics.update(results=results, table=table, protocol=spec.protocol,
+                       num_gt=sum(sum(n.lower() in wanted for n in g.names) for g in gts))
         (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1))
         print(f"\nwrote {out / 'metrics.json'}", file=sys.stderr)
     else:
