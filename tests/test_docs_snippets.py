@@ -245,6 +245,32 @@ def conventions_voxel_centre(run, tmp_path):
     assert ns["v"].voxel_centers(torch.float64)[0].tolist() == pytest.approx([5.0, 0.2, -0.5], abs=1e-12)
 
 
+@snippet("docs/conventions.md", "a, size = image_augmentation_matrix((4, 6), flip=True)")
+def conventions_image_flip(run, tmp_path):
+    from mssf_blocks import image_augmentation_matrix
+
+    ns = run({"torch": torch, "image_augmentation_matrix": image_augmentation_matrix})
+    assert ns["__shown_tensors_checked__"] == 1 and ns["size"] == (4, 6)
+
+
+@snippet("docs/conventions.md", "m = augmentation_matrix(flip_x=flip, rotation=angle, scale=s)      # points: p' = m @ p")
+def conventions_authors_augmentation(run, tmp_path):
+    import mssf_blocks as mb
+
+    l2i = pinhole(1, (32, 48), 40.0)
+    ns = run({"torch": torch, "augmentation_matrix": mb.augmentation_matrix, "flip": True, "angle": 0.3, "s": 1.02,
+              "image_augmentation_matrix": mb.image_augmentation_matrix,
+              "apply_image_augmentation": mb.apply_image_augmentation, "image_size": (32, 48), "lidar2img": l2i})
+    # An augmented point projects (through points_to_sensor and the flipped lidar2img) to the mirror pixel
+    # of the original point: u' = W - 1 - u.
+    p = torch.tensor([10.0, 1.0, 0.5, 1.0], dtype=torch.float64)
+    before = l2i[0, 0].double() @ p
+    after = ns["lidar2img"][0, 0].double() @ ns["points_to_sensor"][0] @ (ns["m"] @ p)
+    assert ns["image_size"] == (32, 48)
+    assert float(after[0] / after[2]) == pytest.approx(47 - float(before[0] / before[2]), abs=1e-9)
+    assert float(after[1] / after[2]) == pytest.approx(float(before[1] / before[2]), abs=1e-9)
+
+
 def vod_batch(batch_size: int = 2):
     """A RadarCameraBatch for the VOD preset: 7-feature points, boxes, 4 precomputed FPN levels."""
     from mssf_examples.data import RadarCameraBatch

@@ -12,6 +12,7 @@ from .blocks import FusionBlock
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit
 from .geometry import CentroidProjection, VoxelCentroidProjector, augmentation_matrix
+from .geometry import apply_image_augmentation, image_augmentation_matrix
 from .heads import SemanticGuidedHead, points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import HeightEmbedding, PillarLift
 from .sparse import SparseVoxels
@@ -34,4 +35,6 @@ __all__ = [
     "voxel_foreground_labels",
     "HeightEmbedding",
     "PillarLift",
+    "image_augmentation_matrix",
+    "apply_image_augmentation",
 ]
