@@ -14,6 +14,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install --quiet "$(TORCH)"
 	$(PY) -m pip install --quiet -e ".[dev,examples]"
+	# test-only (tests/integrations): mmdet3d's registry. --no-deps because the wheels' own requirements
+	# pull mmcv's compiled build and opencv-python; the registry needs only these (about a minute, measured).
+	$(PY) -m pip install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0
+	$(PY) -m pip install --quiet addict yapf termcolor rich opencv-python-headless
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -22,6 +22,7 @@ import torch
 from mssf_blocks import MSSFError
 from mssf_blocks.functional.geometry import project_points
 from mssf_blocks.functional.sampling import bilinear_sample
+from mssf_blocks.geometry import image_augmentation_matrix
 from mssf_blocks.integrations.mmdet3d import (
     fusion_inputs_from_data_samples,
     fusion_inputs_from_mmdet3d,
@@ -151,6 +152,9 @@ def test_resize_crop_affine_is_exact_pixel_centre_form():
                                torch.tensor([185.75, 1.25 - 4, 1.0], dtype=torch.float64))
     with pytest.raises(MSSFError, match="flip_direction"):
         image_aug_affine(dict(meta, flip_direction="vertical"), 1)
+    # the library's image_augmentation_matrix: resize (200, 400) -> (100, 200), crop, flip
+    lib, size = image_augmentation_matrix((200, 400), resize=(100, 200), crop=(4, 10, 90, 180), flip=True)
+    torch.testing.assert_close(a, lib)
 
 
 def test_multiview_bevfusion_meta_and_folded_features():

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from ..errors import MSSFError
 from ..fusion import FusionInputs
-from ..geometry import augmentation_matrix
+from ..geometry import apply_image_augmentation, augmentation_matrix
 from ._common import affine_4x4, as_bool, as_float64, check_affine_4x4, image_levels_bv, lidar2img_3x4, pixel_affine_from_4x4
 
 __all__ = [
@@ -97,9 +97,10 @@ def image_aug_affine(meta: Mapping, num_cameras: int) -> Tensor:
     """``(V, 3, 3)`` float64 pixel affine ``A`` of the image augmentation (``lidar2img' = A @ lidar2img``).
 
     ``img_aug_matrix`` as recorded when present; otherwise mmcv's resize (``scale_factor``), crop
-    (``img_crop_offset``) and horizontal ``flip`` in exact pixel-centre form (pixel ``i``'s centre at
-    ``i``: resize ``u -> (u + 0.5) * s - 0.5``, crop ``u -> u - x0``, flip ``u -> W - 1 - u`` with ``W``
-    from ``img_shape``). mmdet3d's ``point_sample`` uses ``u * s`` and ``W - u`` instead: up to half a
+    (``img_crop_offset``) and horizontal ``flip`` in exact pixel-centre form, the convention of
+    :func:`~mssf_blocks.geometry.image_augmentation_matrix` (pixel ``i``'s centre at ``i``: resize
+    ``u -> (u + 0.5) * s - 0.5``, crop ``u -> u - x0``, flip ``u -> W - 1 - u`` with ``W`` from
+    ``img_shape``), written with the recorded scale factors (mmcv records those, not the sizes). mmdet3d's ``point_sample`` uses ``u * s`` and ``W - u`` instead: up to half a
     pixel (resize) and one pixel (flip) from where the resized / flipped image content lies.
     """
     if "img_aug_matrix" in meta:
@@ -142,7 +143,7 @@ def camera_from_meta(meta: Mapping, image_aug: str = "meta") -> Tensor:
     if l2i.dim() != 3:
         raise MSSFError(f"lidar2img: expected (4, 4) or (V, 4, 4), got {tuple(l2i.shape)}")
     if image_aug == "meta":
-        l2i = image_aug_affine(meta, l2i.shape[0]) @ l2i
+        l2i = apply_image_augmentation(l2i[None], image_aug_affine(meta, l2i.shape[0])[None])[0]
     return l2i
 
 

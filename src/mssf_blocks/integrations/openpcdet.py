@@ -33,7 +33,7 @@ from torch import Tensor
 
 from ..errors import MSSFError
 from ..fusion import FusionInputs
-from ..geometry import augmentation_matrix
+from ..geometry import apply_image_augmentation, augmentation_matrix
 from ._common import (
     as_bool,
     as_float64,
@@ -189,7 +189,7 @@ def camera_from_batch_dict(batch_dict: Mapping) -> Tuple[Tensor, Tuple[int, int]
         l2i = lidar2img_3x4(as_float64(batch_dict["lidar2image"], "lidar2image", (b, None, None, 4)), "lidar2image")
         if "img_aug_matrix" in batch_dict:
             aug = as_float64(batch_dict["img_aug_matrix"], "img_aug_matrix", (b, l2i.shape[1], 4, 4))
-            l2i = pixel_affine_from_4x4(aug, "img_aug_matrix") @ l2i
+            l2i = apply_image_augmentation(l2i, pixel_affine_from_4x4(aug, "img_aug_matrix"))
     elif "trans_lidar_to_cam" in batch_dict and "trans_cam_to_img" in batch_dict:
         l2c = as_float64(batch_dict["trans_lidar_to_cam"], "trans_lidar_to_cam", (b, 4, 4))
         c2i = as_float64(batch_dict["trans_cam_to_img"], "trans_cam_to_img", (b, 3, 4))
