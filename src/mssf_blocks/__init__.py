@@ -9,6 +9,7 @@ feature-blurring analysis in :mod:`mssf_blocks.diagnostics`; test helpers in :mo
 
 from ._version import __version__
 from .blocks import FusionBlock
+from .deploy import static_path
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit
 from .geometry import CentroidProjection, VoxelCentroidProjector, augmentation_matrix
@@ -35,6 +36,7 @@ __all__ = [
     "voxel_foreground_labels",
     "HeightEmbedding",
     "PillarLift",
+    "static_path",
     "image_augmentation_matrix",
     "apply_image_augmentation",
 ]
