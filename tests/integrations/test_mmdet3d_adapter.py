@@ -155,6 +155,9 @@ def test_resize_crop_affine_is_exact_pixel_centre_form():
     # the library's image_augmentation_matrix: resize (200, 400) -> (100, 200), crop, flip
     lib, size = image_augmentation_matrix((200, 400), resize=(100, 200), crop=(4, 10, 90, 180), flip=True)
     torch.testing.assert_close(a, lib)
+    with pytest.raises(MSSFError, match="per view"):
+        image_aug_affine(meta, 3)
+    torch.testing.assert_close(image_aug_affine({"scale_factor": 1.0}, 3), torch.eye(3, dtype=torch.float64).expand(3, 3, 3))
 
 
 def test_multiview_bevfusion_meta_and_folded_features():

@@ -9,7 +9,6 @@ into it. Sizes are shrunk (coarser voxels, narrow image levels) to run on a CPU.
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np

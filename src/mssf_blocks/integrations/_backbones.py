@@ -74,9 +74,13 @@ def run_dense_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, bat
     coords = voxel_coords.to(torch.int32)
     if not torch.equal(coords.to(voxel_coords.dtype), voxel_coords):
         raise MSSFError("voxel_coords: expected integer voxel indices")
+    from ..compat.spconv import enable_cpu_backward, quiet
+
+    enable_cpu_backward()  # spconv's backward on a CPU-only torch (no effect on CUDA builds)
     voxels = net.grid.sparse_voxels(voxel_features, coords, int(batch_size))
     out = net.forward_stages(voxels, fusion_inputs)
-    return out, net.conv_out(out.stages[-1].to_spconv())
+    with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
+        return out, net.conv_out(out.stages[-1].to_spconv())
 
 
 def stage_spconv(out: Any) -> Dict[str, Any]:

@@ -90,6 +90,8 @@ def _scale_factor(meta: Mapping) -> Tuple[float, float]:
     sf = as_float64(meta.get("scale_factor", 1.0), "scale_factor").reshape(-1)
     if sf.numel() == 1:
         return float(sf), float(sf)
+    if sf.numel() not in (2, 4):  # mmcv: (w, h) or (w, h, w, h); per-view lists are not supported
+        raise MSSFError(f"scale_factor: expected a number, (w, h) or (w, h, w, h), got {sf.numel()} values")
     return float(sf[0]), float(sf[1])
 
 
@@ -122,6 +124,12 @@ def image_aug_affine(meta: Mapping, num_cameras: int) -> Tensor:
             raise MSSFError("meta: a flipped image needs img_shape (H, W) to mirror the u axis")
         w = float(as_float64(meta["img_shape"], "img_shape").reshape(-1)[1])
         a = torch.tensor([[-1.0, 0.0, w - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64) @ a
+    if num_cameras > 1 and not torch.equal(a, torch.eye(3, dtype=torch.float64)):
+        # mmcv's keys describe one image; per-view augmentation must come as a matrix per view
+        raise MSSFError(
+            f"meta: image augmentation keys (scale_factor / img_crop_offset / flip) with {num_cameras} cameras; "
+            "record it per view as img_aug_matrix (V, 4, 4), or fold it into lidar2img and pass image_aug='none'"
+        )
     return a.expand(num_cameras, 3, 3)
 
 

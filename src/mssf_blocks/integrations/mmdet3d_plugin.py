@@ -117,9 +117,9 @@ class MSSFSparseEncoder(nn.Module):
             inputs = fusion_inputs_from_mmdet3d(points, img_features, batch_input_metas, image_aug=self.image_aug)
         out, encoded = _backbones.run_dense_layout(self.net, voxel_features, coors, int(batch_size), inputs)
         self.last_output = out if out.seg_logits is not None else None
-        dense = encoded.dense()
-        n, c, d, h, w = dense.shape
-        bev = dense.view(n, c * d, h, w)
+        from ..compat.spconv import dense
+
+        bev = dense(encoded).flatten(1, 2)  # (B, C, D, H, W) -> (B, C * D, H, W), as SparseEncoder
         if self.return_middle_feats:
             return bev, list(_backbones.stage_spconv(out).values())
         return bev
