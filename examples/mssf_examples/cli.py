@@ -33,6 +33,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import torch
 import torch.nn.functional as F
 
+from mssf_blocks import apply_image_augmentation, image_augmentation_matrix
 from mssf_blocks.errors import MSSFError
 
 from . import distributed
@@ -233,9 +234,8 @@ def scale_batch(batch, scale: float):
     nh, nw = max(1, round(h * scale)), max(1, round(w * scale))
     images = F.interpolate(batch.images.flatten(0, 1), size=(nh, nw), mode="bilinear", align_corners=False,
                            antialias=nh < h).unflatten(0, (b, v))
-    sx, sy = nw / w, nh / h
-    s = torch.tensor([[sx, 0.0, (sx - 1) / 2], [0.0, sy, (sy - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    lidar2img = (s @ batch.lidar2img.to(torch.float64)).to(batch.lidar2img.dtype)
+    s, _ = image_augmentation_matrix((h, w), resize=(nh, nw))
+    lidar2img = apply_image_augmentation(batch.lidar2img, s)
     return dataclasses.replace(batch, images=images, lidar2img=lidar2img, image_size=None)
 
 
