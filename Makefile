@@ -25,8 +25,17 @@ quickstart: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest
 
-bench: $(STAMP)
-	$(PY) benchmarks/centroids.py
+# One target per benchmark script: `make bench-centroids`, `make bench-msdff`, `make bench-detectors`,
+# `make bench-threads`, ... (any benchmarks/NAME.py, options in BENCH_ARGS); `make bench` runs them all.
+# Durations: docs/performance.md ("Benchmark targets").
+BENCHMARKS := $(patsubst benchmarks/%.py,%,$(filter-out benchmarks/_%,$(wildcard benchmarks/*.py)))
+BENCH_ARGS ?=
+
+bench: $(addprefix bench-,$(BENCHMARKS))
+
+# (a pattern rule, not .PHONY: make skips implicit rules for phony targets)
+bench-%: benchmarks/%.py $(STAMP)
+	$(PY) $< $(BENCH_ARGS)
 
 clean-venv:
 	rm -rf $(VENV)
