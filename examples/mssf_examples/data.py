@@ -29,7 +29,8 @@ class RadarCameraBatch:
             (possibly augmented) sensor frame, the rest are the preset's point features (e.g. RCS,
             v_r, v_rc, t for VoD). ``C_in`` must be equal across samples.
         lidar2img: ``(B, V, 3, 4)`` projection of homogeneous *un-augmented* sensor-frame points to
-            ``(u*d, v*d, d)`` (OpenCV pixels of ``images``).
+            ``(u*d, v*d, d)`` (OpenCV pixels of ``images``; when an image was flipped or resized, its
+            pixel affine is folded in: ``A @ lidar2img``, see :mod:`mssf_examples.augment`).
         images: ``(B, V, 3, H, W)`` float images, or ``None`` (precomputed ``image_features``, or a
             radar-only detector).
         image_features: optional precomputed image features, a sequence of ``L`` levels, each
