@@ -25,15 +25,8 @@ demo: $(STAMP)
 quickstart: $(STAMP)
 	$(PY) examples/quickstart.py
 
-# The docs site (mkdocs.yml) is built with --strict after the tests: a broken link fails `make test`.
-DOCS_STAMP := $(VENV)/.mssf-docs-installed
-$(DOCS_STAMP): $(STAMP)
-	$(PY) -m pip install --quiet -e ".[docs]"
-	touch $(DOCS_STAMP)
-
-test: $(STAMP) $(DOCS_STAMP)
+test: $(STAMP)
 	$(PY) -m pytest
-	$(PY) -m mkdocs build --strict --site-dir $(VENV)/site  # not --quiet: it hides the warnings --strict counts
 
 # One target per benchmark script: `make bench-centroids`, `make bench-msdff`, `make bench-detectors`,
 # `make bench-threads`, ... (any benchmarks/NAME.py, options in BENCH_ARGS); `make bench` runs them all.
