@@ -17,6 +17,10 @@ $(STAMP): pyproject.toml
 	# The official VoD evaluation kit, for the oracle test only; --no-deps: its visualisation extras
 	# (k3d, ...) are never used by vod.evaluation, which needs numba (in the dev extra) and numpy.
 	$(PY) -m pip install --quiet --no-deps "vod-tudelft==1.0.3"
+	# test-only (tests/integrations): mmdet3d's registry. --no-deps because the wheels' own requirements
+	# pull mmcv's compiled build and opencv-python; the registry needs only these (about a minute, measured).
+	$(PY) -m pip install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0
+	$(PY) -m pip install --quiet addict yapf termcolor rich opencv-python-headless
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -48,3 +52,9 @@ clean-venv:
 .PHONY: demo-augmentation
 demo-augmentation: $(STAMP)
 	$(PY) examples/train_demo.py --augmentation compare --out outputs/demo_augmentation
+
+# The device check on a GPU machine (tests on CUDA, MSDFF benchmark, one step per detector; docs/gpus.md).
+# It installs what it needs into the environment it runs in (spconv for the GPU's CUDA version).
+.PHONY: gpu-check
+gpu-check: $(STAMP)
+	$(PY) benchmarks/gpu_check.py --out outputs/gpu_check
