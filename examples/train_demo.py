@@ -49,6 +49,7 @@ from mssf_examples.image_pretrain import (  # noqa: E402
 from mssf_examples.presets import VOD, DetectorPreset, tiny_preset  # noqa: E402
 from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig, SyntheticDataset  # noqa: E402
 from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
+from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
 from mssf_examples.training import batch_order, train_detector  # noqa: E402
 from mssf_examples.training import predict as predict_detections  # noqa: E402
 
@@ -283,7 +284,8 @@ def parse_args(argv=None):
     ap.add_argument("--save-checkpoint", type=Path, default=None)
     ap.add_argument("--load-checkpoint", type=Path, default=None, help="skip training, evaluate these weights")
     ap.add_argument("--figure-scenes", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=DEFAULT_THREADS,
+                    help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
     ap.add_argument("--quick", action="store_true", help="tiny run (a few steps and scenes) for tests")
     ap.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = ap.parse_args(argv)

@@ -116,11 +116,12 @@ def test_sparse_voxels_in_out_with_stride(position):
     # (No backward here: spconv 2.3's CPU backward needs CUDA streams; see test_gradients_reach_images.)
 
 
-def test_gradients_reach_images_and_parameters():
+@pytest.mark.parametrize("value_dim", [pytest.param(None, id="paper_width"), pytest.param(8, id="narrow_width")])
+def test_gradients_reach_images_and_parameters(value_dim):
     voxels, inputs = make_scene(seed=6, c=8)
     levels = [l.clone().requires_grad_(True) for l in inputs.image_features]
     inputs = FusionInputs(levels, inputs.lidar2img, IMAGE, inputs.points, inputs.points_batch)
-    msdff = MSDFF(8, 6, num_heads=2, num_levels=2, num_points=2)
+    msdff = MSDFF(8, 6, value_dim, num_heads=2, num_levels=2, num_points=2)
     qi = QueryInit(8, 6, 8, (*RANGE_MIN, 10.0, 4.0, 1.0))
     with torch.no_grad():  # at Deformable-DETR init the query has no effect (zero offset/attention weights)
         msdff.sampling_offsets.weight.normal_(0.0, 0.1)
@@ -173,10 +174,11 @@ def test_position_order_is_observable():
     assert torch.equal(fused[~seen], f[~seen])
 
 
-def test_first_msdff_block_uses_query_init():
+@pytest.mark.parametrize("value_dim", [pytest.param(None, id="paper_width"), pytest.param(8, id="narrow_width")])
+def test_first_msdff_block_uses_query_init(value_dim):
     voxels, inputs = make_scene(seed=4, c=8, v=1, num_points=40)
     pcr = (*RANGE_MIN, 10.0, 4.0, 1.0)
-    msdff = MSDFF(8, 6, num_heads=2, num_levels=2, num_points=2).eval()
+    msdff = MSDFF(8, 6, value_dim, num_heads=2, num_levels=2, num_points=2).eval()
     qi = QueryInit(8, 6, 8, pcr).eval()
     block = FusionBlock(msdff, query_init=qi)
     captured = {}

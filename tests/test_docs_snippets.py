@@ -223,17 +223,34 @@ def spconv_input(points: torch.Tensor, channels: int, spatial_shape, batch_size:
 # ---------------------------------------------------------------------------------------------------
 @snippet("README.md", "import torch, spconv.pytorch as spconv")
 def readme_drop_in(run, tmp_path):
-    spconv = pytest.importorskip("spconv.pytorch")
-    H, W = 320, 512
-    points = radar_points(2)
-    x = spconv_input(points, 16, (40, 1024, 1024), 2)
-    ns = run({"fpn": fpn(2, (H, W)), "lidar2img": pinhole(2, (H, W), 200.0), "H": H, "W": W, "points": points, "x": x})
-    out = ns["x"]
-    assert isinstance(out, spconv.SparseConvTensor)
-    assert out.features.shape[1] == 32 and out.batch_size == 2
-    assert list(out.spatial_shape) == [20, 512, 512]  # the stride-2 SparseConv3d of `down`
-    assert "spconv2" in out.indice_dict and "subm2" in out.indice_dict
-    assert torch.isfinite(out.features).all()
+    """Runs as written, forward and backward, in a fresh interpreter (so nothing else in the test session
+    has patched spconv for it: the block's own ``enable_cpu_backward()`` call must do it)."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("spconv.pytorch")
+    block = BLOCKS_BY_KEY[("README.md", "import torch, spconv.pytorch as spconv")]
+    checks = textwrap.dedent("""
+        assert isinstance(x, spconv.SparseConvTensor)
+        assert x.features.shape[1] == 32 and x.batch_size == 2
+        assert list(x.spatial_shape) == [20, 512, 512]  # the stride-2 SparseConv3d of `down`
+        assert "spconv2" in x.indice_dict and "subm2" in x.indice_dict
+        assert torch.isfinite(x.features).all()
+        no_grad = [n for n, p in stage.named_parameters() if p.grad is None or not torch.isfinite(p.grad).all()]
+        assert not no_grad, f"parameters without a finite gradient: {no_grad}"
+        # (not query_init: MSDFF's offset / attention projections start at zero weight, as in
+        # Deformable DETR, so the query gets no gradient at the first step)
+        for part in (stage.downsample, stage.blocks, stage.fusion):
+            assert sum(float(p.grad.abs().sum()) for p in part.parameters()) > 0, type(part).__name__
+        print("README drop-in: forward and backward ran")
+    """)
+    code = block.code + checks
+    script = tmp_path / "readme_drop_in.py"
+    script.write_text(code)
+    env = dict(os.environ, PYTHONPATH=str(REPO / "src"), OMP_NUM_THREADS="1")
+    out = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "forward and backward ran" in out.stdout, out.stdout + out.stderr
 
 
 @snippet("docs/conventions.md", "v = SparseVoxels(torch.zeros(1, 1), torch.tensor([[0, 2, 64, 12]], dtype=torch.int32), (6, 128, 128), 1,")
@@ -243,6 +260,32 @@ def conventions_voxel_centre(run, tmp_path):
     ns = run({"torch": torch, "SparseVoxels": SparseVoxels})  # the shown tensor is checked by `run`
     assert ns["__shown_tensors_checked__"] == 1
     assert ns["v"].voxel_centers(torch.float64)[0].tolist() == pytest.approx([5.0, 0.2, -0.5], abs=1e-12)
+
+
+@snippet("docs/conventions.md", "a, size = image_augmentation_matrix((4, 6), flip=True)")
+def conventions_image_flip(run, tmp_path):
+    from mssf_blocks import image_augmentation_matrix
+
+    ns = run({"torch": torch, "image_augmentation_matrix": image_augmentation_matrix})
+    assert ns["__shown_tensors_checked__"] == 1 and ns["size"] == (4, 6)
+
+
+@snippet("docs/conventions.md", "m = augmentation_matrix(flip_x=flip, rotation=angle, scale=s)      # points: p' = m @ p")
+def conventions_authors_augmentation(run, tmp_path):
+    import mssf_blocks as mb
+
+    l2i = pinhole(1, (32, 48), 40.0)
+    ns = run({"torch": torch, "augmentation_matrix": mb.augmentation_matrix, "flip": True, "angle": 0.3, "s": 1.02,
+              "image_augmentation_matrix": mb.image_augmentation_matrix,
+              "apply_image_augmentation": mb.apply_image_augmentation, "image_size": (32, 48), "lidar2img": l2i})
+    # An augmented point projects (through points_to_sensor and the flipped lidar2img) to the mirror pixel
+    # of the original point: u' = W - 1 - u.
+    p = torch.tensor([10.0, 1.0, 0.5, 1.0], dtype=torch.float64)
+    before = l2i[0, 0].double() @ p
+    after = ns["lidar2img"][0, 0].double() @ ns["points_to_sensor"][0] @ (ns["m"] @ p)
+    assert ns["image_size"] == (32, 48)
+    assert float(after[0] / after[2]) == pytest.approx(47 - float(before[0] / before[2]), abs=1e-9)
+    assert float(after[1] / after[2]) == pytest.approx(float(before[1] / before[2]), abs=1e-9)
 
 
 def vod_batch(batch_size: int = 2):

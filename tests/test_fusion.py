@@ -18,6 +18,14 @@ from mssf_blocks.sparse import SparseVoxels
 from mssf_blocks.testing import assert_close, gradcheck64
 
 D64 = torch.float64
+# MSDFF value widths: the paper's / authors' (value_dim = value_channels, the default) and the narrow
+# layout (value_dim = embed_dim: the image projected down to the voxel width before the attention).
+WIDTHS = [pytest.param("paper", id="paper_width"), pytest.param("narrow", id="narrow_width")]
+
+
+def width_kw(width, embed_dim):
+    """MSDFF keyword arguments of a value width of WIDTHS."""
+    return {} if width == "paper" else {"value_dim": embed_dim}
 
 
 # Tiny tensors: with 2 OpenMP threads on a loaded 2-core machine, each train-mode batch_norm call
@@ -83,7 +91,7 @@ def reference_sff_sample(levels, uv, valid, batch_index):
 def reference_msdff(mod: MSDFF, query, levels, uv, valid, batch_index):
     """Project every pixel with value_proj first, then per-level grid_sample (Deformable DETR's order)."""
     n, v = valid.shape
-    e, m, lv, p = mod.embed_dim, mod.num_heads, mod.num_levels, mod.num_points
+    e, m, lv, p = mod.value_dim, mod.num_heads, mod.num_levels, mod.num_points
     d = e // m
     off = (query @ mod.sampling_offsets.weight.T + mod.sampling_offsets.bias).view(n, m, lv, p, 2)
     att = (query @ mod.attention_weights.weight.T + mod.attention_weights.bias).view(n, m, lv * p)
@@ -215,7 +223,7 @@ def test_empty_and_batch_without_voxels(kind):
     if kind == "sff":
         mod = SFF([4, 4], 8, dtype=D64)
     else:
-        mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=2, dtype=D64)
+        mod = MSDFF(8, 4, value_dim=6, num_heads=2, num_levels=2, num_points=2, dtype=D64)
     mod.train()
 
     def run(n, bidx):
@@ -244,7 +252,7 @@ def test_permutation_and_batch_independence(kind):
     if kind == "sff":
         mod = SFF([4, 4], 6, dtype=D64)
     else:
-        mod = MSDFF(6, 4, num_heads=2, num_levels=2, num_points=3, dtype=D64)
+        mod = MSDFF(6, 4, value_dim=8, num_heads=2, num_levels=2, num_points=3, dtype=D64)
         randomize_msdff(mod, gen)
     mod.eval()
     query = torch.randn(9, 6, generator=gen, dtype=D64)
@@ -270,18 +278,20 @@ def test_permutation_and_batch_independence(kind):
 # ---------------------------------------------------------------------------------------------------
 # MSDFF
 # ---------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize(
     "method,value_projection",
     [("auto", "after_sampling"), ("reference", "after_sampling"), ("fast", "after_sampling"),
      ("fast", "before_sampling"), ("reference", "before_sampling")],
 )
-def test_msdff_sample_then_project_equals_project_then_sample(method, value_projection):
+def test_msdff_sample_then_project_equals_project_then_sample(method, value_projection, width):
     gen = torch.Generator().manual_seed(7)
-    levels, uv, valid, bidx = scene(gen, chans=(3, 3), sizes=((5, 6), (3, 4)))
+    levels, uv, valid, bidx = scene(gen, chans=(4, 4), sizes=((5, 6), (3, 4)))
     uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside (mass < 1)
     valid[3] = True
-    mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method,
-                value_projection=value_projection, dtype=D64).eval()
+    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method,
+                value_projection=value_projection, dtype=D64, **width_kw(width, 8)).eval()
+    assert mod.value_proj.weight.shape == ((4, 4) if width == "paper" else (8, 4))
     randomize_msdff(mod, gen)
     query = torch.randn(7, 8, generator=gen, dtype=D64)
     want, off, _ = reference_msdff(mod, query, levels, uv, valid, bidx)
@@ -293,10 +303,11 @@ def test_msdff_sample_then_project_equals_project_then_sample(method, value_proj
     assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
 
 
-def test_msdff_default_init_matches_reference():
+@pytest.mark.parametrize("width", WIDTHS)
+def test_msdff_default_init_matches_reference(width):
     gen = torch.Generator().manual_seed(8)
     levels, uv, valid, bidx = scene(gen, v=1, chans=(4, 4))
-    mod = MSDFF(8, 4, num_heads=4, num_levels=2, num_points=2, dtype=D64).eval()
+    mod = MSDFF(8, 4, num_heads=4, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 8)).eval()
     randomize_norm(mod.norm, gen)
     query = torch.randn(7, 8, generator=gen, dtype=D64)
     want, _, att = reference_msdff(mod, query, levels, uv, valid, bidx)
@@ -304,13 +315,15 @@ def test_msdff_default_init_matches_reference():
     assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("value_projection", ["after_sampling", "before_sampling"])
-def test_msdff_gradcheck(value_projection):
+def test_msdff_gradcheck(value_projection, width):
     # Eval-mode BN (a fixed affine map) with random running statistics; sampling offsets and attention
     # weights are randomised so the gradient w.r.t. the query goes through locations and softmax.
     gen = torch.Generator().manual_seed(9)
     levels, uv, valid, bidx = scene(gen, n=4, chans=(2, 2), sizes=((4, 5), (2, 3)))
-    mod = MSDFF(4, 2, num_heads=2, num_levels=2, num_points=2, value_projection=value_projection, dtype=D64).eval()
+    mod = MSDFF(4, 2, num_heads=2, num_levels=2, num_points=2, value_projection=value_projection, dtype=D64,
+                **width_kw(width, 4)).eval()
     randomize_msdff(mod, gen, scale=0.3)
     query = torch.randn(4, 4, generator=gen, dtype=D64)
 
@@ -320,10 +333,11 @@ def test_msdff_gradcheck(value_projection):
     assert gradcheck64(fn, (query, levels[0], levels[1], uv))
 
 
-def test_msdff_invalid_voxels_pass_nothing():
+@pytest.mark.parametrize("width", WIDTHS)
+def test_msdff_invalid_voxels_pass_nothing(width):
     gen = torch.Generator().manual_seed(10)
-    levels, uv, valid, bidx = scene(gen, chans=(3, 3))
-    mod = MSDFF(4, 3, num_heads=2, num_levels=2, num_points=2, dtype=D64).eval()
+    levels, uv, valid, bidx = scene(gen, chans=(6, 6))
+    mod = MSDFF(4, 6, num_heads=2, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 4)).eval()
     randomize_msdff(mod, gen)
     query = torch.randn(7, 4, generator=gen, dtype=D64)
     levels = [l.requires_grad_(True) for l in levels]
@@ -342,15 +356,17 @@ def test_msdff_invalid_voxels_pass_nothing():
     assert all(g is None or torch.count_nonzero(g) == 0 for g in grads)
 
 
-def test_msdff_parameters_match_deformable_detr():
-    e, m, l, p, c = 16, 8, 3, 2, 12
-    mod = MSDFF(e, c, num_heads=m, num_levels=l, num_points=p)
+@pytest.mark.parametrize("width", WIDTHS)
+def test_msdff_parameters_match_deformable_detr(width):
+    e, m, l, p, c = 16, 8, 3, 2, 24
+    mod = MSDFF(e, c, num_heads=m, num_levels=l, num_points=p, **width_kw(width, e))
+    d = c if width == "paper" else e
     shapes = {k: tuple(v.shape) for k, v in mod.state_dict().items()}
     want = {
         "sampling_offsets.weight": (m * l * p * 2, e), "sampling_offsets.bias": (m * l * p * 2,),
         "attention_weights.weight": (m * l * p, e), "attention_weights.bias": (m * l * p,),
-        "value_proj.weight": (e, c), "value_proj.bias": (e,),
-        "output_proj.weight": (e, e), "output_proj.bias": (e,),
+        "value_proj.weight": (d, c), "value_proj.bias": (d,),
+        "output_proj.weight": (e, d), "output_proj.bias": (e,),
     }
     for k, s in want.items():
         assert shapes[k] == s, k
@@ -381,7 +397,7 @@ def test_msdff_offsets_are_in_level_pixels():
     # One head, one point per level, zero weights: the offset bias (1, 0) moves the sample exactly one
     # pixel right on every level, whatever the level's size.
     levels = [torch.arange(24, dtype=D64).view(1, 1, 1, 4, 6), torch.arange(6, dtype=D64).view(1, 1, 1, 2, 3)]
-    mod = MSDFF(2, 1, num_heads=1, num_levels=2, num_points=1, dtype=D64).eval()
+    mod = MSDFF(2, 1, value_dim=2, num_heads=1, num_levels=2, num_points=1, dtype=D64).eval()
     with torch.no_grad():
         mod.value_proj.weight.copy_(torch.tensor([[1.0], [0.0]]))
         mod.output_proj.weight.copy_(torch.eye(2))
@@ -450,28 +466,34 @@ def test_bad_inputs_name_the_argument():
         mod(torch.zeros(3, 8), [torch.zeros(2, 5, 6, 8), torch.zeros(2, 5, 3, 4)], proj)
     with pytest.raises(MSSFError, match="value_channels"):
         MSDFF(8, [4, 8], num_heads=2, num_levels=2)
-    with pytest.raises(MSSFError, match="embed_dim"):
-        MSDFF(10, 4, num_heads=4)
+    with pytest.raises(MSSFError, match="value_dim.*defaults to value_channels"):
+        MSDFF(8, 6, num_heads=4)  # value_dim = value_channels = 6 heads cannot split into 4
+    with pytest.raises(MSSFError, match="value_dim: expected a multiple of num_heads=4.*got 10"):
+        MSDFF(8, 4, value_dim=10, num_heads=4)
+    with pytest.raises(MSSFError, match="value_dim"):
+        MSDFF(8, 4, value_dim=0, num_heads=4)
+    MSDFF(10, 4, num_heads=4)  # embed_dim need not be a multiple of num_heads (the heads split value_dim)
     with pytest.raises(MSSFError, match="method"):
-        MSDFF(8, 4, method="cuda")
+        MSDFF(8, 8, method="cuda")
     with pytest.raises(MSSFError, match="value_projection"):
-        MSDFF(8, 4, value_projection="never")
+        MSDFF(8, 8, value_projection="never")
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("layout", ["nchw", "channels_last"])
-def test_msdff_touched_pixels_equals_reference_with_all_gradients(dtype, layout):
+def test_msdff_touched_pixels_equals_reference_with_all_gradients(dtype, layout, width):
     # value_projection="before_sampling" with method "auto" projects only the touched pixels (or whole
     # levels); it must equal projecting every pixel + grid_sample (method "reference") in the output
     # and in the gradient of every parameter, the query, the image and uv.
     gen = torch.Generator().manual_seed(21)
-    levels, uv, valid, bidx = scene(gen, n=9, chans=(3, 3), sizes=((6, 9), (3, 5)))
+    levels, uv, valid, bidx = scene(gen, n=9, chans=(4, 4), sizes=((6, 9), (3, 5)))
     uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside
     valid[3] = True
     mods = {}
     for method in ("reference", "auto"):
-        mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method,
-                    value_projection="before_sampling", dtype=D64).eval()
+        mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method,
+                    value_projection="before_sampling", dtype=D64, **width_kw(width, 8)).eval()
         randomize_msdff(mod, torch.Generator().manual_seed(22))
         mods[method] = mod.to(dtype)
     query = torch.randn(9, 8, generator=gen, dtype=D64).to(dtype)
@@ -497,14 +519,16 @@ def test_msdff_touched_pixels_equals_reference_with_all_gradients(dtype, layout)
     assert by_name["value_proj.weight"].abs().sum() > 0 and by_name["value_proj.bias"].abs().sum() > 0
 
 
+@pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("method", ["auto", "fast", "reference"])
-def test_msdff_one_camera_all_seen_matches_reference(method):
+def test_msdff_one_camera_all_seen_matches_reference(method, width):
     # MSDFF's shortcut for one camera that sees every voxel (no gather/scatter) against the reference
     gen = torch.Generator().manual_seed(23)
-    levels, uv, valid, bidx = scene(gen, v=1, n=8, chans=(3, 3))
+    levels, uv, valid, bidx = scene(gen, v=1, n=8, chans=(4, 4))
     valid[:] = True
     uv[2] = torch.tensor([0.01, 0.99], dtype=D64)  # partly outside
-    mod = MSDFF(8, 3, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64).eval()
+    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64,
+                **width_kw(width, 8)).eval()
     randomize_msdff(mod, gen)
     query = torch.randn(8, 8, generator=gen, dtype=D64)
     want, _, _ = reference_msdff(mod, query, levels, uv, valid, bidx)

@@ -33,14 +33,18 @@ def projection(uv, valid=None):
     )
 
 
-def setup(seed=0, n=40, c=8, e=16, width=1024, levels=2):
+# MSDFF value widths: value_dim = value_channels (the paper's, the default) and = embed_dim (narrow).
+VALUE_DIMS = [pytest.param(None, id="paper_width"), pytest.param(16, id="narrow_width")]
+
+
+def setup(seed=0, n=40, c=8, e=16, width=1024, levels=2, value_dim=None):
     """A wide noise image (one pixel's neighbour is unrelated to it) and points near its right edge,
     where a bfloat16 coordinate (resolution 2^-8 near 1) is off by about 4 pixels."""
     g = torch.Generator().manual_seed(seed)
     feats = [torch.randn(1, c, 8 // 2**i, width // 2**i, generator=g) for i in range(levels)]
     uv = torch.stack([0.85 + 0.1 * torch.rand(n, generator=g), 0.2 + 0.6 * torch.rand(n, generator=g)], 1)
     query = torch.randn(n, e, generator=g)
-    msdff = MSDFF(e, c, num_heads=4, num_levels=levels, num_points=2).eval()
+    msdff = MSDFF(e, c, value_dim, num_heads=4, num_levels=levels, num_points=2).eval()
     with torch.no_grad():  # query-dependent offsets and weights, as after training
         msdff.sampling_offsets.weight.normal_(0, 0.5, generator=g)
         msdff.attention_weights.weight.normal_(0, 0.5, generator=g)
@@ -63,9 +67,10 @@ def test_msdff_locations_and_weights_stay_float32_under_autocast():
     assert torch.equal(loc_b, msdff.sampling_locations_and_weights(q16.float(), proj.uv[:, 0], sizes)[0])
 
 
+@pytest.mark.parametrize("value_dim", VALUE_DIMS)
 @pytest.mark.parametrize("amp_dtype", LOW)
-def test_msdff_and_sff_under_autocast_match_float32(amp_dtype):
-    feats, proj, query, msdff, sff = setup()
+def test_msdff_and_sff_under_autocast_match_float32(amp_dtype, value_dim):
+    feats, proj, query, msdff, sff = setup(value_dim=value_dim)
     ref_m = msdff(query, feats, proj)
     ref_s = sff(feats, proj)
     with torch.autocast("cpu", dtype=amp_dtype):
@@ -79,9 +84,10 @@ def test_msdff_and_sff_under_autocast_match_float32(amp_dtype):
         assert err <= 0.03 * ref.abs().max().item(), err
 
 
+@pytest.mark.parametrize("value_dim", VALUE_DIMS)
 @pytest.mark.parametrize("low", LOW)
-def test_low_precision_levels_are_read_as_float32(low):
-    feats, proj, query, msdff, sff = setup()
+def test_low_precision_levels_are_read_as_float32(low, value_dim):
+    feats, proj, query, msdff, sff = setup(value_dim=value_dim)
     feats_low = [f.to(low) for f in feats]
     feats_up = [f.float() for f in feats_low]  # the same values in float32
     assert torch.equal(msdff(query, feats_low, proj), msdff(query, feats_up, proj))
@@ -114,8 +120,9 @@ def test_float64_inputs_into_float32_module_are_refused():
         sff([f.double() for f in feats], proj)
 
 
-def test_bfloat16_modules_sample_in_float32():
-    feats, proj, query, msdff, sff = setup()
+@pytest.mark.parametrize("value_dim", VALUE_DIMS)
+def test_bfloat16_modules_sample_in_float32(value_dim):
+    feats, proj, query, msdff, sff = setup(value_dim=value_dim)
     out32_m, out32_s = msdff(query, feats, proj), sff(feats, proj)
     m16, s16 = msdff.to(torch.bfloat16), sff.to(torch.bfloat16)
     out_m = m16(query.bfloat16(), [f.bfloat16() for f in feats], proj)

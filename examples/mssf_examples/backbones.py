@@ -19,7 +19,7 @@ the last fusion block. ``num_fusion_blocks=0`` is the radar-only baseline.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
 from torch import Tensor, nn
@@ -29,7 +29,7 @@ import spconv.pytorch as spconv
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.sparse import SparseVoxels
 
-from .spconv_compat import enable_cpu_backward
+from .spconv_compat import dense, enable_cpu_backward, quiet
 from .voxelize import PillarFeatureNet, VoxelGrid, dynamic_voxelize
 
 # spconv's CPU backward needs this on CPU-only torch builds (see spconv_compat).
@@ -137,12 +137,16 @@ def _check_fusion_args(num_fusion_blocks: int, max_blocks: int, fusion: str, fus
 
 
 def _make_fusion(kind: str, channels: int, image_channels: Sequence[int], msdff_heads: int, msdff_points: int,
-                 value_projection: str = "after_sampling"):
+                 value_projection: str = "after_sampling", value_dim: Union[int, str, None] = None):
     from mssf_blocks.fusion import MSDFF, SFF
 
     if kind == "sff":
         return SFF(list(image_channels), channels)
-    return MSDFF(channels, list(image_channels), num_heads=msdff_heads, num_levels=len(image_channels),
+    if value_dim == "voxel_channels":  # the narrow layout: the image projected to the voxel width first
+        value_dim = channels
+    elif value_dim is not None and (isinstance(value_dim, bool) or not isinstance(value_dim, int)):
+        raise MSSFError(f"msdff_value_dim: expected None, an int or 'voxel_channels', got {value_dim!r}")
+    return MSDFF(channels, list(image_channels), value_dim, num_heads=msdff_heads, num_levels=len(image_channels),
                  num_points=msdff_points, value_projection=value_projection)
 
 
@@ -165,6 +169,9 @@ class SparseFusionBackbone(nn.Module):
         msdff_heads, msdff_points: MSDFF heads and sampling points per level.
         msdff_value_projection: MSDFF's ``value_projection`` (``"after_sampling"`` or
             ``"before_sampling"``; equal results, different cost, see :class:`mssf_blocks.fusion.MSDFF`).
+        msdff_value_dim: MSDFF's ``value_dim``: ``None`` (default) the image channels (the paper's and
+            the authors' width), ``"voxel_channels"`` each block's voxel channels (the narrow layout),
+            or an int.
         seg_hidden: hidden widths of the semantic-guided head (``None`` disables the head).
         z_pad: extra empty z layers on top of the grid (OpenPCDet's ``+1`` so ``41`` z cells downsample
             ``41 -> 21 -> 11 -> 5 -> 2``).
@@ -185,6 +192,7 @@ class SparseFusionBackbone(nn.Module):
         msdff_value_projection: str = "after_sampling",
         seg_hidden: Optional[Sequence[int]] = (256, 256),
         z_pad: int = 0,
+        msdff_value_dim: Union[int, str, None] = None,
     ) -> None:
         super().__init__()
         _check_fusion_args(num_fusion_blocks, min(4, len(stages)), fusion, fusion_position)
@@ -224,7 +232,7 @@ class SparseFusionBackbone(nn.Module):
                     query_init = QueryInit(spec.channels, image_channels[0], spec.channels, grid.point_cloud_range)
                 stage = FusionBlock(
                     _make_fusion(fusion, spec.channels, image_channels, msdff_heads, msdff_points,
-                                 msdff_value_projection),
+                                 msdff_value_projection, msdff_value_dim),
                     downsample=down,
                     blocks=blocks,
                     position=fusion_position,
@@ -256,6 +264,10 @@ class SparseFusionBackbone(nn.Module):
         """
         if self.num_fusion_blocks and fusion_inputs is None:
             raise MSSFError("fusion_inputs: required when num_fusion_blocks > 0, got None")
+        with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
+            return self._forward_stages(voxels, fusion_inputs)
+
+    def _forward_stages(self, voxels: SparseVoxels, fusion_inputs) -> BackboneOutput:
         x = spconv.SparseConvTensor(voxels.features, voxels.coords, list(self.input_shape), voxels.batch_size)
         x = self.conv_input(x)
         outs: List[SparseVoxels] = []
@@ -319,9 +331,9 @@ class _DenseBEVBackbone(SparseFusionBackbone):
 
     def forward(self, voxels: SparseVoxels, fusion_inputs=None) -> BackboneOutput:
         out = self.forward_stages(voxels, fusion_inputs)
-        x = self.conv_out(out.stages[-1].to_spconv())
-        dense = x.dense()  # (B, C, D, H, W)
-        out.bev = dense.flatten(1, 2)
+        with quiet():
+            x = self.conv_out(out.stages[-1].to_spconv())
+        out.bev = dense(x).flatten(1, 2)  # (B, C, D, H, W) -> (B, C * D, H, W)
         return out
 
 
@@ -429,8 +441,8 @@ class VoxelNeXtBackbone(SparseFusionBackbone):
             [(s4.features, s4.coords), (s5.features, s5.coords), (s6.features, s6.coords)],
             [1, 2, 4], voxels.batch_size, self.bev_shape,
         )
-        t = spconv.SparseConvTensor(feats, coords, list(self.bev_shape), voxels.batch_size)
-        t = self.conv_out(t)
+        with quiet():
+            t = self.conv_out(spconv.SparseConvTensor(feats, coords, list(self.bev_shape), voxels.batch_size))
         out.sparse_bev = (t.features, t.indices)
         return out
 
@@ -452,7 +464,7 @@ class PointPillarsBackbone(nn.Module):
         layer_nums, layer_strides, num_filters: the 2D blocks (OpenPCDet: 3/5/5, 2/2/2, 64/128/256).
         upsample_strides, num_upsample_filters: the deblocks (1/2/4, 128/128/128).
         num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
-        msdff_value_projection, seg_hidden:
+        msdff_value_projection, seg_hidden, msdff_value_dim:
             as :class:`SparseFusionBackbone` (at most 3 fusion blocks).
     """
 
@@ -475,6 +487,7 @@ class PointPillarsBackbone(nn.Module):
         msdff_points: int = 4,
         msdff_value_projection: str = "after_sampling",
         seg_hidden: Optional[Sequence[int]] = (256, 256),
+        msdff_value_dim: Union[int, str, None] = None,
     ) -> None:
         super().__init__()
         _check_fusion_args(num_fusion_blocks, len(layer_nums), fusion, fusion_position)
@@ -516,7 +529,7 @@ class PointPillarsBackbone(nn.Module):
                 if fusion == "msdff" and i == 0:
                     query_init = QueryInit(c, image_channels[0], c, pcr)
                 self.fusions.append(FusionBlock(_make_fusion(fusion, c, image_channels, msdff_heads, msdff_points,
-                                                             msdff_value_projection),
+                                                             msdff_value_projection, msdff_value_dim),
                                                 query_init=query_init, position="before_residual"))
             cin = c
         self.bev_channels = sum(num_upsample_filters)

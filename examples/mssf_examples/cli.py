@@ -40,6 +40,7 @@ from .kitti_export import kitti_lines, write_kitti_file
 from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch
 from .presets import TJ4D, VOD, DetectorPreset, tiny_preset
 from .training import batch_order, load_checkpoint, predict, save_checkpoint, train_detector
+from .threads import DEFAULT_THREADS
 
 __all__ = ["DatasetSpec", "DATASETS", "cli_tiny_preset", "build_parser", "main"]
 
@@ -123,7 +124,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="sensor sub-folder (VoD: radar, radar_3frames, radar_5frames [default]; 'none' for a "
                         "root holding training/ directly, the TJ4DRadSet default)")
     p.add_argument("--batch-size", type=_positive_int, default=argparse.SUPPRESS, help="frames per batch (default 4)")
-    p.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--threads", type=_positive_int, default=DEFAULT_THREADS,
+                   help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
     p.add_argument("--workers", type=_non_negative_int, default=0,
                    help="data-loading worker processes (default 0: load in the main process)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")

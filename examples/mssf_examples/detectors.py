@@ -126,6 +126,7 @@ class MSSFDetector(nn.Module):
             num_fusion_blocks=num_fusion_blocks, fusion=fusion, fusion_position=fusion_position,
             image_channels=image_channels, msdff_heads=p.msdff_heads, msdff_points=p.msdff_points,
             msdff_value_projection=p.msdff_value_projection, seg_hidden=p.seg_hidden,
+            msdff_value_dim=p.msdff_value_dim,
         )
         self.image_branch = None
         if num_fusion_blocks and image_features == "backbone":

@@ -19,7 +19,7 @@ widths follow the OpenPCDet KITTI configurations of the base detectors).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Tuple
+from typing import Tuple, Union
 
 from .heads.anchor_head import TJ4D_ANCHOR_SIZES, VOD_ANCHOR_SIZES
 
@@ -61,6 +61,10 @@ class DetectorPreset:
             per level (project every pixel, project only the touched pixels, or sample then project)
             whatever the order, so this setting no longer changes the speed (see docs/fusion.md). Not
             from the paper.
+        msdff_value_dim: MSDFF's ``value_dim``, the channels its heads attend over. ``None`` (default):
+            ``fpn_channels`` (the paper's eq. 10 and the authors' code: ``value_proj`` 256 -> 256,
+            ``output_proj`` 256 -> voxel channels); ``"voxel_channels"``: each block's voxel channels
+            (the narrow layout of earlier releases); or an int.
         seg_hidden: hidden widths of the semantic-guided head (not in the paper; (256, 256) is the
             default of mmdet3d's ForegroundSegmentationHead, which the public MSSF code uses).
     """
@@ -98,6 +102,7 @@ class DetectorPreset:
     msdff_heads: int = 8
     msdff_points: int = 4
     msdff_value_projection: str = "before_sampling"
+    msdff_value_dim: Union[int, str, None] = None
     seg_hidden: Tuple[int, ...] = (256, 256)
 
     @property

@@ -12,7 +12,7 @@
 The loops take a ``make_batch(indices) -> RadarCameraBatch`` callable, so the same code serves the
 synthetic scenes and KITTI-format datasets (and any data loader: pass ``batches`` of your own).
 
-Call :func:`mssf_examples.spconv_compat.enable_cpu_backward` before training a spconv detector on CPU.
+Call :func:`mssf_blocks.compat.spconv.enable_cpu_backward` before training a spconv detector on CPU.
 """
 
 from __future__ import annotations

@@ -9,9 +9,11 @@ feature-blurring analysis in :mod:`mssf_blocks.diagnostics`; test helpers in :mo
 
 from ._version import __version__
 from .blocks import FusionBlock
+from .deploy import static_path
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit
 from .geometry import CentroidProjection, VoxelCentroidProjector, augmentation_matrix
+from .geometry import apply_image_augmentation, image_augmentation_matrix
 from .heads import SemanticGuidedHead, points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import HeightEmbedding, PillarLift
 from .sparse import SparseVoxels
@@ -34,4 +36,7 @@ __all__ = [
     "voxel_foreground_labels",
     "HeightEmbedding",
     "PillarLift",
+    "static_path",
+    "image_augmentation_matrix",
+    "apply_image_augmentation",
 ]

@@ -2,12 +2,20 @@
 
 One place that turns a wrong shape, dtype or value into an :class:`MSSFError` whose message names the
 argument, what was expected and what was received.
+
+Graph capture (``torch.compile``, ``torch.export``, ``torch.jit.trace``, ``torch.onnx.export``): checks
+of tensor *values* (finite entries, index ranges) read data, i.e. synchronise with the device and, while
+a graph is being captured, break it, guard on the data or crash the tracer. Every such check is a
+:func:`value_check`: it runs eagerly and is skipped while :func:`is_tracing` (the captured graph then
+contains no check at all, so it costs nothing there). Shape, dtype and type checks stay: they read no
+data and run once at capture time on the (symbolic) shapes. See ``docs/conventions.md``.
 """
 
 from __future__ import annotations
 
 import contextlib
-from typing import Any, Mapping, MutableMapping, Sequence, Union
+import functools
+from typing import Any, Callable, Mapping, MutableMapping, Sequence, TypeVar, Union
 
 import torch
 from torch import Tensor
@@ -15,6 +23,38 @@ from torch import Tensor
 from .errors import MSSFError
 
 Dim = Union[int, str, None]
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def is_tracing() -> bool:
+    """Whether a graph is being captured: ``torch.compile`` / ``torch.export`` (dynamo or non-strict),
+    ``torch.jit.trace`` or the ONNX exporters. Value checks are skipped then; the fusion modules also take
+    their static-shape path (``docs/deployment.md``)."""
+    compiler = getattr(torch, "compiler", None)
+    if compiler is not None:
+        # (is_compiling is constant-folded by dynamo, so this costs nothing in a compiled graph)
+        if compiler.is_compiling() or (hasattr(compiler, "is_exporting") and compiler.is_exporting()):
+            return True
+    if torch.jit.is_tracing():
+        return True
+    onnx = getattr(torch, "onnx", None)
+    return bool(onnx is not None and onnx.is_in_onnx_export())
+
+
+def value_check(fn: _F) -> _F:
+    """Mark a check that reads tensor values: it runs eagerly and is skipped while :func:`is_tracing`.
+
+    The decorated check returns its first argument in both cases, so ``x = check(x, ...)`` keeps working.
+    Every check of data (not of shapes or dtypes) in the library is written through this decorator.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if is_tracing():
+            return args[0] if args else None
+        return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
 
 
 def _fmt_spec(spec: Sequence[Dim], dims: Mapping[str, int]) -> str:
@@ -75,7 +115,9 @@ def check_shape(
                     f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)} "
                     f"({d} disagrees with another argument)"
                 )
-            dims.setdefault(d, int(size))
+            # (the size itself, not int(size): under torch.compile(dynamic=True) it is symbolic and int()
+            # would specialise the graph to this voxel count)
+            dims.setdefault(d, size)
     return x
 
 
@@ -111,6 +153,7 @@ def autocast_off(device_type: str):
     return torch.autocast(device_type, enabled=False) if autocast_on(device_type) else contextlib.nullcontext()
 
 
+@value_check
 def check_finite(x: Tensor, name: str) -> Tensor:
     if x.is_floating_point() and x.numel() and not bool(torch.isfinite(x).all()):
         bad = int((~torch.isfinite(x)).sum())
@@ -118,6 +161,7 @@ def check_finite(x: Tensor, name: str) -> Tensor:
     return x
 
 
+@value_check
 def check_index_range(x: Tensor, name: str, upper: int, upper_name: str) -> Tensor:
     """Integer tensor with every entry in ``[0, upper)``."""
     if x.numel():
@@ -130,6 +174,17 @@ def check_index_range(x: Tensor, name: str, upper: int, upper_name: str) -> Tens
     return x
 
 
+@value_check
+def check_nonnegative(x: Tensor, name: str, what: str = "indices") -> Tensor:
+    """Integer tensor with every entry ``>= 0``."""
+    if x.numel():
+        lo = int(x.min())
+        if lo < 0:
+            raise MSSFError(f"{name}: expected non-negative {what}, got min {lo}")
+    return x
+
+
+@value_check
 def check_voxel_coords(coords: Tensor, spatial_shape: Sequence[int], batch_size: int, name: str = "coords") -> Tensor:
     """``(N, 4)`` ``(batch, z, y, x)`` rows inside ``[0, batch_size) x [0, D) x [0, H) x [0, W)``.
 
@@ -214,7 +269,7 @@ def check_image_size(image_size: Any, level_hw: Sequence[int] | None = None, nam
         raise MSSFError(f"{name}: expected (H, W), got {image_size!r}") from None
     if h <= 0 or w <= 0:
         raise MSSFError(f"{name}: expected positive (H, W), got {image_size!r}")
-    if level_hw is not None:
+    if level_hw is not None and not is_tracing():  # (int() of a symbolic level size would specialise a graph)
         h0, w0 = (int(v) for v in level_hw)
         # 1 / s must lie in [(H_0 - 1) / H, (H_0 + 1) / H] and in [(W_0 - 1) / W, (W_0 + 1) / W].
         if max((h0 - 1) / h, (w0 - 1) / w) > min((h0 + 1) / h, (w0 + 1) / w):

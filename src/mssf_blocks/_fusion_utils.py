@@ -8,7 +8,9 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import autocast_off, check_dtype, check_floating, check_index_range, check_shape
+from ._static import use_static_path
 from .errors import MSSFError
+from .functional.static import linear_norm_visible_static
 from .geometry import CentroidProjection
 
 __all__ = ["check_image_features"]
@@ -112,7 +114,9 @@ def _check_projection(projection: CentroidProjection, batch_size: int, num_camer
     return uv, valid, batch_index.long()
 
 
-def _norm(norm_layer: Type[nn.Module], channels: int, factory: dict) -> nn.Module:
+def _norm(norm_layer: Optional[Type[nn.Module]], channels: int, factory: dict) -> nn.Module:
+    if norm_layer is None:  # no normalisation (e.g. the MSSF authors' MSDFF): no parameters, no keys
+        return nn.Identity()
     # Factory kwargs only when given, so norm layers without device/dtype arguments still work.
     return norm_layer(channels, **factory) if factory else norm_layer(channels)
 
@@ -148,8 +152,10 @@ def _to_sampling_dtype(x: Tensor, dtype: torch.dtype, name: str, owner: str) -> 
 _autocast_off = autocast_off  # (the samplers' name for it)
 
 
-def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor) -> Tensor:
+def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor, static: bool = False) -> Tensor:
     """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
+    if static or use_static_path():  # (no row gather: a mask, and masked BatchNorm statistics)
+        return linear_norm_visible_static(linear, norm, x, visible)
     rows = visible.nonzero().squeeze(1)
     if rows.numel() == x.shape[0]:  # every voxel seen (the usual case): no gather / scatter copies
         return norm(linear(x))

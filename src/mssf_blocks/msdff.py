@@ -6,7 +6,7 @@ Paper: *MSSF*, Sec. III-C. See :mod:`mssf_blocks.fusion` for the conventions sha
 from __future__ import annotations
 
 import math
-from typing import Sequence, Tuple, Type, Union
+from typing import Optional, Sequence, Tuple, Type, Union
 
 import torch
 import torch.nn.functional as F
@@ -23,14 +23,17 @@ from ._fusion_utils import (
     _to_sampling_dtype,
     check_image_features,
 )
+from ._static import use_static_path
 from .errors import MSSFError
 from .functional.deform_project import ms_deform_sample_project
+from .functional.plan_costs import msdff_auto_method
 from .functional.sampling import camera_mean, ms_deform_sample
+from .functional.static import grid_sample_static
 from .geometry import CentroidProjection
 
 __all__ = ["MSDFF"]
 
-_METHODS = ("auto", "reference", "fast")
+_METHODS = ("auto", "reference", "fast", "grid")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
@@ -45,7 +48,11 @@ class MSDFF(nn.Module):
     * head ``m`` reads ``sum_{l,p} w * Sample(value_proj_m(F_l), location)``;
 
     heads are concatenated, averaged over the valid cameras, and ``Linear_BN`` = ``output_proj`` + norm
-    gives ``f_img`` (eq. 10). Sampling is linear in the values, so the value projection may be applied
+    gives ``f_img`` (eq. 10). Widths: ``value_proj: value_channels -> value_dim`` (the heads split
+    ``value_dim``, ``value_dim / M`` channels each) and ``output_proj: value_dim -> embed_dim``; the
+    default ``value_dim = value_channels`` is the paper's and the authors' layout (256 -> 256 for an
+    FPN, then 256 -> ``C_vox``); ``value_dim = embed_dim`` projects the image down to the voxel width
+    before the attention (the narrow layout of this library's earlier releases). Sampling is linear in the values, so the value projection may be applied
     to the pixels (all of them, or only those a bilinear corner reads) or after sampling (raw channels
     sampled per head, projected with that head's rows of ``value_proj.weight``, plus
     ``value_proj.bias`` times the in-image bilinear weight mass): all are exactly equal, and the
@@ -53,25 +60,35 @@ class MSDFF(nn.Module):
     voxels read, not with the image.
 
     Args:
-        embed_dim: query and output channels ``E`` (the voxel channels); divisible by ``num_heads``.
+        embed_dim: query and output channels ``E`` (the voxel channels); any positive int.
         value_channels: channels of the image levels; all levels must have the same (FPN) channels,
             an int or a sequence of equal ints.
+        value_dim: ``D_v``, channels the heads attend over (``value_proj``'s output, ``output_proj``'s
+            input); divisible by ``num_heads``. ``None`` (default): ``value_channels``.
         num_heads: ``M``.
         num_levels: ``L``, number of image levels read.
         num_points: ``P``, sampling points per head and level.
-        norm_layer: normalisation after ``output_proj``.
+        norm_layer: normalisation after ``output_proj``; ``None`` for none (the authors' module has
+            none, see :mod:`mssf_blocks.compat.mssf_official`).
         method: ``"auto"`` (default): whatever ``value_projection``, per level the cheapest exact plan
             of :func:`~mssf_blocks.functional.ms_deform_sample_project` ``method="touched"`` (project
             every pixel, project only the ``U_l`` pixels some bilinear corner reads, or sample those
             pixels' raw channels and project per head; cost
-            ``O(min(pixels_l * E, U_l * (E + G), U_l * G + N * M * P * 4 * B) * C)``, see
-            ``docs/fusion.md``). ``"fast"`` / ``"reference"``: the literal order of
-            ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path.
+            ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
+            ``docs/fusion.md``) on the CPU; ``"grid"`` on other devices (CUDA) and while a graph is
+            captured (``torch.compile``, ``torch.export``, ONNX, tracing; ``functional/plan_costs.py``).
+            ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
+            host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
+            and keeps its own). ``"fast"`` / ``"reference"``: the literal order of
+            ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path
+            (``"reference"`` becomes ``"grid"`` while a graph is captured: it sizes per-image lists by the
+            data).
         value_projection: the order used by ``method`` ``"fast"`` / ``"reference"``:
             ``"after_sampling"`` (default; sample the raw channels per head, then project; cost
             ``O(N * M * L * P * C)``, independent of the image size) or ``"before_sampling"``
-            (Deformable DETR's order: ``value_proj`` on every pixel, then sample ``E / M`` channels per
-            head; ``O(pixels * C * E + N * M * L * P * E / M)``). All give the same result (tested).
+            (Deformable DETR's order: ``value_proj`` on every pixel, then sample ``D_v / M`` channels
+            per head; ``O(pixels * C * D_v + N * M * L * P * D_v / M)``). All give the same result
+            (tested).
         device, dtype: factory arguments of the parameters.
 
     Shapes:
@@ -83,19 +100,25 @@ class MSDFF(nn.Module):
     module), also under ``torch.autocast``; float16 / bfloat16 levels are read as float32
     (``docs/fusion.md``, "Precision and mixed-precision training").
 
-    Parameter names and shapes are those of Deformable DETR's ``MSDeformAttn`` (``sampling_offsets``,
-    ``attention_weights``, ``value_proj``, ``output_proj``), so pretrained weights map across; the norm
-    is ``norm``.
+    Weights: ``sampling_offsets (M*L*P*2, E)``, ``attention_weights (M*L*P, E)``, ``value_proj
+    (D_v, C)``, ``output_proj (E, D_v)`` (plus biases) have the names and layout of Deformable DETR's
+    ``MSDeformAttn`` and of mmcv's / the MSSF authors' ``MSDeformableAttention`` (their
+    ``query_embed_dims`` = ``E``, ``value_embed_dims`` = ``C`` = ``D_v``, ``output_embed_dims`` = ``E``):
+    the tensors copy across unchanged, offsets ordered ``(M, L, P, xy)`` and head ``m`` reading
+    ``value_proj`` rows ``[m * D_v / M, (m + 1) * D_v / M)`` in both. Deformable DETR itself has
+    ``E = C = D_v``. The norm (``norm``) is ours; the authors' module has none and adds the query back
+    (:mod:`mssf_blocks.compat.mssf_official` maps their checkpoints and lists the switches).
     """
 
     def __init__(
         self,
         embed_dim: int,
         value_channels: Union[int, Sequence[int]],
+        value_dim: Optional[int] = None,
         num_heads: int = 8,
         num_levels: int = 4,
         num_points: int = 4,
-        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        norm_layer: Optional[Type[nn.Module]] = nn.BatchNorm1d,
         method: str = "auto",
         value_projection: str = "after_sampling",
         device=None,
@@ -106,10 +129,6 @@ class MSDFF(nn.Module):
         self.num_heads = check_positive_int(num_heads, "num_heads")
         self.num_levels = check_positive_int(num_levels, "num_levels")
         self.num_points = check_positive_int(num_points, "num_points")
-        if self.embed_dim % self.num_heads:
-            raise MSSFError(
-                f"embed_dim: expected a multiple of num_heads={self.num_heads}, got {self.embed_dim}"
-            )
         if isinstance(value_channels, int):
             self.value_channels = check_positive_int(value_channels, "value_channels")
         else:
@@ -120,6 +139,13 @@ class MSDFF(nn.Module):
                     f"(FPN outputs; value_proj is shared across levels), got {chans}"
                 )
             self.value_channels = chans[0]
+        self.value_dim = self.value_channels if value_dim is None else check_positive_int(value_dim, "value_dim")
+        if self.value_dim % self.num_heads:
+            hint = "; value_dim defaults to value_channels" if value_dim is None else ""
+            raise MSSFError(
+                f"value_dim: expected a multiple of num_heads={self.num_heads} (the heads split it{hint}), "
+                f"got {self.value_dim}"
+            )
         if method not in _METHODS:
             raise MSSFError(f"method: expected one of {_METHODS}, got {method!r}")
         self.method = method
@@ -130,14 +156,14 @@ class MSDFF(nn.Module):
         m, l, p = self.num_heads, self.num_levels, self.num_points
         self.sampling_offsets = nn.Linear(self.embed_dim, m * l * p * 2, **factory)
         self.attention_weights = nn.Linear(self.embed_dim, m * l * p, **factory)
-        self.value_proj = nn.Linear(self.value_channels, self.embed_dim, **factory)
-        self.output_proj = nn.Linear(self.embed_dim, self.embed_dim, **factory)
+        self.value_proj = nn.Linear(self.value_channels, self.value_dim, **factory)
+        self.output_proj = nn.Linear(self.value_dim, self.embed_dim, **factory)
         self.norm = _norm(norm_layer, self.embed_dim, factory)
         self.reset_parameters()
 
     @property
     def head_dim(self) -> int:
-        return self.embed_dim // self.num_heads
+        return self.value_dim // self.num_heads
 
     def reset_parameters(self) -> None:
         """Deformable-DETR initialisation.
@@ -204,22 +230,40 @@ class MSDFF(nn.Module):
         n = uv.shape[0]
         check_shape(query, "query", (n, self.embed_dim))
         check_floating(query, "query")
-        m, e, c = self.num_heads, self.embed_dim, self.value_channels
+        m, e, c = self.num_heads, self.value_dim, self.value_channels
 
         # The sampling runs in float32 (float64 for a float64 module), autocast or not: lower-precision
         # levels are read as float32 and the locations are never rounded to half precision.
         dtype = _sampling_dtype(self.value_proj.weight)
         levels = [_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "MSDFF") for i, lvl in enumerate(levels)]
         uv = uv.to(dtype)
+        static = use_static_path()
+        method = self.method
+        if method == "auto" or (static and method == "reference"):
+            method = msdff_auto_method(uv.device.type, static)
+        static = static or method == "grid"  # (the grid plan never synchronises with the device)
         with _autocast_off(uv.device.type):
             # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
             # depend on the query only, so they are computed per voxel and gathered.
             sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
-            one_each = v == 1 and bool(valid.all())
-            if one_each:  # one camera that sees every voxel (the usual case): no gathers or scatters
+            if static:
+                # Static shapes: a query for every (voxel, camera) pair, invalid ones at uv = -1 (finite;
+                # masked out by camera_mean, no gradient), no gather of the valid pairs.
+                one_each = False
+                uv = torch.where(valid[..., None], uv, uv.new_full((), -1.0))
+                if v == 1:
+                    locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
+                else:
+                    locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
+                    locations = (locations[:, None] + uv[:, :, None, None, None, :]).flatten(0, 1)
+                    weights = weights[:, None].expand((n, v) + weights.shape[1:]).flatten(0, 1)
+                image_index = (batch_index[:, None] * v + torch.arange(v, device=uv.device)).reshape(-1)
+            elif v == 1 and bool(valid.all()):
+                one_each = True  # one camera that sees every voxel (the usual case): no gathers or scatters
                 locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
                 image_index = batch_index
             else:
+                one_each = False
                 n_idx, v_idx = valid.nonzero(as_tuple=True)
                 locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
                 locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
@@ -228,14 +272,19 @@ class MSDFF(nn.Module):
             w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
             b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
             raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-            if self.method == "auto":
+            if method == "grid":
+                # Project every pixel (all heads in one GEMM), then grid_sample per head.
+                values = [F.linear(r[:, 0].permute(0, 2, 3, 1), w_heads.flatten(0, 1), b_heads.flatten())
+                          .unflatten(-1, w_heads.shape[:2]).permute(0, 3, 4, 1, 2) for r in raw]  # (I, M, d, H, W)
+                heads = grid_sample_static(values, image_index, locations, weights)
+            elif method == "touched":
                 # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
                 # of project-all / project-touched / sample-touched-then-project (exact, bias included).
                 heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
                                                  method="touched")
             elif self.value_projection == "after_sampling":
                 sampled, mass = ms_deform_sample(
-                    raw, image_index, locations, weights, method=self.method, return_mass=True
+                    raw, image_index, locations, weights, method=method, return_mass=True
                 )  # (Q, M, C), (Q, M)
                 # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
                 # contributes only where the bilinear corners were inside the image (zero padding).
@@ -247,18 +296,21 @@ class MSDFF(nn.Module):
                     projected = F.linear(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1), w_heads.reshape(e, c),
                                          b_heads.reshape(e))  # (I, H, W, E)
                     values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
-                heads = ms_deform_sample(values, image_index, locations, weights, method=self.method)
+                heads = ms_deform_sample(values, image_index, locations, weights, method=method)
             if one_each:
                 attended = heads.reshape(n, e)
+            elif static:
+                attended = camera_mean(heads.reshape(n, v, e), valid)
             else:
                 per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
                 attended = camera_mean(per_camera, valid)
         attended = attended.to(self.output_proj.weight.dtype)
-        return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1))
+        return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
 
     def extra_repr(self) -> str:
         return (
-            f"embed_dim={self.embed_dim}, value_channels={self.value_channels}, num_heads={self.num_heads}, "
+            f"embed_dim={self.embed_dim}, value_channels={self.value_channels}, value_dim={self.value_dim}, "
+            f"num_heads={self.num_heads}, "
             f"num_levels={self.num_levels}, num_points={self.num_points}, method={self.method!r}, "
             f"value_projection={self.value_projection!r}"
         )

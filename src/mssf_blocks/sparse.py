@@ -211,17 +211,21 @@ class SparseVoxels:
         the source's index cache (``indice_dict``, grid, benchmark settings), so later ``SubMConv3d`` /
         inverse convs with the same ``indice_key`` still find their indices.
         """
+        from .compat.spconv import quiet  # drops spconv's own torch.fx message (see there)
+
         if self.spconv_source is not None:
-            return self.spconv_source.replace_feature(self.features)
+            with quiet():
+                return self.spconv_source.replace_feature(self.features)
         try:
             import spconv.pytorch as spconv
         except ImportError as exc:  # pragma: no cover - depends on the environment
             raise ImportError(
                 "SparseVoxels.to_spconv needs spconv: pip install 'mssf-blocks[spconv]'"
             ) from exc
-        return spconv.SparseConvTensor(
-            self.features, self.coords, list(self.spatial_shape), self.batch_size
-        )
+        with quiet():
+            return spconv.SparseConvTensor(
+                self.features, self.coords, list(self.spatial_shape), self.batch_size
+            )
 
     def __repr__(self) -> str:
         return (

@@ -190,3 +190,21 @@ def test_pointpillars_trains_under_autocast(batch):
     assert math.isfinite(loss16) and abs(loss16 - loss32) <= 0.05 * abs(loss32)
     assert grads16.keys() == grads32.keys() and any("fusions" in k for k in grads16)
     assert all(torch.isfinite(g).all() for g in grads16.values())
+
+
+def test_msdff_blocks_use_the_paper_width_unless_told():
+    # value_proj: FPN -> FPN channels, output_proj: FPN -> voxel channels (paper eq. 10, the authors' code);
+    # msdff_value_dim="voxel_channels" gives the narrow layout, an int any width.
+    from dataclasses import replace
+
+    widths = {}
+    for vd in (None, "voxel_channels", 4):
+        model = build_detector("pointpillars", replace(TINY, msdff_value_dim=vd), num_fusion_blocks=2, fusion="msdff")
+        widths[vd] = [(tuple(b.fusion.value_proj.weight.shape), tuple(b.fusion.output_proj.weight.shape))
+                      for b in model.backbone.fusions]
+    c, (v0, v1) = TINY.fpn_channels, TINY.pillar_filters[:2]
+    assert widths[None] == [((c, c), (v0, c)), ((c, c), (v1, c))]
+    assert widths["voxel_channels"] == [((v0, c), (v0, v0)), ((v1, c), (v1, v1))]
+    assert widths[4] == [((4, c), (v0, 4)), ((4, c), (v1, 4))]
+    with pytest.raises(MSSFError, match="msdff_value_dim"):
+        build_detector("pointpillars", replace(TINY, msdff_value_dim="wide"), num_fusion_blocks=1, fusion="msdff")

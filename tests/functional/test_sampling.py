@@ -398,37 +398,47 @@ def channels_last(values):
     return [v[:, 0].contiguous(memory_format=torch.channels_last)[:, None] for v in values]
 
 
+# MSDFF's value widths: heads together as wide as the raw channels (the paper's value_dim =
+# value_channels), narrower (value_dim = embed_dim < C), or wider than them.
+HEAD_WIDTHS = [pytest.param(4, 2, id="paper_width"), pytest.param(4, 1, id="narrow_width"),
+               pytest.param(3, 4, id="wide_heads")]
+
+
+@pytest.mark.parametrize("d_raw,d_out", HEAD_WIDTHS)
 @pytest.mark.parametrize("branch", ["project", "sample", "dense", "direct", "auto"])
-def test_touched_equals_naive_loop(branch):
+def test_touched_equals_naive_loop(branch, d_raw, d_out):
     # independent: naive loop sampling, then the per-head projection and bias * mass by hand
-    values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=2, d=3, q=7, seed=8, spread=0.5)
+    values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=2, d=d_raw, q=7, seed=8,
+                                                            spread=0.5)
     g = torch.Generator().manual_seed(9)
-    proj_w = torch.randn(2, 4, 3, generator=g, dtype=F64)
-    proj_b = torch.randn(2, 4, generator=g, dtype=F64)
+    proj_w = torch.randn(2, d_out, d_raw, generator=g, dtype=F64)
+    proj_b = torch.randn(2, d_out, generator=g, dtype=F64)
     sampled, mass = naive_ms_deform(values, image_index, locations, weights)
     expected = torch.einsum("qmc,mdc->qmd", sampled, proj_w) + mass[..., None] * proj_b
     assert bool((mass < weights.sum((2, 3)) - 1e-6).any())  # some corners read the zero padding
     for vals in (values, channels_last(values)) if branch != "direct" else (channels_last(values),):
         out = touched(vals, image_index, locations, weights, proj_w, proj_b, branch)
-        assert out.shape == (7, 2, 4)
+        assert out.shape == (7, 2, d_out)
         assert_close(out, expected)
         assert_close(touched(vals, image_index, locations, weights, proj_w, None, branch),
                      torch.einsum("qmc,mdc->qmd", sampled, proj_w))
 
 
+@pytest.mark.parametrize("d_raw", [pytest.param(4, id="wide_heads"), pytest.param(6, id="paper_width"),
+                                   pytest.param(9, id="narrow_width")])  # 3 heads of 2 channels
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("where", ["random", "borders"])
 @pytest.mark.parametrize("branch,layout", [(b, l) for b in ("project", "sample", "dense") for l in ("nchw", "channels_last")]
                          + [("direct", "channels_last")])
-def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch, layout):
+def test_touched_equals_reference_forward_and_all_gradients(dtype, where, branch, layout, d_raw):
     sizes = ((8, 16), (4, 8), (2, 4))
     values, image_index, locations, weights = random_inputs(
-        num_images=3, mv=1, m=3, d=4, sizes=sizes, q=17, p=2, dtype=dtype, spread=0.4
+        num_images=3, mv=1, m=3, d=d_raw, sizes=sizes, q=17, p=2, dtype=dtype, spread=0.4
     )
     if where == "borders":  # pixel centres, pixel borders, image edges and outside
         locations = border_locations(sizes, 17, 3, 2, dtype)
     g = torch.Generator().manual_seed(11)
-    proj_w = torch.randn(3, 2, 4, generator=g, dtype=dtype)
+    proj_w = torch.randn(3, 2, d_raw, generator=g, dtype=dtype)
     proj_b = torch.randn(3, 2, generator=g, dtype=dtype)
     go = torch.randn(17, 3, 2, generator=g, dtype=dtype)
 

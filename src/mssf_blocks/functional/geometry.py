@@ -27,8 +27,11 @@ from .._checks import (
     check_shape,
     check_triple,
     check_voxel_coords,
+    value_check,
 )
+from .._static import use_static_path
 from ..errors import MSSFError
+from .static import segment_slots
 
 __all__ = [
     "voxel_centers",
@@ -190,10 +193,15 @@ def voxel_centroids(
     # read back (points of no voxel, or outside the range with key -1, land in slots nobody reads).
     voxel_keys = _grid_keys(coords, spatial_shape)
     point_keys = _point_keys(points, points_batch, voxel_size, lo, hi, stride, spatial_shape)
-    _, slot = torch.unique(torch.cat([voxel_keys, point_keys]), sorted=True, return_inverse=True)
+    keys = torch.cat([voxel_keys, point_keys])
+    if use_static_path():  # compile / export: a slot per key occurrence (N + P), no data-dependent size
+        slot = segment_slots(keys)
+        m = keys.shape[0]
+    else:
+        _, slot = torch.unique(keys, sorted=True, return_inverse=True)
+        m = int(slot.max()) + 1
     row_slot, point_slot = slot[:n], slot[n:]
 
-    m = int(slot.max()) + 1
     sums = torch.zeros(m, 3, dtype=dtype, device=device).index_add_(0, point_slot, points[:, :3])
     counts = torch.zeros(m, dtype=dtype, device=device).index_add_(
         0, point_slot, torch.ones_like(point_slot, dtype=dtype)
@@ -277,6 +285,11 @@ def _check_points_to_sensor(points_to_sensor: Tensor, batch_size: int) -> Tensor
     check_shape(points_to_sensor, "points_to_sensor", (batch_size, 4, 4))
     check_floating(points_to_sensor, "points_to_sensor")
     check_finite(points_to_sensor, "points_to_sensor")
+    return _check_affine_invertible(points_to_sensor)
+
+
+@value_check
+def _check_affine_invertible(points_to_sensor: Tensor) -> Tensor:
     m = points_to_sensor.detach().double()
     last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype, device=m.device)
     if not torch.allclose(m[:, 3], last.expand(m.shape[0], 4), atol=1e-9):
@@ -338,8 +351,8 @@ def project_points(
     Returns:
         :class:`Projection` with ``uv (N, V, 2)``, ``depth (N, V)``, ``valid (N, V)``, ``pixel``,
         float64 for float64 ``points``, else float32; computed in float32 or better (float64 when
-        any input is float64), with autocast disabled. Gradients flow to ``points`` (and the matrices) through valid-depth entries only; nothing is
-        NaN.
+        any input is float64), with autocast disabled. Gradients flow to ``points`` (and the
+        matrices) through valid-depth entries only; nothing is NaN.
     """
     check_points(points, points_batch, rows="N")
     check_finite(points[:, :3], "points[:, :3]")

@@ -23,6 +23,7 @@ from .._checks import (
     check_finite,
     check_floating,
     check_index_range,
+    check_nonnegative,
     check_positive_int,
     check_shape,
     check_triple,
@@ -66,9 +67,7 @@ def bev_shape_for(grid_hw: Sequence[int], stride=1) -> Tuple[int, int]:
 def _check_coords(coords: Tensor, n: Optional[int] = None) -> Tensor:
     check_shape(coords, "coords", ("N" if n is None else n, 4))
     check_dtype(coords, "coords", _INT_DTYPES, hint=" ((batch, z, y, x) integer indices)")
-    if coords.numel() and int(coords.min()) < 0:
-        raise MSSFError(f"coords: expected non-negative (batch, z, y, x) indices, got min {int(coords.min())}")
-    return coords
+    return check_nonnegative(coords, "coords", "(batch, z, y, x) indices")
 
 
 def pillar_lift(

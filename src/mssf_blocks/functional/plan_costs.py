@@ -31,3 +31,28 @@ _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 c
 # grid_sample, _FILL_COST per element.
 _BAG_BACKWARD = 3.0
 _FILL_COST = 0.1
+
+# ---------------------------------------------------------------------------------------------------
+# Plan of method="auto" per device (the cost model above was measured on a CPU only)
+# ---------------------------------------------------------------------------------------------------
+# On a GPU (and on any device other than the CPU) the "touched" plans do not pay: the dense GEMM that
+# projects every pixel is nearly free there, while the planner's mark array, int(inner.sum()) and
+# nonzero() synchronise the host with the device on every level and call; and the gathered-pixel
+# bilinear sample ("gather") is built from the same operations. So off the CPU, and on every device
+# while a graph is captured (torch.compile / export / ONNX: sizes must not depend on data), MSDFF
+# projects first and samples with grid_sample ("grid") and bilinear_sample uses grid_sample ("grid").
+# The CPU keeps the measured planner ("touched") and the gather ("gather", 2-6x faster than grid_sample
+# on one core, benchmarks/msdff.py).
+_MSDFF_AUTO = {"cpu": "touched"}
+_BILINEAR_AUTO = {"cpu": "gather"}
+_STATIC = "grid"  # the plan of every other device and of graph capture
+
+
+def msdff_auto_method(device_type: str, static: bool) -> str:
+    """MSDFF's plan for ``method="auto"`` on ``device_type`` (``"touched"`` or ``"grid"``)."""
+    return _STATIC if static else _MSDFF_AUTO.get(device_type, _STATIC)
+
+
+def bilinear_auto_method(device_type: str, static: bool) -> str:
+    """``bilinear_sample``'s method for ``method="auto"`` on ``device_type`` (``"gather"`` or ``"grid"``)."""
+    return _STATIC if static else _BILINEAR_AUTO.get(device_type, _STATIC)

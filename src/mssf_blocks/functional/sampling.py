@@ -32,7 +32,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape, check_tensor
+from .._static import use_static_path
 from ..errors import MSSFError
+from .plan_costs import bilinear_auto_method
+from .static import grid_sample_static
 from .touched import _pixel_coordinate, _touched_level
 
 __all__ = [
@@ -68,9 +71,11 @@ def bilinear_sample(
         valid: ``(N, V)`` bool, ``False`` where the voxel is behind/not seen by the camera
             (``None``: all valid). Invalid entries return exact zeros, pass no gradient to ``image``
             or ``uv``, and may hold any ``uv`` (even NaN).
-        method: ``"gather"`` (distinct corner pixels gathered once, ``embedding_bag``), ``"grid"``
-            (``F.grid_sample`` per image) or ``"auto"`` (= ``"gather"``, 2-6x faster on CPU). Equal
-            results.
+        method: ``"gather"`` (distinct corner pixels gathered once, ``embedding_bag``; data-dependent
+            sizes), ``"grid"`` (``F.grid_sample``, static shapes: every point is sampled in each of the
+            ``B`` images and keeps its own) or ``"auto"``: ``"gather"`` on the CPU (2-6x faster there),
+            ``"grid"`` on other devices and while a graph is captured (``torch.compile``, export,
+            tracing; ``functional/plan_costs.py``). Equal results.
 
     Returns:
         ``(N, V, C)`` sampled features.
@@ -111,6 +116,14 @@ def bilinear_sample(
         uv = torch.where(valid[..., None], uv, uv.new_full((), -1.0))
     check_finite(uv, "uv" if valid is None else "uv (valid entries)")
 
+    if method == "auto":
+        method = bilinear_auto_method(image.device.type, use_static_path())
+    if method == "grid":
+        # Static shapes (compile / export): one grid_sample per camera over all points, no n == 0 branch.
+        ones = uv.new_ones(n, 1, 1, 1)
+        out = torch.stack([grid_sample_static([image[:, cam : cam + 1]], batch_index, uv[:, cam].view(n, 1, 1, 1, 2),
+                                               ones)[:, 0] for cam in range(v)], 1)  # (N, V, C)
+        return out if valid is None else torch.where(valid[..., None], out, out.new_zeros(()))
     out = image.new_zeros(n, v, c)
     if n == 0 or c == 0:
         return out + 0 * uv.sum() if uv.requires_grad else out
@@ -122,14 +135,8 @@ def bilinear_sample(
     ones = uv.new_ones(n, 1, 1)
     rows = []
     for cam in range(v):
-        if method == "grid":
-            # (one head, level and point per voxel: the per-image grid_sample of the reference)
-            s = ms_deform_sample_reference([image[:, cam : cam + 1]], batch_index, uv[:, cam].view(n, 1, 1, 1, 2),
-                                           ones.view(n, 1, 1, 1))[:, 0]
-        else:
-            s = _touched_level(image[:, cam : cam + 1], batch_index, uv[:, cam].view(n, 1, 1, 2), ones, None, None,
-                               1, "sample")
-        rows.append(s)
+        rows.append(_touched_level(image[:, cam : cam + 1], batch_index, uv[:, cam].view(n, 1, 1, 2), ones, None,
+                                   None, 1, "sample"))
     out = torch.stack(rows, 1)  # (N, V, C)
     if valid is not None:
         # Exact zeros even if the image holds inf/NaN near the replaced point; no gradient either.

@@ -211,7 +211,7 @@ def _touched_level(
     inner, u = None, n_pix
     if plan is None or plan in ("project", "sample") or (needs_grad and plan == "dense"):
         mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
-        mark.view(-1).index_fill_(0, cells, True)
+        mark.view(-1).index_fill_(0, cells, 1)  # (not True: a bool scalar matches no schema under jit.trace)
         inner = mark[:, 2 : h + 2, 2 : w + 2]
         u = int(inner.sum())
     if plan is None:

@@ -1,0 +1,208 @@
+"""The static-shape path of the blocks (taken under graph capture, forced by ``static_path``) and the
+compile-aware value checks.
+
+References: the eager paths (independently tested against loops and float64 in test_fusion.py etc.),
+and hand-built bad inputs whose eager errors are known.
+"""
+
+import copy
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from mssf_blocks import SparseVoxels, VoxelCentroidProjector
+from mssf_blocks._checks import check_finite, check_index_range, is_tracing, value_check
+from mssf_blocks._static import static_path, use_static_path
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.functional import bilinear_sample
+from mssf_blocks.functional.geometry import voxel_centroids
+from mssf_blocks.functional.static import segment_slots
+from mssf_blocks.fusion import MSDFF, SFF
+from mssf_blocks.geometry import CentroidProjection
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _projection(n, b, v, seed=0, inside=0.8):
+    g = torch.Generator().manual_seed(seed)
+    uv = torch.rand(n, v, 2, generator=g) * 1.2 - 0.1
+    valid = torch.rand(n, v, generator=g) < inside
+    uv = torch.where(valid[..., None], uv, torch.full_like(uv, float("nan")))  # invalid entries may be NaN
+    bi = torch.randint(0, b, (n,), generator=g)
+    return CentroidProjection(uv, valid.float(), valid, torch.zeros(n, 3), valid[:, 0], bi)
+
+
+def _levels(b, v, c=6, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    shape = (b,) if v == 1 else (b, v)
+    return [torch.randn(*shape, c, 10, 14, generator=g, dtype=torch.float64).requires_grad_(),
+            torch.randn(*shape, c, 5, 7, generator=g, dtype=torch.float64).requires_grad_()]
+
+
+def _perturb(mod, seed=2):
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in mod.parameters():
+            p.add_(0.2 * torch.randn(p.shape, generator=g))
+    return mod
+
+
+@pytest.mark.parametrize("b,v", [(1, 1), (2, 1), (2, 3)])
+@pytest.mark.parametrize("training", [False, True])
+@pytest.mark.parametrize("kind", ["sff", "msdff"])
+def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v):
+    n = 40
+    # float64: the comparison then sees formulation errors, not float32 rounding of near-zero gradients
+    proj = _projection(n, b, v)
+    proj = CentroidProjection(proj.uv.double(), proj.depth, proj.valid, proj.centroid, proj.has_points,
+                              proj.batch_index)
+    feats = _levels(b, v)
+    query = torch.randn(n, 16, requires_grad=True, dtype=torch.float64)
+    base = SFF([6, 6], 16) if kind == "sff" else MSDFF(16, 6, num_heads=2, num_levels=2, num_points=3)
+    _perturb(base.double()).train(training)
+    results = []
+    for static in (False, True):
+        mod = copy.deepcopy(base)
+        with static_path(static):
+            assert use_static_path() is static
+            out = mod(feats, proj) if kind == "sff" else mod(query, feats, proj)
+        inputs = feats + ([query] if kind == "msdff" else [])
+        weight = torch.linspace(-1, 1, out.numel()).view_as(out)
+        grads = torch.autograd.grad((out * weight).sum(), inputs + list(mod.parameters()))
+        results.append((out, grads, mod.norm.running_mean.clone(), mod.norm.running_var.clone()))
+    (o0, g0, m0, v0), (o1, g1, m1, v1) = results
+    torch.testing.assert_close(o1, o0, atol=1e-10, rtol=1e-10)
+    for a, e in zip(g1, g0):
+        torch.testing.assert_close(a, e, atol=1e-10, rtol=1e-10)
+    torch.testing.assert_close(m1, m0, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(v1, v0, atol=1e-12, rtol=1e-12)
+    assert bool((o1[~proj.valid.any(1)] == 0).all())  # unseen voxels: exact zeros on both paths
+
+
+def test_static_bilinear_sample_matches_hand_values():
+    img = torch.arange(12.0, dtype=torch.float64).view(1, 1, 3, 4)
+    # pixel centres (y, x) = (0, 0), (2, 3); the midpoint of (1, 1)-(1, 2); outside -> 0
+    uv = torch.tensor([[[0.5 / 4, 0.5 / 3]], [[3.5 / 4, 2.5 / 3]], [[2.0 / 4, 1.5 / 3]], [[1.5, 0.5]]],
+                      dtype=torch.float64)
+    with static_path():
+        out = bilinear_sample(img, uv, torch.zeros(4, dtype=torch.long)).flatten().tolist()
+    assert out == [0.0, 11.0, 5.5, 0.0]
+
+
+def test_static_centroids_equal_eager_including_duplicates_and_outside_points():
+    g = torch.Generator().manual_seed(3)
+    pts = torch.rand(300, 3, generator=g) * torch.tensor([4.0, 4.0, 2.0]) - 0.5  # some outside the grid
+    pb = torch.randint(0, 2, (300,), generator=g)
+    coords = torch.cat([torch.randint(0, 2, (60, 1)), torch.randint(0, 2, (60, 1)), torch.randint(0, 4, (60, 2))], 1)
+    coords = torch.cat([coords, coords[:5]]).int()  # duplicate rows get the same centroid
+    args = (pts, pb, coords, (2, 4, 4), 2, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    c0, h0 = voxel_centroids(*args)
+    with static_path():
+        c1, h1 = voxel_centroids(*args)
+    torch.testing.assert_close(c1, c0)
+    assert torch.equal(h1, h0)
+
+
+def test_segment_slots_groups_equal_keys():
+    keys = torch.tensor([5, -1, 3, 5, 3, 9, -1])
+    slots = segment_slots(keys)
+    for i in range(len(keys)):
+        for j in range(len(keys)):
+            assert (slots[i] == slots[j]).item() == (keys[i] == keys[j]).item()
+    assert int(slots.max()) < len(keys)
+
+
+def test_value_checks_run_eagerly_and_are_skipped_under_compile():
+    bad = torch.tensor([0, 7])
+    with pytest.raises(MSSFError, match=r"idx: expected values in \[0, 3\)"):
+        check_index_range(bad, "idx", 3, "n")
+    with pytest.raises(MSSFError, match="finite"):
+        check_finite(torch.tensor([float("nan")]), "x")
+    assert not is_tracing()
+
+    @value_check
+    def check_positive(x, name):
+        if bool((x <= 0).any()):
+            raise MSSFError(f"{name}: expected positive values")
+        return x
+
+    def f(x, i):
+        check_index_range(i, "idx", 3, "n")
+        check_finite(x, "x")
+        return check_positive(x, "x") * 2 + i.sum()
+
+    compiled = torch.compile(f, fullgraph=True, backend="eager")  # fullgraph: a graph break would raise
+    out = compiled(torch.tensor([float("nan"), -1.0]), bad)
+    assert out[1].item() == 5.0  # the data checks were left out of the graph
+
+
+_TRACE_SCRIPT = textwrap.dedent(
+    """
+    import io, sys, torch
+    from torch import nn
+    from mssf_blocks.functional import bilinear_sample
+    from mssf_blocks.fusion import SFF, MSDFF
+    from mssf_blocks.geometry import CentroidProjection
+
+    torch.manual_seed(0)
+    n = 20
+    img = torch.randn(1, 4, 8, 8)
+    uv = torch.rand(n, 1, 2)
+    bi = torch.zeros(n, dtype=torch.long)
+    f = torch.jit.trace(lambda a, b, c: bilinear_sample(a, b, c), (img, uv, bi))  # default method
+    print("bilinear", (f(img, uv, bi) - bilinear_sample(img, uv, bi)).abs().max().item())
+
+    class Wrap(nn.Module):
+        def __init__(self, fusion):
+            super().__init__()
+            self.fusion = fusion
+        def forward(self, q, l0, l1, uv, valid, bi):
+            p = CentroidProjection(uv, valid.float(), valid, torch.zeros(uv.shape[0], 3), valid[:, 0], bi)
+            if isinstance(self.fusion, SFF):
+                return self.fusion([l0, l1], p)
+            return self.fusion(q, [l0, l1], p)
+
+    args = (torch.randn(n, 16), torch.randn(1, 4, 8, 8), torch.randn(1, 4, 4, 4), uv,
+            torch.rand(n, 1) > 0.2, bi)
+    for fusion in (SFF([4, 4], 16), MSDFF(16, 4, num_heads=2, num_levels=2, num_points=2)):
+        w = Wrap(fusion).eval()
+        t = torch.jit.trace(w, args)
+        print(type(fusion).__name__, (t(*args) - w(*args)).abs().max().item())
+        torch.onnx.export(w, args, io.BytesIO(), dynamo=False, opset_version=17)  # the legacy exporter traces
+        print("legacy onnx ok")
+    """
+)
+
+
+def test_jit_trace_and_legacy_onnx_export_do_not_crash_the_interpreter():
+    # Before the static path, tracing bilinear_sample's gather (index_fill_ with a bool scalar) aborted in
+    # the tracer (an internal assert here, SIGSEGV on other builds): run it in a child process.
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p), OMP_NUM_THREADS="1")
+    pytest.importorskip("onnx")
+    res = subprocess.run([sys.executable, "-c", _TRACE_SCRIPT], capture_output=True, text=True, env=env,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    lines = [ln.split() for ln in res.stdout.splitlines()]
+    diffs = {ln[0]: float(ln[1]) for ln in lines if len(ln) == 2 and ln[0] != "legacy"}
+    assert set(diffs) == {"bilinear", "SFF", "MSDFF"}
+    assert max(diffs.values()) < 1e-5
+    assert res.stdout.count("legacy onnx ok") == 2
+
+
+def test_projector_static_path_equals_eager():
+    g = torch.Generator().manual_seed(4)
+    pts = torch.rand(200, 3, generator=g) * 4.0
+    pb = torch.randint(0, 2, (200,), generator=g)
+    coords = torch.unique(torch.cat([pb[:, None], torch.zeros(200, 1, dtype=torch.long),
+                                     (pts[:, [1, 0]] // 1.0).long()], 1), dim=0).int()
+    vox = SparseVoxels(torch.zeros(coords.shape[0], 2), coords, (1, 4, 4), 2, (1.0, 1.0, 4.0), (0.0, 0.0, 0.0))
+    l2i = torch.tensor([[0.0, -20.0, 0.0, 40.0], [0.0, 0.0, -20.0, 40.0], [1.0, 0.0, 0.0, 1.0]]).expand(2, 3, 4)
+    p0 = VoxelCentroidProjector()(vox, pts, pb, l2i, (80, 80))
+    with static_path():
+        p1 = VoxelCentroidProjector()(vox, pts, pb, l2i, (80, 80))
+    for name in ("uv", "valid", "centroid", "has_points"):
+        torch.testing.assert_close(getattr(p1, name), getattr(p0, name))
