@@ -270,6 +270,18 @@ def conventions_image_flip(run, tmp_path):
     assert ns["__shown_tensors_checked__"] == 1 and ns["size"] == (4, 6)
 
 
+@snippet("docs/training.md", "from mssf_examples.augment import augment_batches")
+def training_augment_batches(run, tmp_path):
+    from mssf_examples.scenes import Scene, SceneConfig, generate_scene
+
+    scenes = [generate_scene(s, SceneConfig(image_size=(32, 48))) for s in (1, 2)]
+    loader = [Scene.collate(scenes), Scene.collate(scenes[::-1])]
+    ns = run({"loader": loader})
+    out = list(ns["batches"])
+    assert len(out) == 2 and all(b.points_to_sensor is not None for b in out)
+    assert not torch.equal(out[0].points[0], loader[0].points[0])
+
+
 @snippet("docs/conventions.md", "m = augmentation_matrix(flip_x=flip, rotation=angle, scale=s)      # points: p' = m @ p")
 def conventions_authors_augmentation(run, tmp_path):
     import mssf_blocks as mb

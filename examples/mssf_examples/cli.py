@@ -11,9 +11,10 @@ Run from the repository root (``examples/`` must be on the import path)::
 with :func:`mssf_examples.training.train_detector` and writes ``<out>/checkpoint.pt`` and
 ``<out>/config.json``; with ``--val-split`` it then evaluates like ``eval`` into ``<out>/eval_<split>/``.
 ``eval`` writes ``<out>/predictions/<frame id>.txt`` (KITTI format, score last; an empty file for a frame
-without detections) for every frame and, when the split has labels, prints the VoD-protocol table
-(entire annotated area and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and writes
-``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
+without detections) for every frame and, when the split has labels, scores them with the dataset's
+official protocol (:func:`mssf_examples.evaluation.evaluate`: ``protocol="vod"``, the VoD kit's entire
+annotated area and driving corridor, R11; ``protocol="tj4d"``, the TJ4DRadSet range bins, R40) on the
+label files and the prediction files as written, prints the table and writes ``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
 """
 
 from __future__ import annotations
@@ -34,11 +35,12 @@ import torch.nn.functional as F
 
 from mssf_blocks.errors import MSSFError
 
+from .augment import add_augmentation_arguments, augment_batches, augmentation_from_args
 from .detectors import DETECTOR_NAMES, build_detector
-from .evaluation import DEFAULT_REGIONS, TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
+from .evaluation import TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
 from .kitti_export import kitti_lines, write_kitti_file
-from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch
-from .presets import TJ4D, VOD, DetectorPreset, tiny_preset
+from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch, parse_labels
+from .presets import TJ4D, TJ4D_RECIPE, VOD, VOD_RECIPE, DetectorPreset, TrainingRecipe, authors_preset, tiny_preset
 from .training import batch_order, load_checkpoint, predict, save_checkpoint, train_detector
 from .threads import DEFAULT_THREADS
 
@@ -55,6 +57,9 @@ class DatasetSpec:
     preset: DetectorPreset
     default_sensor: Optional[str]
     iou_thresholds: Dict[str, float]
+    #: :func:`mssf_examples.evaluation.evaluate` protocol and the AP its tables report.
+    protocol: str = "vod"
+    table_metrics: Tuple[str, ...] = ("AP3D_R11", "APBEV_R11")
 
     @property
     def class_names(self) -> Tuple[str, ...]:
@@ -65,8 +70,11 @@ class DatasetSpec:
 #: Cyclist. ``tj4d``: KITTI layout (``training/`` under the root), classes Car / Pedestrian / Cyclist / Truck.
 DATASETS: Dict[str, DatasetSpec] = {
     "vod": DatasetSpec(VOD_RADAR, VOD, "radar_5frames", VOD_IOU_THRESHOLDS),
-    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS),
+    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS, "tj4d", ("AP3D_R40", "APBEV_R40")),
 }
+
+#: The training recipe (augmentation, learning rate) of each ``--dataset`` (docs/training.md).
+RECIPES: Dict[str, TrainingRecipe] = {"vod": VOD_RECIPE, "tj4d": TJ4D_RECIPE}
 
 
 def cli_tiny_preset(base: DetectorPreset, image_size: Tuple[int, int]) -> DetectorPreset:
@@ -147,8 +155,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--fusion-blocks", type=_non_negative_int, default=2,
                    help="n fusion blocks (paper default 2; 0 = radar only)")
     t.add_argument("--fusion", choices=("msdff", "sff"), default="msdff")
-    t.add_argument("--preset", choices=("paper", "tiny"), default="paper",
-                   help="paper: the dataset's paper preset; tiny: few channels and coarse voxels for CPU smoke runs")
+    t.add_argument("--preset", choices=("paper", "authors", "tiny"), default="paper",
+                   help="paper: the dataset's paper preset; authors: where the authors' config differs (TJ4D "
+                        "voxel z 0.15 m); tiny: few channels and coarse voxels for CPU smoke runs")
     t.add_argument("--train-image-branch", action="store_true",
                    help="train the image branch (the paper's is pre-trained and frozen)")
     t.add_argument("--image-weights", type=Path, default=None,
@@ -157,15 +166,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resize images by this factor before the image branch (lidar2img is scaled to match)")
     t.add_argument("--epochs", type=_positive_float, default=80.0, help="passes over the split (default 80)")
     t.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (overrides --epochs)")
-    t.add_argument("--lr", type=_positive_float, default=3e-3, help="one-cycle peak learning rate (default 3e-3)")
+    t.add_argument("--lr", type=_positive_float, default=None,
+                   help="one-cycle peak learning rate (default: the recipe's, 10 x its initial lr: VoD n=2 5e-3, "
+                        "otherwise 1e-2; docs/training.md)")
     t.add_argument("--seed", type=_non_negative_int, default=0, help="initialisation and data-order seed")
     t.add_argument("--score-threshold", type=_unit_float, default=0.1, help="detections kept in eval (default 0.1)")
     t.add_argument("--out", type=Path, required=True, help="output folder")
+    add_augmentation_arguments(t)
     t.set_defaults(parser=t)
 
-    e = sub.add_parser("eval", help="write KITTI prediction files and VoD-protocol metrics",
+    e = sub.add_parser("eval", help="write KITTI prediction files and official-protocol metrics",
                        description="Predict every frame of --split, write <out>/predictions/<id>.txt and, with "
-                       "labels, print the VoD-protocol table and write <out>/metrics.json.")
+                       "labels, print the official-protocol table (VoD kit / TJ4DRadSet) and write "
+                       "<out>/metrics.json.")
     e.add_argument("--checkpoint", type=Path, required=True, help="checkpoint.pt written by train")
     _common(e)
     e.add_argument("--split", default="val",
@@ -284,7 +297,8 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     first = ds.load(ds.frame_ids[0], with_labels=False)
     h, w = first.image_size
     image_size = (max(1, round(h * args.image_scale)), max(1, round(w * args.image_scale)))
-    base = spec.preset if args.preset == "paper" else cli_tiny_preset(spec.preset, image_size)
+    base = {"paper": spec.preset, "authors": authors_preset(spec.preset)}.get(args.preset) or \
+        cli_tiny_preset(spec.preset, image_size)
     preset = dataclasses.replace(base, image_size=image_size,
                                  freeze_image_branch=base.freeze_image_branch and not args.train_image_branch)
     torch.manual_seed(args.seed)
@@ -293,6 +307,17 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     if args.image_weights is not None and model.image_branch is not None:
         model.image_branch.load_state_dict(torch.load(args.image_weights, map_location="cpu", weights_only=True))
 
+    recipe = RECIPES[args.dataset]
+    if recipe.feature_names != tuple(spec.point_format.features):
+        ap.error(f"--dataset {args.dataset}: the recipe names point columns {recipe.feature_names}, the point "
+                 f"format has {spec.point_format.features}")
+    gt_range = preset.pillar_range if args.detector == "pointpillars" else preset.point_cloud_range
+    try:
+        augmentation = augmentation_from_args(args, recipe.augmentation, gt_range)
+    except MSSFError as exc:
+        ap.error(f"augmentation options: {exc}")
+    if args.lr is None:
+        args.lr = recipe.peak_lr(args.fusion_blocks)
     config = dict(
         command="train", dataset=args.dataset, data_root=str(args.data_root), sensor=sensor, split=args.split,
         detector=args.detector, fusion_blocks=args.fusion_blocks, fusion=args.fusion, preset_name=args.preset,
@@ -300,6 +325,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         image_weights=None if args.image_weights is None else str(args.image_weights), steps=steps,
         epochs=steps * batch_size / len(ds), batch_size=batch_size, lr=args.lr, seed=args.seed,
         score_threshold=args.score_threshold, num_frames=len(ds), preset=_preset_to_json(preset),
+        augmentation=dataclasses.asdict(augmentation), recipe=recipe.name,
     )
     args.out.mkdir(parents=True, exist_ok=True)
     order = batch_order(len(ds), batch_size, steps, args.seed)
@@ -307,7 +333,10 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
                        else preset.point_cloud_range)
     print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} frames "
           f"of {ds!r}: {steps} steps of {batch_size}", file=sys.stderr)
-    log = train_detector(model, _loader(_Frames(ds, True), order, args.workers, collate), steps, args.lr,
+    batches = _loader(_Frames(ds, True), order, args.workers, collate)
+    if not augmentation.is_identity:  # drawn in this process, after the loader: the seed alone fixes the draws
+        batches = augment_batches(batches, recipe.feature_kinds, augmentation, args.seed)
+    log = train_detector(model, batches, steps, args.lr,
                          desc=f"train {args.detector}", progress=not args.no_progress)
     config["train_seconds"] = log["seconds"]
     config["final_loss"] = log["history"][-1]
@@ -359,7 +388,8 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
     loader = _loader(_Frames(ds, with_labels), chunks, workers, _CollateWithFrames(config.get("image_scale", 1.0)))
     t0 = time.perf_counter()
     preds: List[Dict] = []
-    gts: List[Dict] = []
+    written: List = []  # the prediction files as the official kit reads them
+    gts: List = []
     frames_seen: List[Frame] = []  # without their images and points: a split's images do not fit in memory
 
     def batches():
@@ -377,7 +407,8 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
         num_det += len(lines)
         write_kitti_file(pred_dir / f"{frame.frame_id}.txt", lines)
         if with_labels:
-            gts.append(dict(boxes=frame.gt_boxes, labels=frame.gt_labels, lidar2cam=frame.calib.sensor_to_camera))
+            written.append(parse_labels("\n".join(lines), source=str(pred_dir / f"{frame.frame_id}.txt")))
+            gts.append(frame.objects)  # every label line, as the kit reads label_2
     seconds = time.perf_counter() - t0
     print(f"wrote {len(frames_seen)} prediction files ({num_det} detections) to {pred_dir}", file=sys.stderr)
     metrics: Dict = dict(split=ds.split, num_frames=len(frames_seen), num_detections=num_det,
@@ -385,11 +416,13 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
                          config=config, environment=dict(torch=torch.__version__, python=platform.python_version(),
                                                          threads=torch.get_num_threads()))
     if with_labels:
-        results = evaluate(preds, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, regions=DEFAULT_REGIONS)
+        results = evaluate(written, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, protocol=spec.protocol)
         name = f"{config['detector']} n={config['fusion_blocks']}"
-        table = "\n\n".join(format_table({name: results}, metric=m) for m in ("AP3D_R11", "APBEV_R11"))
+        table = "\n\n".join(format_table({name: results}, metric=m) for m in spec.table_metrics)
         print("\n" + table)
-        metrics.update(results=results, table=table, num_gt=sum(len(g["labels"]) for g in gts))
+        wanted = {c.lower() for c in spec.class_names}
+        metrics.update(results=results, table=table, protocol=spec.protocol,
+                       num_gt=sum(sum(n.lower() in wanted for n in g.names) for g in gts))
         (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1))
         print(f"\nwrote {out / 'metrics.json'}", file=sys.stderr)
     else:

@@ -85,7 +85,8 @@ class FusionBlock(nn.Module):
         position: ``"before_residual"`` (paper: fuse between downsample and residual blocks) or
             ``"after_residual"`` (fuse after the residual blocks).
         query_init: MSDFF only; when given, the query is ``query_init(f_vox, f_img^1, centre)``
-            (first fusion block, eq. 8), otherwise the voxel feature itself.
+            (first fusion block, eq. 8), otherwise the voxel feature itself (``centre``: the voxel
+            centre, or the centroid for ``QueryInit(position="centroid")``).
         downsample_stride: ``(sz, sy, sx)`` of ``downsample``; inferred from its spconv convolutions
             when ``None``.
         voxel_size, point_range_min, in_stride: base-grid ``(x, y, z)`` voxel size, range minimum and
@@ -194,11 +195,14 @@ class FusionBlock(nn.Module):
                     )
                 # Checked here, before level 0 is sampled for the query: a wrong level would otherwise be
                 # reported under QueryInit's internal name f_img0.
-                check_image_features(inputs.image_features, "inputs.image_features", num_levels=self.fusion.num_levels,
+                check_image_features(inputs.image_features, "inputs.image_features",
+                                     num_levels=self.fusion.num_levels,
                                      channels=[self.fusion.value_channels] * self.fusion.num_levels)
-                f_img0 = sample_at_projection(inputs.image_features[0], projection)
-                centers = voxels.voxel_centers(dtype=torch.float64 if dtype == torch.float64 else torch.float32)
-                query = self.query_init(f_vox, f_img0, centers)
+                qi = self.query_init
+                f_img0 = sample_at_projection(inputs.image_features[0], projection, align_corners=qi.align_corners)
+                geo = torch.float64 if dtype == torch.float64 else torch.float32  # positions: float32 or better
+                where = projection.centroid.to(geo) if qi.position == "centroid" else voxels.voxel_centers(dtype=geo)
+                query = qi(f_vox, f_img0, where)
             else:
                 query = f_vox
             f_img = self.fusion(query, inputs.image_features, projection)
