@@ -138,7 +138,7 @@ def test_voxel_centroids_see_the_same_pixels(scenes, name, use_features, monkeyp
     out = apply_fixed(batch, aug, monkeypatch)
     pts, pb = out.flat_points()
     vox = voxelize_points(pts, pb, out.batch_size, VOXEL, RANGE[:3], RANGE[3:])
-    proj = VoxelCentroidProjector()(vox, pts, pb, out.lidar2img, out.image_size, out.points_to_sensor)
+    proj = VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size, out.points_to_sensor)
     image_aug = out.image_features[0] if use_features else out.images
     got = sample_at_projection(image_aug, proj)
     assert proj.has_points.all()
@@ -166,9 +166,9 @@ def test_missing_inverse_or_corner_flip_is_detected(scenes, monkeypatch):
     out = apply_fixed(batch_of(scenes), CASES["all"], monkeypatch)
     pts, pb = out.flat_points()
     vox = voxelize_points(pts, pb, out.batch_size, VOXEL, RANGE[:3], RANGE[3:])
-    right = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts, pb, out.lidar2img, out.image_size,
+    right = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size,
                                                                       out.points_to_sensor))
-    wrong = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts, pb, out.lidar2img, out.image_size))
+    wrong = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size))
     assert (right - wrong).abs().max() > 0.05
 
 
