@@ -98,6 +98,10 @@ class FusionBlock(nn.Module):
     :class:`FusionInputs`; returns the same type as ``x`` at stride ``in_stride * downsample_stride``.
     The fused features are in the fusion's parameter dtype; voxel features of lower precision are read
     in it, float64 ones into a non-float64 block are refused (``docs/conventions.md``, "Dtypes").
+
+    Host synchronisation: the centroid join (``torch.unique`` over voxel and point keys: a
+    data-dependent size) and the range checks of the points and of voxels built from an spconv tensor
+    (one read-back each), plus the sampler's (see :class:`SFF`, :class:`MSDFF`). Inherent to voxel sets.
     """
 
     def __init__(

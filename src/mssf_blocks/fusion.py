@@ -173,6 +173,10 @@ class SFF(nn.Module):
     The sampling runs in float32 (float64 for a float64 module), also under ``torch.autocast``;
     float16 / bfloat16 levels are read as float32.
 
+    Host synchronisation (what stalls a GPU): the projection's batch-index range check (one read-back)
+    and which voxels are visible (``nonzero``; the BatchNorm runs on the visible rows, a
+    data-dependent size). Both inherent; the backward has none.
+
     Example:
         >>> import torch
         >>> from mssf_blocks.geometry import CentroidProjection
@@ -268,6 +272,8 @@ class QueryInit(nn.Module):
         - output ``(N, out_channels)`` in the parameters' dtype; ``f_vox`` and ``f_img0`` of lower
           precision are read in it, float64 ones into a non-float64 module are refused
           (``docs/conventions.md``, "Dtypes").
+
+    No host synchronisation in forward or backward.
     """
 
     def __init__(

@@ -123,6 +123,35 @@ RANGE = (-40.0, -40.0, -8.0, 40.0, 40.0, 8.0)
 VOXEL = (0.4, 0.4, 0.5)
 
 
+def check_same_pixels(batch, out, image_ref, image_aug, rng=RANGE, voxel=VOXEL, atol=2e-4):
+    """Every voxel centroid of the augmented batch ``out`` samples from ``image_aug (B, V, C, H, W)`` what
+    its member points, taken back to the un-augmented frame (same rows), give in ``image_ref``.
+
+    Returns the number of (voxel, camera) hits inside the image."""
+    pts, pb = out.flat_points()
+    vox = voxelize_points(pts, pb, out.batch_size, voxel, rng[:3], rng[3:])
+    proj = VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size, out.points_to_sensor)
+    got = sample_at_projection(image_aug, proj)
+    assert proj.has_points.all()
+    p0_all, _ = batch.flat_points()
+    # member points by the voxelizer's rule floor((p - lo) / voxel), in the points' dtype as it computes it
+    idx = torch.stack([torch.floor((pts[:, k] - rng[k]) / voxel[k]).long() for k in range(3)], 1)
+    d, hh, ww = vox.spatial_shape
+    in_grid = (idx >= 0).all(1) & (idx[:, 0] < ww) & (idx[:, 1] < hh) & (idx[:, 2] < d)
+    keys = torch.where(in_grid, ((pb * d + idx[:, 2]) * hh + idx[:, 1]) * ww + idx[:, 0], -1)
+    c = vox.coords.long()
+    vkeys = ((c[:, 0] * d + c[:, 1]) * hh + c[:, 2]) * ww + c[:, 3]
+    checked = 0
+    h, w = batch.image_size
+    for b in range(batch.batch_size):
+        rows = (c[:, 0] == b).nonzero().flatten()
+        cent0 = torch.stack([p0_all[keys == vkeys[r], :3].double().mean(0) for r in rows])
+        ref, inside = _pixels_reference(cent0, batch.lidar2img[b, 0], image_ref[b, 0], (h, w))
+        torch.testing.assert_close(got[rows].double(), ref, rtol=0, atol=atol)
+        checked += int(inside.sum())
+    return checked
+
+
 @pytest.mark.parametrize("use_features", [False, True])
 @pytest.mark.parametrize("name", [*CASES, "random0", "random1", "random2", "random3"])
 def test_voxel_centroids_see_the_same_pixels(scenes, name, use_features, monkeypatch):
@@ -136,29 +165,30 @@ def test_voxel_centroids_see_the_same_pixels(scenes, name, use_features, monkeyp
     if not use_features:
         feats = batch.images
     out = apply_fixed(batch, aug, monkeypatch)
-    pts, pb = out.flat_points()
-    vox = voxelize_points(pts, pb, out.batch_size, VOXEL, RANGE[:3], RANGE[3:])
-    proj = VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size, out.points_to_sensor)
     image_aug = out.image_features[0] if use_features else out.images
-    got = sample_at_projection(image_aug, proj)
-    assert proj.has_points.all()
-    # reference: the voxel's member points taken back to the un-augmented frame (same rows), their mean
-    # projected with the scene's lidar2img into the un-augmented image
-    p0_all, _ = batch.flat_points()
-    # member points by the voxelizer's rule floor((p - lo) / voxel), in the points' dtype as it computes it
-    idx = torch.stack([torch.floor((pts[:, k] - RANGE[k]) / VOXEL[k]).long() for k in range(3)], 1)
-    d, hh, ww = vox.spatial_shape
-    keys = ((pb * d + idx[:, 2]) * hh + idx[:, 1]) * ww + idx[:, 0]
-    c = vox.coords.long()
-    vkeys = ((c[:, 0] * d + c[:, 1]) * hh + c[:, 2]) * ww + c[:, 3]
-    checked = 0
-    for b, s in enumerate(scenes):
-        rows = (c[:, 0] == b).nonzero().flatten()
-        cent0 = torch.stack([p0_all[keys == vkeys[r], :3].double().mean(0) for r in rows])
-        ref, inside = _pixels_reference(cent0, s.lidar2img, feats[b, 0], (h, w))
-        torch.testing.assert_close(got[rows].double(), ref, rtol=0, atol=2e-4)
-        checked += int(inside.sum())
-    assert checked > 50
+    assert check_same_pixels(batch, out, feats, image_aug) > 50
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("name", ["all", "flip", "random0", "random1"])
+def test_real_vod_frames(realdata_root, name, monkeypatch):
+    """The two real VoD frames (single radar scan, 1936 x 1216 image, the real calibration)."""
+    from mssf_examples.kitti_io import VOD_RADAR, KittiFormatDataset, frames_to_batch
+
+    root = realdata_root / "vod"
+    if not root.is_dir():
+        pytest.skip(f"VoD frames not found at {root}")
+    ds = KittiFormatDataset(root, VOD_RADAR, sensor="radar")
+    batch = frames_to_batch([ds.load(f) for f in ds.frame_ids])
+    aug = CASES[name] if name in CASES else random_cases()[int(name[-1])]
+    out = apply_fixed(batch, aug, monkeypatch)
+    assert check_same_pixels(batch, out, batch.images, out.images, rng=(-80.0, -80.0, -10.0, 80.0, 80.0, 10.0),
+                             atol=1e-4) > 100
+    for p0, g0, p1, g1 in zip(batch.points, batch.gt_boxes, out.points, out.gt_boxes):
+        before, clear = clear_membership(p0[:, :3].double(), g0.double())
+        after = points_in_boxes(p1[:, :3].double(), g1.double(), eps=1e-3)
+        assert torch.equal(after[clear], before[clear]) and before[clear].any()
+    assert all(torch.equal(p0[:, 3:], p1[:, 3:]) for p0, p1 in zip(batch.points, out.points))
 
 
 def test_missing_inverse_or_corner_flip_is_detected(scenes, monkeypatch):
