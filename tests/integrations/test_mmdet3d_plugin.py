@@ -85,6 +85,7 @@ def test_build_from_config_and_train_one_step(layout, views):
     torch.manual_seed(0)
     encoder, cfg = build_from_config(mmdet3d_models(), layout=layout)
     assert isinstance(encoder, mmdet3d_plugin.MSSFSparseEncoder) and encoder.num_fusion_blocks == 2
+    assert encoder.net.stages[0].fusion.value_proj.out_features == 8  # msdff_value_dim=None: image width
     voxel_features, coors, points, img_feats, metas = make_batch(views)
     batch_size = coors[-1, 0].item() + 1  # VoxelNet.extract_feat
     bev = encoder(voxel_features, coors, batch_size, points=points, img_features=img_feats, batch_input_metas=metas)

@@ -30,6 +30,7 @@ model = dict(
         image_channels=[256, 256, 256, 256],  # the image neck's levels
         msdff_heads=8,
         msdff_points=4,
+        msdff_value_dim=None,  # MSDFF value width: None = the image channels (paper); "voxel_channels"
         seg_hidden=[256, 256],
         image_aug="meta",
     ),
