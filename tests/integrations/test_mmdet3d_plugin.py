@@ -42,7 +42,7 @@ def build_from_config(models, **overrides):
 
     cfg = Config.fromfile(str(CONFIG))  # runs custom_imports -> the plugin registers itself
     assert models.module_dict.get("MSSFSparseEncoder") is mmdet3d_plugin.MSSFSparseEncoder
-    enc = cfg.model.middle_encoder
+    enc = cfg.model.pts_middle_encoder
     enc.update(SMALL, **overrides)
     models._imported = True  # see the module docstring: mmdet3d.models needs mmcv's compiled ops
     return models.build(enc), cfg

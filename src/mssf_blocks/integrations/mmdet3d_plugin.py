@@ -4,8 +4,8 @@ Import it from a config (mmengine runs ``custom_imports`` before building anythi
 
     custom_imports = dict(imports=["mssf_blocks.integrations.mmdet3d_plugin"], allow_failed_imports=False)
     model = dict(
-        type="VoxelNet",  # or MVXFasterRCNN / your detector; see docs/frameworks.md for the one call it changes
-        middle_encoder=dict(
+        type="MVXFasterRCNN",  # an MVX detector; docs/frameworks.md: the one call it changes
+        pts_middle_encoder=dict(
             type="MSSFSparseEncoder", in_channels=7, sparse_shape=[41, 1024, 1024],
             point_cloud_range=[0, -25.6, -3, 51.2, 25.6, 2], voxel_size=[0.05, 0.05, 0.125],
             num_fusion_blocks=2, image_channels=[256, 256, 256, 256]),
