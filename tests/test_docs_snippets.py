@@ -101,9 +101,9 @@ FRAGMENTS: Dict[Tuple[str, str], str] = {
         "tests/integrations/test_mmdet3d_adapter.py builds such batches and calls it",
     ("docs/diagnostics.md", "classify_feature_blurring(centroids (N, 3+), batch_index (N,), uv (N, V, 2) | (N, 2),"):
         _SIGNATURES,
-    ("docs/evaluation.md", "from mssf_examples.evaluation import evaluate, format_table, VOD_IOU_THRESHOLDS, DEFAULT_REGIONS"):
-        "data-format sketch: `(K, 7)` / `...` stand for tensors and more frames, `baseline_results` for a "
-        "second run (tests/examples/test_evaluation.py covers evaluate / format_table)",
+    ("docs/evaluation.md", "from mssf_examples.evaluation import evaluate, format_table"):
+        "data-format sketch: `label_dir` / `frame_ids` stand for a dataset, `(K, 7)` for tensors, `baseline_results` "
+        "for a second run (tests/examples/test_evaluation_*.py cover evaluate / format_table per protocol)",
     ("docs/fusion.md", "FusionInputs(image_features, lidar2img, image_size, points, points_batch, points_to_sensor=None)"):
         _SIGNATURES,
     ("docs/heads.md", "SemanticGuidedHead(in_channels: int, hidden: Sequence[int] = (256, 256), use_loss: bool = True,"):

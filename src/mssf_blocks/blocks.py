@@ -94,6 +94,10 @@ class FusionBlock(nn.Module):
 
     ``forward(x, inputs)``: ``x`` a :class:`SparseVoxels` or spconv ``SparseConvTensor``, ``inputs`` a
     :class:`FusionInputs`; returns the same type as ``x`` at stride ``in_stride * downsample_stride``.
+
+    Host synchronisation: the centroid join (``torch.unique`` over voxel and point keys: a
+    data-dependent size) and the range checks of the points and of voxels built from an spconv tensor
+    (one read-back each), plus the sampler's (see :class:`SFF`, :class:`MSDFF`). Inherent to voxel sets.
     """
 
     def __init__(

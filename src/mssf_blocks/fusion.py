@@ -168,6 +168,10 @@ class SFF(nn.Module):
     The sampling runs in float32 (float64 for a float64 module), also under ``torch.autocast``;
     float16 / bfloat16 levels are read as float32.
 
+    Host synchronisation (what stalls a GPU): the projection's batch-index range check (one read-back)
+    and which voxels are visible (``nonzero``; the BatchNorm runs on the visible rows, a
+    data-dependent size). Both inherent; the backward has none.
+
     Example:
         >>> import torch
         >>> from mssf_blocks.geometry import CentroidProjection
@@ -261,6 +265,8 @@ class QueryInit(nn.Module):
     Shapes:
         - f_vox ``(N, C_v)``, f_img0 ``(N, C_i)``, centers ``(N, 3)`` metric ``(x, y, z)``.
         - output ``(N, out_channels)``.
+
+    No host synchronisation in forward or backward.
     """
 
     def __init__(
