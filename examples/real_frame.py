@@ -127,7 +127,9 @@ def sample_features(pyramid: List[Tensor], projections: Dict[int, object], voxel
     chans = [int(p.shape[1]) for p in pyramid]
     embed = 8
     sff = SFF(chans, embed).eval()
-    msdff = MSDFF(embed, chans[0], num_heads=2, num_levels=len(pyramid), num_points=4).eval()
+    # The pyramid here is RGB (3 channels), which 2 heads cannot split: project the values to the voxel
+    # width first (value_dim=embed), the narrow layout, instead of the paper's value_dim = value_channels.
+    msdff = MSDFF(embed, chans[0], value_dim=embed, num_heads=2, num_levels=len(pyramid), num_points=4).eval()
     lift = torch.nn.Linear(VOD_RADAR.num_channels, embed)  # fixed random query from the voxel features
     with torch.no_grad():
         for s, proj in projections.items():
@@ -244,7 +246,7 @@ def run(data_root: Path, frame_id: str, out_dir: Path, sensor: str = "radar", se
     voxels, projections, result = {}, {}, {"points": int(pts.shape[0]), "points_in_image": n_img}
     for s in STRIDES:
         vox = coarsen(base, s)
-        proj = projector(vox, pts, batch, l2i, frame.image_size)
+        proj = projector(vox, pts[:, :3], batch, l2i, frame.image_size)
         voxels[s], projections[s] = vox, proj
         n, k = int(vox.coords.shape[0]), int(proj.valid.sum())
         result[f"stride{s}"] = (n, k)

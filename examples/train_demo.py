@@ -45,8 +45,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mssf_blocks.diagnostics import blur_curves, classify_projection, plot_blur_curves  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
+from mssf_blocks.errors import MSSFError  # noqa: E402
 from mssf_examples.augment import augment_batches  # noqa: E402
 from mssf_examples.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
+from mssf_examples.distributed import AMP_MODES, resolve_amp, resolve_device  # noqa: E402
 from mssf_examples.evaluation import evaluate, format_table  # noqa: E402
 from mssf_examples.image_branch import ImageBranch  # noqa: E402
 from mssf_examples.image_pretrain import (  # noqa: E402
@@ -108,16 +110,17 @@ def scene_collate(scenes: List[Scene], features=None):
 
 
 def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
-          collate=None, augmentation=None) -> Dict:
-    """Train ``model`` in place on a seeded data order; ``collate(indices)`` builds a batch (default:
-    ``Scene.collate``); ``augmentation`` (an :class:`~mssf_examples.augment.AugmentationConfig`) augments
-    every sample, drawn from ``seed``. The loop is :func:`mssf_examples.training.train_detector`."""
+          collate=None, augmentation=None, amp_dtype=None) -> Dict:
+    """Train ``model`` in place (on its device) on a seeded data order; ``collate(indices)`` builds a batch
+    (default: ``Scene.collate``); ``augmentation`` (an :class:`~mssf_examples.augment.AugmentationConfig`)
+    augments every sample, drawn from ``seed``; ``amp_dtype`` the autocast dtype (``None``: float32).
+    The loop is :func:`mssf_examples.training.train_detector`."""
     collate = collate or scene_collate(scenes)
     order = batch_order(len(scenes), batch_size, steps, seed)
     batches = (collate(idx) for idx in order)
     if augmentation is not None:  # the scenes' 7 columns are VoD's
         batches = augment_batches(batches, VOD_RECIPE.feature_kinds, augmentation, seed)
-    return train_detector(model, batches, steps, lr, desc=f"train {desc}")
+    return train_detector(model, batches, steps, lr, desc=f"train {desc}", amp_dtype=amp_dtype)
 
 
 def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None) -> List[Dict[str, torch.Tensor]]:
@@ -136,9 +139,10 @@ def semantic_scores(model, scenes: List[Scene], batch_size: int, collate=None):
     for i in range(0, len(scenes), batch_size):
         chunk = scenes[i:i + batch_size]
         batch = collate(list(range(i, i + len(chunk))))
+        batch = batch.to(next(model.parameters()).device)
         _, out, pts, pb = model.extract(batch)
         v = out.seg_voxels
-        proj = projector(v, pts, pb, batch.lidar2img, batch.image_size)
+        proj = projector(v, pts[:, :3], pb, batch.lidar2img, batch.image_size)
         s = torch.sigmoid(out.seg_logits.float())
         classes.append(classify_projection(proj, [c.gt_boxes for c in chunk],
                                            boxes_2d=[c.gt_boxes_2d for c in chunk], image_size=batch.image_size))
@@ -310,6 +314,10 @@ def parse_args(argv=None):
     ap.add_argument("--figure-scenes", type=int, default=3)
     ap.add_argument("--threads", type=int, default=DEFAULT_THREADS,
                     help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
+    ap.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda or cuda:N: where the "
+                    "detectors train and predict (the image branch pre-training stays on the CPU)")
+    ap.add_argument("--amp", choices=tuple(AMP_MODES), default="off",
+                    help="mixed precision of the detector training (bf16 / fp16 autocast; see docs/gpus.md)")
     ap.add_argument("--quick", action="store_true", help="tiny run (a few steps and scenes) for tests")
     ap.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = ap.parse_args(argv)
@@ -329,6 +337,11 @@ def parse_args(argv=None):
             ap.error(f"--{name.replace('_', '-')}: expected a positive int, got {getattr(args, name)}")
     if args.batch_size > args.train_scenes:
         ap.error(f"--batch-size ({args.batch_size}) must be <= --train-scenes ({args.train_scenes})")
+    try:
+        args.device = resolve_device(args.device)
+        args.amp_dtype = resolve_amp(args.amp, args.device, args.detector)
+    except MSSFError as exc:
+        ap.error(str(exc))
     return args
 
 
@@ -413,7 +426,7 @@ def _run(args) -> int:
     for name, n in blocks.items():
         torch.manual_seed(args.seed)  # same initialisation stream for both models
         model = build_detector(args.detector, preset, num_fusion_blocks=n, fusion=args.fusion,
-                               image_features=image_source if n else "backbone")
+                               image_features=image_source if n else "backbone").to(args.device)
         val_collate = fusion_collate_val if n else None
         if ckpt is not None:
             if name not in ckpt["models"]:
@@ -424,7 +437,7 @@ def _run(args) -> int:
         else:
             log = train(model, train_scenes, args.steps, args.batch_size, args.lr, args.seed, name,
                         collate=fusion_collate_train if n else None,
-                        augmentation=augmentation if augmented[name] else None)
+                        augmentation=augmentation if augmented[name] else None, amp_dtype=args.amp_dtype)
             timings[name] = {"train_seconds": log["seconds"], "seconds_per_step": log["seconds_per_step"]}
             histories[name] = log["history"]
         t0 = time.perf_counter()
@@ -435,7 +448,7 @@ def _run(args) -> int:
         timings[name]["eval_seconds"] = time.perf_counter() - t0
         timings[name]["parameters"] = sum(p.numel() for p in model.parameters())
         models[name] = model
-    config = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    config = {k: (str(v) if isinstance(v, (Path, torch.device, torch.dtype)) else v) for k, v in vars(args).items()}
     if args.save_checkpoint:
         args.save_checkpoint.parent.mkdir(parents=True, exist_ok=True)
         state = {"models": {k: m.state_dict() for k, m in models.items()}, "config": config}

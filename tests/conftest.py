@@ -59,3 +59,14 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+#: The devices the device-parametrised tests run on: the CPU, plus CUDA when this torch build sees a GPU.
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """``torch.device`` to run the test on: once per entry of :data:`DEVICES` (``cpu``; ``cuda`` where
+    available), so a GPU machine runs the same assertions (``benchmarks/gpu_check.py``)."""
+    return torch.device(request.param)

@@ -93,11 +93,17 @@ BLOCKS_BY_KEY: Dict[Tuple[str, str], Block] = {b.key: b for b in ALL_BLOCKS}
 _SIGNATURES = "API signature listing (shapes and `-> result` annotations, not Python)"
 
 FRAGMENTS: Dict[Tuple[str, str], str] = {
+    ("docs/frameworks.md", "from mssf_blocks.integrations.openpcdet import augmentor_order, fusion_inputs_from_batch_dict"):
+        "runs inside an OpenPCDet model (batch_dict, cfg, fusion_block are OpenPCDet's); "
+        "tests/integrations/test_openpcdet_adapter.py builds such batches and calls it",
+    ("docs/frameworks.md", "from mssf_blocks.integrations.mmdet3d import fusion_inputs_from_data_samples"):
+        "runs inside an mmdet3d detector (its batch_inputs_dict, data samples, img_feats); "
+        "tests/integrations/test_mmdet3d_adapter.py builds such batches and calls it",
     ("docs/diagnostics.md", "classify_feature_blurring(centroids (N, 3+), batch_index (N,), uv (N, V, 2) | (N, 2),"):
         _SIGNATURES,
-    ("docs/evaluation.md", "from mssf_examples.evaluation import evaluate, format_table, VOD_IOU_THRESHOLDS, DEFAULT_REGIONS"):
-        "data-format sketch: `(K, 7)` / `...` stand for tensors and more frames, `baseline_results` for a "
-        "second run (tests/examples/test_evaluation.py covers evaluate / format_table)",
+    ("docs/evaluation.md", "from mssf_examples.evaluation import evaluate, format_table"):
+        "data-format sketch: `label_dir` / `frame_ids` stand for a dataset, `(K, 7)` for tensors, `baseline_results` "
+        "for a second run (tests/examples/test_evaluation_*.py cover evaluate / format_table per protocol)",
     ("docs/fusion.md", "FusionInputs(image_features, lidar2img, image_size, points, points_batch, points_to_sensor=None)"):
         _SIGNATURES,
     ("docs/heads.md", "SemanticGuidedHead(in_channels: int, hidden: Sequence[int] = (256, 256), use_loss: bool = True,"):
@@ -451,7 +457,7 @@ def fusion_swap_openpcdet(run, tmp_path):
     ns = {"backbone": backbone, "spconv": spconv, "point_cloud_range": ex.POINT_CLOUD_RANGE, "voxel_size": ex.VOXEL_SIZE,
           "fpn_levels": fpn(2, ex.IMAGE_SIZE, cameras=1), "lidar2img": frame.lidar2img, "image_size": ex.IMAGE_SIZE,
           "points": frame.points, "points_batch": frame.points_batch, "x": x}
-    with torch.no_grad():  # spconv 2.3 on CPU has no backward
+    with torch.no_grad():  # forward only (the README drop-in block checks spconv backward on CPU)
         ns = run(ns, insert={"x = stage(x, inputs) if isinstance(stage, FusionBlock) else stage(x)": "stage = backbone.conv2"})
         out = ns["x"]
         assert isinstance(out, spconv.SparseConvTensor) and out.features.shape[1] == 32

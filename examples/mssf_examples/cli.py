@@ -31,18 +31,20 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
-import torch.nn.functional as F
 
-from mssf_blocks import apply_image_augmentation, image_augmentation_matrix
 from mssf_blocks.errors import MSSFError
 
+from . import distributed
 from .augment import add_augmentation_arguments, augment_batches, augmentation_from_args
+from .cli_data import (  # noqa: F401 - scale_batch, _Collate: part of this module's interface
+    _Collate, _CollateWithFrames, _Frames, _jsonable, _loader, _open_dataset, _preset_from_json, _preset_to_json,
+    scale_batch)
 from .detectors import DETECTOR_NAMES, build_detector
 from .evaluation import TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
 from .kitti_export import kitti_lines, write_kitti_file
-from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch, parse_labels
+from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, parse_labels
 from .presets import TJ4D, TJ4D_RECIPE, VOD, VOD_RECIPE, DetectorPreset, TrainingRecipe, authors_preset, tiny_preset
-from .training import batch_order, load_checkpoint, predict, save_checkpoint, train_detector
+from .training import batch_order, load_checkpoint, load_resume_state, predict, save_checkpoint, train_detector
 from .threads import DEFAULT_THREADS
 
 __all__ = ["DatasetSpec", "DATASETS", "cli_tiny_preset", "build_parser", "main"]
@@ -138,6 +140,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=_non_negative_int, default=0,
                    help="data-loading worker processes (default 0: load in the main process)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    distributed.add_arguments(p, training=p.prog.endswith(" train"))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -192,83 +195,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # --------------------------------------------------------------------------------------------------
-# Data
-# --------------------------------------------------------------------------------------------------
-def _open_dataset(ap: argparse.ArgumentParser, root: Path, spec: DatasetSpec, sensor: Optional[str],
-                  split: str) -> KittiFormatDataset:
-    if not root.is_dir():
-        ap.error(f"--data-root: expected an existing dataset folder, got {root} (not found)")
-    try:
-        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=None if split == "all" else split,
-                                  class_names=spec.class_names)
-    except (FileNotFoundError, MSSFError) as exc:
-        ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}")
-    raise AssertionError("unreachable")  # pragma: no cover
-
-
-class _Frames(torch.utils.data.Dataset):
-    """Frames of a :class:`KittiFormatDataset` for a ``DataLoader`` (labels optional)."""
-
-    def __init__(self, ds: KittiFormatDataset, with_labels: bool) -> None:
-        self.ds, self.with_labels = ds, with_labels
-
-    def __len__(self) -> int:
-        return len(self.ds)
-
-    def __getitem__(self, i: int) -> Frame:
-        return self.ds.load(self.ds.frame_ids[i], with_labels=self.with_labels)
-
-
-def scale_batch(batch, scale: float):
-    """Resize a batch's images by ``scale`` and map ``lidar2img`` to the resized pixels.
-
-    With pixel ``i``'s centre at ``i`` and edges kept aligned, ``u' = (u + 0.5) s_x - 0.5`` where
-    ``s_x = W' / W`` (the same for ``v``), i.e. ``lidar2img' = S @ lidar2img`` with
-    ``S = [[s_x, 0, (s_x - 1) / 2], [0, s_y, (s_y - 1) / 2], [0, 0, 1]]``.
-    """
-    if scale == 1.0:
-        return batch
-    b, v, c, h, w = batch.images.shape
-    nh, nw = max(1, round(h * scale)), max(1, round(w * scale))
-    images = F.interpolate(batch.images.flatten(0, 1), size=(nh, nw), mode="bilinear", align_corners=False,
-                           antialias=nh < h).unflatten(0, (b, v))
-    s, _ = image_augmentation_matrix((h, w), resize=(nh, nw))
-    lidar2img = apply_image_augmentation(batch.lidar2img, s)
-    return dataclasses.replace(batch, images=images, lidar2img=lidar2img, image_size=None)
-
-
-def _loader(frames: _Frames, batches: Sequence[Sequence[int]], workers: int, collate):
-    return torch.utils.data.DataLoader(frames, batch_sampler=batches, num_workers=workers, collate_fn=collate)
-
-
-# --------------------------------------------------------------------------------------------------
-# Config <-> preset
-# --------------------------------------------------------------------------------------------------
-def _tuples(x):
-    return tuple(_tuples(v) for v in x) if isinstance(x, (list, tuple)) else x
-
-
-def _preset_to_json(p: DetectorPreset) -> Dict:
-    return {f.name: getattr(p, f.name) for f in dataclasses.fields(p)}
-
-
-def _preset_from_json(d: Dict) -> DetectorPreset:
-    return DetectorPreset(**{k: _tuples(v) for k, v in d.items()})
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Path):
-        return str(x)
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
-# --------------------------------------------------------------------------------------------------
 # Commands
 # --------------------------------------------------------------------------------------------------
 def _train(ap: argparse.ArgumentParser, args) -> int:
@@ -301,7 +227,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         cli_tiny_preset(spec.preset, image_size)
     preset = dataclasses.replace(base, image_size=image_size,
                                  freeze_image_branch=base.freeze_image_branch and not args.train_image_branch)
-    torch.manual_seed(args.seed)
+    torch.manual_seed(args.seed)  # the same initial weights in every process
     model = build_detector(args.detector, preset, num_fusion_blocks=args.fusion_blocks, fusion=args.fusion,
                            score_threshold=args.score_threshold)
     if args.image_weights is not None and model.image_branch is not None:
@@ -327,17 +253,44 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         score_threshold=args.score_threshold, num_frames=len(ds), preset=_preset_to_json(preset),
         augmentation=dataclasses.asdict(augmentation), recipe=recipe.name,
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    order = batch_order(len(ds), batch_size, steps, args.seed)
+    run = _runtime(ap, args, batch_size)
+    resume = _resume_state(ap, args.resume, _jsonable(config)) if args.resume is not None else None
+    if resume is not None:
+        model.load_state_dict(resume["model"])
+    config.update(run.config)
+    dist, device = run.dist, run.device
+    if dist.is_main:
+        args.out.mkdir(parents=True, exist_ok=True)
+    start = resume["step"] if resume is not None else 0
+    # every process reads its share of the same global batches (one global batch per optimiser step)
+    order = distributed.shard_batches(batch_order(len(ds), batch_size, steps, args.seed)[start:], dist.rank,
+                                      dist.world_size, args.accumulate)
     collate = _Collate(args.image_scale, preset.pillar_range if args.detector == "pointpillars"
                        else preset.point_cloud_range)
-    print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} frames "
-          f"of {ds!r}: {steps} steps of {batch_size}", file=sys.stderr)
-    batches = _loader(_Frames(ds, True), order, args.workers, collate)
+    if dist.is_main:
+        print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} "
+              f"frames of {ds!r}: {steps} steps of {batch_size} ({run.describe()})"
+              + (f", resumed at step {start}" if resume else ""), file=sys.stderr)
+    distributed.init_distributed(dist, device)
+    model = distributed.wrap_model(model, device, dist, args.sync_bn)
+
+    def checkpoint(step: int, state: Dict) -> None:
+        if dist.is_main:
+            save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config), state, step)
+
+    batches = _loader(_Frames(ds, True), order, args.workers, collate, device)
     if not augmentation.is_identity:  # drawn in this process, after the loader: the seed alone fixes the draws
-        batches = augment_batches(batches, recipe.feature_kinds, augmentation, args.seed)
+        # every process its own stream (rank 0's is a single process's); a resumed run draws afresh
+        batches = augment_batches(batches, recipe.feature_kinds, augmentation,
+                                  args.seed + 1_000_003 * dist.rank + 7_919 * start)
     log = train_detector(model, batches, steps, args.lr,
-                         desc=f"train {args.detector}", progress=not args.no_progress)
+                         desc=f"train {args.detector}", progress=not args.no_progress and dist.is_main,
+                         device=device, amp_dtype=run.amp_dtype, accumulate=args.accumulate, start_step=start,
+                         state=None if resume is None else resume["train_state"], checkpoint=checkpoint,
+                         checkpoint_every=args.checkpoint_every)
+    if not dist.is_main:  # rank 0 alone writes and evaluates
+        return 0
+    model = distributed.unwrap_model(model)
     config["train_seconds"] = log["seconds"]
     config["final_loss"] = log["history"][-1]
     ckpt = save_checkpoint(args.out / "checkpoint.pt", model, _jsonable(config))
@@ -351,30 +304,18 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     return 0
 
 
-class _Collate:
-    """Picklable ``collate_fn``: frames -> batch (images scaled by ``scale``).
-
-    With ``gt_range = (x0, y0, z0, x1, y1, z1)`` the ground truth keeps boxes whose centre has
-    ``x0 <= x < x1`` and ``y0 <= y < y1`` (as OpenPCDet does before training: boxes the BEV grid cannot
-    hold would give the heads targets outside their maps).
-    """
-
-    def __init__(self, scale: float, gt_range: Optional[Sequence[float]] = None) -> None:
-        self.scale, self.gt_range = scale, None if gt_range is None else tuple(float(v) for v in gt_range)
-
-    def __call__(self, frames: List[Frame]):
-        batch = frames_to_batch(frames)
-        if self.gt_range is not None:
-            x0, y0, _, x1, y1, _ = self.gt_range
-            keep = [(g[:, 0] >= x0) & (g[:, 0] < x1) & (g[:, 1] >= y0) & (g[:, 1] < y1) for g in batch.gt_boxes]
-            batch = dataclasses.replace(batch, gt_boxes=[g[k] for g, k in zip(batch.gt_boxes, keep)],
-                                        gt_labels=[g[k] for g, k in zip(batch.gt_labels, keep)])
-        return scale_batch(batch, self.scale)
+def _runtime(ap: argparse.ArgumentParser, args, batch_size: int) -> "distributed.Runtime":
+    try:
+        return distributed.Runtime.from_args(args, batch_size)
+    except MSSFError as exc:
+        ap.error(str(exc))
 
 
-class _CollateWithFrames(_Collate):
-    def __call__(self, frames: List[Frame]):
-        return super().__call__(frames), frames
+def _resume_state(ap: argparse.ArgumentParser, path: Path, config: Dict) -> Dict:
+    try:  # the options that must match: training.RESUME_KEYS (device, processes, --accumulate may differ)
+        return load_resume_state(path, expect_config=config)
+    except (FileNotFoundError, MSSFError) as exc:
+        ap.error(f"--resume: {exc}")
 
 
 def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size: int, workers: int,
@@ -446,7 +387,13 @@ def _eval(ap: argparse.ArgumentParser, args) -> int:
     thr = args.score_threshold if args.score_threshold is not None else config.get("score_threshold", 0.1)
     model = build_detector(config["detector"], preset, num_fusion_blocks=config["fusion_blocks"],
                            fusion=config["fusion"], score_threshold=thr)
-    model.load_state_dict(state)
+    model.load_state_dict(state)  # the checkpoint's tensors are on the CPU, whatever device wrote them
+    try:
+        if distributed.distributed_from_env().enabled:
+            raise MSSFError("eval runs in one process; start it without torchrun")
+        model.to(distributed.resolve_device(args.device))
+    except MSSFError as exc:
+        ap.error(str(exc))
     config = dict(config, score_threshold=thr)
     out = args.out if args.out is not None else args.checkpoint.parent / f"eval_{args.split}"
     _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint, progress=not args.no_progress)
@@ -465,7 +412,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         # errors name the sub-command (its own parser prints the usage)
         return _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+    except Exception as exc:
+        distributed.report_failure(exc)  # under torchrun: which rank failed, before torchrun stops the others
+        raise
     finally:
+        distributed.shutdown()
         torch.set_num_threads(saved_threads)
 
 

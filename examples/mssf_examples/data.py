@@ -118,12 +118,18 @@ class RadarCameraBatch:
         )
         return pts, batch
 
-    def to(self, device: torch.device | str) -> "RadarCameraBatch":
-        """A copy with every tensor on ``device``."""
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> "RadarCameraBatch":
+        """A copy with every tensor on ``device`` (``non_blocking`` copies from pinned memory overlap)."""
+        return self._map(lambda x: x.to(device, non_blocking=non_blocking))
 
+    def pin_memory(self) -> "RadarCameraBatch":
+        """A copy in page-locked memory (``DataLoader(pin_memory=True)`` calls this), for fast host-to-GPU copies."""
+        return self._map(lambda x: x.pin_memory())
+
+    def _map(self, fn) -> "RadarCameraBatch":
         def move(x):
             if isinstance(x, Tensor):
-                return x.to(device)
+                return fn(x)
             if isinstance(x, (list, tuple)):
                 return [move(t) for t in x]
             return x

@@ -1,6 +1,6 @@
 """Thread defaults of the demo, the training / evaluation CLI and the test suite, in one place.
 
-These are machine-dependent choices; ``benchmarks/threads_under_load.py`` measured them (numbers in
+These are machine-dependent choices; ``benchmarks/threads.py`` measured them (numbers in
 ``docs/performance.md``, "Threads under load"). Imports nothing, so that a script can read it before
 torch is imported.
 

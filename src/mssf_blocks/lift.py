@@ -13,7 +13,7 @@ from typing import Sequence, Tuple, Union
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_index_range, check_positive_int, check_shape
+from ._checks import check_index_range, check_positive_int, check_shape, to_module_dtype
 from .errors import MSSFError
 from .functional.lift import (
     _check_stride2,
@@ -85,6 +85,10 @@ class PillarLift(nn.Module):
         - bev: ``(B, C, H_b, W_b)``; voxels: :class:`SparseVoxels` with ``spatial_shape (D, H, W)``.
         - output: :class:`SparseVoxels` with ``features (N, C)``.
 
+    Host synchronisation: one read-back in ``forward`` and in :meth:`to_bev` (the coordinate range
+    checks, all at once); :meth:`to_bev_sparse` also sizes the occupied pillars (``torch.unique``).
+    The backward has none.
+
     Example:
         >>> import torch
         >>> from mssf_blocks.functional.lift import voxelize_points
@@ -141,6 +145,8 @@ class PillarLift(nn.Module):
                 f"got {tuple(bev.shape)}"
             )
         emb = None if self.height_embedding is None else self.height_embedding.weight
+        if emb is not None:  # the dtype rule (docs/conventions.md): bev is read in the embedding's dtype
+            bev = to_module_dtype(bev, "bev", emb.dtype, "PillarLift")
         feats = pillar_lift(bev, voxels.coords, emb, self.stride)
         return voxels.replace(features=feats)
 

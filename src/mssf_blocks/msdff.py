@@ -108,6 +108,13 @@ class MSDFF(nn.Module):
     module), also under ``torch.autocast``; float16 / bfloat16 levels are read as float32
     (``docs/fusion.md``, "Precision and mixed-precision training").
 
+    Host synchronisation (what stalls a GPU), all data-dependent and so inherent: the projection's
+    batch-index range check; ``valid.all()`` (one camera seeing every voxel takes a path without
+    gathers); with several cameras the ``(voxel, camera)`` pairs (``nonzero``); the visible rows of the
+    output BatchNorm (``nonzero``); ``method="auto"`` and ``"fast"`` also size their per-level gathers
+    by the pixels the voxels touch. None grows with the number of voxels (``tests/test_devices.py``
+    counts them on CUDA).
+
     Weights: ``sampling_offsets (M*L*P*2, E)``, ``attention_weights (M*L*P, E)``, ``value_proj
     (D_v, C)``, ``output_proj (E, D_v)`` (plus biases) have the names and layout of Deformable DETR's
     ``MSDeformAttn`` and of mmcv's / the MSSF authors' ``MSDeformableAttention`` (their

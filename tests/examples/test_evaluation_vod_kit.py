@@ -207,3 +207,69 @@ def test_vod_protocol_equals_official_kit(tmp_path, capsys):
     with capsys.disabled():
         print(f"\nvod kit oracle: max |ours - kit| per set {[(s, round(d, 6)) for s, d, _ in worst]}, "
               f"{time.perf_counter() - t0:.1f} s")
+
+
+def exact_results(gt_frames, det_frames):
+    """``protocol="exact"`` on the same objects as sensor-frame boxes (VoD calibration)."""
+    from mssf_examples.kitti_io import camera_boxes_to_sensor
+
+    calib = calibration()
+
+    def convert(objects, with_scores):
+        keep = [i for i, n in enumerate(objects.names) if n in CLASSES]
+        idx = torch.tensor(keep, dtype=torch.long)
+        boxes = camera_boxes_to_sensor(objects.location[idx], objects.dimensions[idx], objects.rotation_y[idx], calib)
+        out = dict(boxes=boxes, labels=torch.tensor([CLASSES.index(objects.names[i]) for i in keep], dtype=torch.long))
+        if with_scores:
+            out["scores"] = objects.score[idx] if objects.score is not None else torch.zeros(0, dtype=torch.float64)
+        return out
+
+    gts = [convert(parse_labels("\n".join(g)), False) for g in gt_frames]
+    dets = [convert(parse_labels("\n".join(d)), True) for d in det_frames]
+    res = evaluate(dets, gts, CLASSES, protocol="exact")
+    return {(region, cname, metric, rp): res[region][cname][f"AP{metric}_{rp}"]
+            for region in ("entire_area", "driving_corridor") for cname in CLASSES
+            for metric in ("3D", "BEV") for rp in ("R11", "R40")}
+
+
+def test_exact_protocol_is_not_the_kit(capsys):
+    # The oracle can tell protocols apart: the exact protocol misses the kit by whole AP points here.
+    gt_frames, det_frames = generate_set(1)
+    ours, exact = our_results(gt_frames, det_frames), exact_results(gt_frames, det_frames)
+    diffs = {k: exact[k] - ours[k] for k in ours}
+    assert max(abs(v) for v in diffs.values()) > 1.0
+    with capsys.disabled():
+        for region in ("entire_area", "driving_corridor"):
+            print(f"\nexact - vod ({region}): " + ", ".join(
+                f"{c} {m} {rp} {diffs[(region, c, m, rp)]:+.2f}" for c in CLASSES for m in ("3D", "BEV")
+                for rp in ("R11", "R40")))
+
+
+def test_kit_rotated_iou_wrong_cases():
+    # vod/evaluation/rotate_iou_cpu.py (float32 RRPN code) on boxes (x, z, l, w, ry): identical boxes
+    # and a square against itself turned by 90 degrees should give 1; the kit returns 0, 1/3, or values
+    # outside [0, 1]. Ours (box_iou_bev on the same footprints) gives 1 everywhere.
+    load_kit()
+    rot = sys.modules["_vod_kit_eval.rotate_iou_cpu"]
+
+    def kit_iou(a, b):
+        return float(rot.rotate_iou_eval(np.array([a], dtype=np.float64), np.array([b], dtype=np.float64), -1)[0, 0])
+
+    def our_iou(a, b):
+        to = lambda r: [r[0], r[1], 0.0, r[2], r[3], 1.0, -r[4]]  # noqa: E731  (x, z) plane, yaw = -ry
+        from mssf_examples.ops.iou import box_iou_bev
+
+        return float(box_iou_bev(torch.tensor([to(a)], dtype=torch.float64), torch.tensor([to(b)], dtype=torch.float64))[0, 0])
+
+    cases = {  # (box a, box b): the kit's value
+        "identical, ry 0.3": ([0, 10, 4, 2, 0.3], [0, 10, 4, 2, 0.3], 0.0),
+        "identical, ry 1.0": ([5, 20, 4.2, 1.8, 1.0], [5, 20, 4.2, 1.8, 1.0], 1 / 3),
+        "square +90 deg, ry 0.3": ([0, 10, 2, 2, 0.3], [0, 10, 2, 2, 0.3 + math.pi / 2], 1 / 3),
+        "square +90 deg, ry 2.5": ([3, 15, 2, 2, 2.5], [3, 15, 2, 2, 2.5 + math.pi / 2], -6.6634),
+        "square +90 deg, ry 2.6": ([3, 15, 2, 2, 2.6], [3, 15, 2, 2, 2.6 + math.pi / 2], -12.0509),
+    }
+    for name, (a, b, kit_value) in cases.items():
+        assert kit_iou(a, b) == pytest.approx(kit_value, abs=1e-3), name
+        assert our_iou(a, b) == pytest.approx(1.0, abs=1e-9), name
+    # A generic pair agrees to float32 rounding (1 m shift along the length: 3 / 5 = 0.6).
+    assert kit_iou([0, 10, 4, 2, 0.0], [1, 10, 4, 2, 0.0]) == pytest.approx(0.6, abs=1e-6)

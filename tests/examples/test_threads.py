@@ -1,6 +1,6 @@
 """Thread defaults (mssf_examples/threads.py): one intra-op thread for the demo, the CLI and the tests.
 
-benchmarks/threads_under_load.py measured why: with 2 threads a demo image pre-training step took 5 s
+benchmarks/threads.py measured why: with 2 threads a demo image pre-training step took 5 s
 instead of 0.13 s while one other process kept the 2-core machine busy; with 1 thread it never lost
 more than 1.5x. The default used to be 2 in the demo and the CLI (and torch's core count in the tests).
 """

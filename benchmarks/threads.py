@@ -15,7 +15,7 @@ configuration: ResNet-18 + FPN, 8 base channels, batch 8, 160 x 256 generated sc
 warm-up step, and reports the median seconds per step. The machine's other load (``/proc/loadavg``)
 is printed with each row: on a shared machine "no competitor" is not "idle".
 
-Usage: ``python benchmarks/threads_under_load.py [--steps 3] [--competitor-threads 1]
+Usage: ``python benchmarks/threads.py [--steps 3] [--competitor-threads 1]
 [--threads 1 2] [--json out.json]`` (about 2-4 minutes on a 2-core machine).
 """
 
