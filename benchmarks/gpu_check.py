@@ -389,6 +389,16 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=None, help="timed repeats (default 5; 2 with --smoke)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
+    try:  # a machine without a GPU is told so at once, before any install
+        import torch
+
+        if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
+            print(f"gpu_check: --device {args.device}: torch {torch.__version__} sees no CUDA GPU "
+                  f"(torch.version.cuda = {torch.version.cuda}); install a CUDA build of torch, or run --smoke "
+                  f"--device cpu", file=sys.stderr)
+            return 2
+    except ImportError:
+        pass  # reported by ensure_packages
     packages = ensure_packages(install=not args.skip_install)
     missing = {k: v for k, v in packages.items() if str(v).startswith("MISSING")}
     if "torch" in missing or "mssf_blocks" in missing:
