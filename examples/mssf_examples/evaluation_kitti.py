@@ -27,6 +27,7 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
+from .kitti_export import kitti_objects
 from .kitti_io import Calibration, KittiObjects
 from .ops.iou import box_iou_bev_3d
 
@@ -84,8 +85,6 @@ def as_objects(entry, other: Optional[Mapping], class_names: Sequence[str], what
     ``calib`` (:class:`~mssf_examples.kitti_io.Calibration`) and ``image_size (H, W)``, taken from the
     entry or else from ``other`` (the same frame's entry on the other side).
     """
-    from .kitti_export import kitti_objects  # kitti_export imports kitti_io only; keep the cycle out
-
     name = f"{what}[{index}]"
     if isinstance(entry, KittiObjects):
         if with_scores and entry.score is None and len(entry):
