@@ -40,6 +40,17 @@ def is_tracing() -> bool:
     return bool(onnx is not None and onnx.is_in_onnx_export())
 
 
+try:  # (private, hence guarded) FakeTensors carry no data: torch.export builds its inputs' dataclasses
+    from torch._subclasses.fake_tensor import is_fake as _is_fake  # from them before is_exporting() is set
+except ImportError:  # pragma: no cover - depends on the torch version
+    def _is_fake(x: Any) -> bool:
+        return False
+
+
+def _has_no_data(x: Any) -> bool:
+    return isinstance(x, Tensor) and _is_fake(x)
+
+
 def value_check(fn: _F) -> _F:
     """Mark a check that reads tensor values: it runs eagerly and is skipped while :func:`is_tracing`.
 
@@ -49,7 +60,7 @@ def value_check(fn: _F) -> _F:
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        if is_tracing():
+        if is_tracing() or (args and _has_no_data(args[0])):
             return args[0] if args else None
         return fn(*args, **kwargs)
 
@@ -103,7 +114,7 @@ def check_shape(
     for size, d in zip(x.shape, spec):
         if d is None:
             continue
-        if isinstance(d, int):
+        if isinstance(d, (int, torch.SymInt)):  # (a SymInt: a size read from another tensor under export)
             if size != d:
                 raise MSSFError(
                     f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)}"
