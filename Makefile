@@ -14,6 +14,13 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -c "import torch" 2>/dev/null || $(PY) -m pip install --quiet "$(TORCH)"
 	$(PY) -m pip install --quiet -e ".[dev,examples]"
+	# The official VoD evaluation kit, for the oracle test only; --no-deps: its visualisation extras
+	# (k3d, ...) are never used by vod.evaluation, which needs numba (in the dev extra) and numpy.
+	$(PY) -m pip install --quiet --no-deps "vod-tudelft==1.0.3"
+	# test-only (tests/integrations): mmdet3d's registry. --no-deps because the wheels' own requirements
+	# pull mmcv's compiled build and opencv-python; the registry needs only these (about a minute, measured).
+	$(PY) -m pip install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0
+	$(PY) -m pip install --quiet addict yapf termcolor rich opencv-python-headless
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -22,11 +29,39 @@ demo: $(STAMP)
 quickstart: $(STAMP)
 	$(PY) examples/quickstart.py
 
-test: $(STAMP)
-	$(PY) -m pytest
+# The docs site (mkdocs.yml) is built with --strict after the tests: a broken link fails `make test`.
+DOCS_STAMP := $(VENV)/.mssf-docs-installed
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[docs]"
+	touch $(DOCS_STAMP)
 
-bench: $(STAMP)
-	$(PY) benchmarks/centroids.py
+test: $(STAMP) $(DOCS_STAMP)
+	$(PY) -m pytest
+	$(PY) -m mkdocs build --strict --site-dir $(VENV)/site  # not --quiet: it hides the warnings --strict counts
+
+# One target per benchmark script: `make bench-centroids`, `make bench-msdff`, `make bench-detectors`,
+# `make bench-threads`, ... (any benchmarks/NAME.py, options in BENCH_ARGS); `make bench` runs them all.
+# Durations: docs/performance.md ("Benchmark targets"). Not gpu_check.py: a device check (`make gpu-check`).
+BENCHMARKS := $(patsubst benchmarks/%.py,%,$(filter-out benchmarks/_% benchmarks/gpu_check.py,$(wildcard benchmarks/*.py)))
+BENCH_ARGS ?=
+
+bench: $(addprefix bench-,$(BENCHMARKS))
+
+# (a pattern rule, not .PHONY: make skips implicit rules for phony targets)
+bench-%: benchmarks/%.py $(STAMP)
+	$(PY) $< $(BENCH_ARGS)
 
 clean-venv:
 	rm -rf $(VENV)
+
+# The demo plus its fusion model trained with the VoD recipe's augmentation at the same budget
+# (docs/training.md); the first two models are the same as `make demo`'s.
+.PHONY: demo-augmentation
+demo-augmentation: $(STAMP)
+	$(PY) examples/train_demo.py --augmentation compare --out outputs/demo_augmentation
+
+# The device check on a GPU machine (tests on CUDA, MSDFF benchmark, one step per detector; docs/gpus.md).
+# It installs what it needs into the environment it runs in (spconv for the GPU's CUDA version).
+.PHONY: gpu-check
+gpu-check: $(STAMP)
+	$(PY) benchmarks/gpu_check.py --out outputs/gpu_check

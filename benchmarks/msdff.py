@@ -3,11 +3,14 @@
 VoD-like setting: one 1216 x 1936 camera image padded to a multiple of 32 (1216 x 1952), FPN levels
 P2-P6 (strides 4, 8, 16, 32, 64; ``ceil(H / s) x ceil(W / s)``) with 256 channels, batch 1;
 8 heads, 4 points, 5 levels; cases (N = 2,500 voxels, C = 32) and (N = 8,000, C = 64), every voxel
-visible (Q = N queries). Both paths compute the same thing from the same inputs and parameters:
+visible (Q = N queries). Two value widths (``--widths``): "paper" (MSDFF's default and the authors':
+``value_proj`` 256 -> 256, 8 heads of 32 channels, ``output_proj`` 256 -> C) and "narrow" (``value_proj``
+256 -> C, heads of C / 8, ``output_proj`` C -> C: ``MSDFF(value_dim=embed_dim)``). All paths compute the
+same thing from the same inputs and parameters:
 
-* reference (Deformable DETR's pure-PyTorch formulation): ``value_proj`` (Linear 256 -> C) over every
+* reference (Deformable DETR's pure-PyTorch formulation): ``value_proj`` (Linear 256 -> D_v) over every
   pixel of every level, per-level ``F.grid_sample`` of the per-head values
-  (``ms_deform_sample(method="reference")``, Mv = M, D = C / M), weighted sum, ``output_proj``;
+  (``ms_deform_sample(method="reference")``, Mv = M, D = D_v / M), weighted sum, ``output_proj``;
 * fast: ``ms_deform_sample(method="fast", Mv=1, return_mass=True)`` on the raw 256-channel maps, then
   the per-head value projection (einsum with ``value_proj.weight`` split per head) + ``bias * mass``,
   then ``output_proj``.
@@ -48,7 +51,8 @@ every call (expensive in the VM we measure on); ``--default-malloc`` times with 
 instead (memory columns then meaningless).
 
 Usage: ``python benchmarks/msdff.py [--quick] [--repeats 3] [--threads 2] [--chunk-size 1024]
-[--kinds fast fused touched] [--distributions uniform "radar band"] [--default-malloc] [--json out.json]``
+[--kinds fast fused touched] [--distributions uniform "radar band"] [--widths paper narrow]
+[--default-malloc] [--json out.json]``
 """
 
 from __future__ import annotations
@@ -76,14 +80,15 @@ HEADS, POINTS = 8, 4
 class ImagePath(nn.Module):
     """The parameters of MSDFF's image path (Deformable DETR names) and its two formulations."""
 
-    def __init__(self, embed_dim: int, levels: int = len(STRIDES)) -> None:
+    def __init__(self, embed_dim: int, levels: int = len(STRIDES), value_dim: int = None) -> None:
         super().__init__()
         m, l, p = HEADS, levels, POINTS
-        self.m, self.l, self.p, self.d = m, l, p, embed_dim // m
+        value_dim = embed_dim if value_dim is None else value_dim
+        self.m, self.l, self.p, self.d = m, l, p, value_dim // m
         self.sampling_offsets = nn.Linear(embed_dim, m * l * p * 2)
         self.attention_weights = nn.Linear(embed_dim, m * l * p)
-        self.value_proj = nn.Linear(IMAGE_CHANNELS, embed_dim)
-        self.output_proj = nn.Linear(embed_dim, embed_dim)
+        self.value_proj = nn.Linear(IMAGE_CHANNELS, value_dim)
+        self.output_proj = nn.Linear(value_dim, embed_dim)
         # Deformable DETR start (direction grid of 1..P pixels per head) plus small query-dependent
         # offsets and weights, so that points differ between queries as after training.
         g = torch.Generator().manual_seed(1)
@@ -108,7 +113,7 @@ class ImagePath(nn.Module):
         values = []
         for f in feats:  # every pixel of every level goes through value_proj
             h, w = f.shape[-2:]
-            v = self.value_proj(f.permute(0, 2, 3, 1))  # (1, h, w, E)
+            v = self.value_proj(f.permute(0, 2, 3, 1))  # (1, h, w, D_v)
             values.append(v.view(1, h, w, self.m, self.d).permute(0, 3, 4, 1, 2))  # (1, M, d, h, w)
         img_index = torch.zeros(query.shape[0], dtype=torch.long)
         out = ms_deform_sample(values, img_index, loc, wt, method="reference")  # (Q, M, d)
@@ -171,7 +176,8 @@ def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
     with torch.no_grad():
         sizes = [f.shape[-2:] for f in feats]
         shared = measure(lambda: path.locations_and_weights(query, uv, sizes), repeats)[0]
-        shared += measure(lambda: path.output_proj(query), repeats)[0]
+        heads = torch.zeros(query.shape[0], path.output_proj.in_features)
+        shared += measure(lambda: path.output_proj(heads), repeats)[0]
         loc, _ = path.locations_and_weights(query, uv, sizes)
         levels = []
         for lvl, f in enumerate(feats):
@@ -211,9 +217,9 @@ def voxel_uv(n: int, distribution: str) -> torch.Tensor:
 
 
 def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, chunk_size: int, kinds_wanted,
-             seed: int = 0):
+             seed: int = 0, width: str = "narrow"):
     torch.manual_seed(seed)
-    path = ImagePath(c)
+    path = ImagePath(c, value_dim=IMAGE_CHANNELS if width == "paper" else c)
     query = torch.randn(n, c, requires_grad=True)
     uv = voxel_uv(n, distribution)
     grad_out = torch.randn(n, c)
@@ -241,7 +247,7 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     # Agreement of outputs and of every gradient with the reference.
     out_r = path.reference(query, uv, feats)
     g_r = torch.autograd.grad(out_r, params, grad_out)
-    row = {"N": n, "C": c, "voxels": distribution}
+    row = {"width": width, "N": n, "C": c, "voxels": distribution}
     for kind in ours:
         out_k = kinds[kind](query, uv, feats)
         g_k = torch.autograd.grad(out_k, params, grad_out)
@@ -291,6 +297,11 @@ def main() -> None:
                     help="paths compared with the reference")
     ap.add_argument("--distributions", nargs="+", default=["uniform", "radar band"],
                     choices=["uniform", "radar band"], help="where the voxels project (see the docstring)")
+    ap.add_argument("--cases", nargs="+", default=None, metavar="N:C",
+                    help="voxels N and voxel channels C per case (default 500:32 2500:32 8000:64)")
+    ap.add_argument("--widths", nargs="+", default=["paper", "narrow"], choices=["paper", "narrow"],
+                    help="value widths: paper (value_proj 256 -> 256, output_proj 256 -> C) and/or narrow "
+                         "(256 -> C, C -> C)")
     ap.add_argument("--default-malloc", action="store_true",
                     help="keep glibc's default allocator settings: times without the page fault that the "
                          "memory measurement's 64 KiB mmap threshold adds to every larger allocation; the "
@@ -303,7 +314,12 @@ def main() -> None:
         size, size2x, sizes, repeats = (608, 976), (864, 1376), [(1000, 32), (3000, 64)], 3
     else:
         size, size2x, sizes, repeats = (1216, 1952), (1728, 2752), [(500, 32), (2500, 32), (8000, 64)], 3
-    cases = [(n, c, dist) for dist in args.distributions for n, c in sizes]
+    if args.cases:
+        try:
+            sizes = [tuple(int(x) for x in case.split(":")) for case in args.cases]
+        except ValueError:
+            ap.error(f"--cases: expected N:C pairs, got {args.cases}")
+    cases = [(n, c, dist, width) for width in args.widths for dist in args.distributions for n, c in sizes]
     repeats = args.repeats or repeats
     feats, feats2x = make_features(*size), make_features(*size2x, seed=1)
     load = os.getloadavg()
@@ -311,11 +327,12 @@ def main() -> None:
           f"{[tuple(f.shape[-2:]) for f in feats]}, {IMAGE_CHANNELS} ch, M={HEADS}, P={POINTS}, "
           f"threads={torch.get_num_threads()}, repeats={repeats}, fused chunk={args.chunk_size}, "
           f"load average before={load[0]:.1f}, MALLOC_MMAP_THRESHOLD_={os.environ.get('MALLOC_MMAP_THRESHOLD_')}")
-    rows = [run_case(n, c, dist, feats, feats2x, repeats, args.chunk_size, args.kinds) for n, c, dist in cases]
+    rows = [run_case(n, c, dist, feats, feats2x, repeats, args.chunk_size, args.kinds, width=width)
+            for n, c, dist, width in cases]
     print(f"load average after={os.getloadavg()[0]:.1f}")
     kinds = [k for k in KINDS if k == "reference" or k in args.kinds]
     ours = kinds[1:]
-    key = ["N", "C", "voxels"]
+    key = ["width", "N", "C", "voxels"]
     agreement = key + [f"{k} {w}" for k in ours for w in ("max|out diff|", "max rel grad diff")]
     times = key + [f"{k} {w}" for w in ("fwd ms", "fwd+bwd ms") for k in kinds]
     memory = key + [f"{k} {w}" for w in ("fwd MiB", "fwd+bwd MiB") for k in kinds]

@@ -12,8 +12,9 @@ Runs on CPU in a few seconds with random radar points and random FPN features::
 
     python examples/swap_openpcdet_stage.py
 
-Notes: spconv 2.3 on CPU supports neither bias in sparse convolutions nor backward passes (both
-need CUDA), so this demo builds bias-free convolutions and runs forward only.
+Notes: spconv 2.3 on CPU supports no bias in sparse convolutions, so this demo builds bias-free
+convolutions; it runs forward only (on a CPU-only torch, spconv's backward needs
+``mssf_blocks.compat.spconv.enable_cpu_backward()`` first, as in the README's drop-in snippet).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from torch import nn
 
 import spconv.pytorch as spconv
 from mssf_blocks.blocks import FusionBlock
+from mssf_blocks.compat.spconv import quiet
 from mssf_blocks.fusion import MSDFF, FusionInputs, QueryInit
 
 POINT_CLOUD_RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)  # (x_min, y_min, z_min, x_max, y_max, z_max)
@@ -97,15 +99,16 @@ class VoxelResBackBone8x(nn.Module):
         )
 
     def forward(self, voxel_features, voxel_coords, batch_size, fusion_inputs: Optional[FusionInputs] = None):
-        x = spconv.SparseConvTensor(voxel_features, voxel_coords, self.sparse_shape, batch_size)
-        x = self.conv_input(x)
-        outputs = {}
-        for name in ("conv1", "conv2", "conv3", "conv4"):
-            stage = getattr(self, name)
-            # The one change a fusion backbone needs: fusion stages also receive the camera inputs.
-            x = stage(x, fusion_inputs) if isinstance(stage, FusionBlock) else stage(x)
-            outputs[name] = x
-        outputs["conv_out"] = self.conv_out(x)
+        with quiet():  # spconv's own torch.fx message (not part of the swap; see mssf_blocks.compat.spconv)
+            x = spconv.SparseConvTensor(voxel_features, voxel_coords, self.sparse_shape, batch_size)
+            x = self.conv_input(x)
+            outputs = {}
+            for name in ("conv1", "conv2", "conv3", "conv4"):
+                stage = getattr(self, name)
+                # The one change a fusion backbone needs: fusion stages also receive the camera inputs.
+                x = stage(x, fusion_inputs) if isinstance(stage, FusionBlock) else stage(x)
+                outputs[name] = x
+            outputs["conv_out"] = self.conv_out(x)
         return outputs
 
 

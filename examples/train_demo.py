@@ -11,26 +11,31 @@ The project's main demo (``make demo``). On CPU, with the same code, seed and da
 3. train ``--detector`` (default PointPillars, the cheapest) twice: with ``n = 1`` MSDFF fusion block
    plus the semantic-guided head, and with ``n = 0`` (radar only); AdamW with a one-cycle learning
    rate, as in the paper (OpenPCDet's ``adam_onecycle``: 40 % warm-up, ``div_factor`` 10);
-4. evaluate both on the val split (VoD protocol, entire annotated area and driving corridor,
-   :func:`mssf_examples.evaluation.evaluate`) and print the paper-style table;
+4. evaluate both on the val split (the official VoD protocol, ``protocol="vod"``: entire annotated area
+   and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and print the paper-style table;
 5. write ``metrics.json`` (metrics, configuration, timings) and PNG figures to ``--out``: BEV views with
    radar points, GT and predicted boxes for both models, the fusion model's semantic scores per lifted
    voxel (paper Fig. 5), the blur-ratio / foreground-recall curves (paper Fig. 7) and the image
    branch's 2D read-out.
 
 Run: ``python examples/train_demo.py [--steps 2000] [--seed 0] [--lighting] [--out outputs/demo]``;
-``--quick`` is a tiny run for tests. A rerun with the same arguments gives identical metrics.
+``--quick`` is a tiny run for tests. ``--augmentation on`` trains both models with the VoD recipe's
+augmentation (:mod:`mssf_examples.augment`: flip with the image, rotation +-pi/4, scaling 0.95-1.05);
+``--augmentation compare`` keeps the two models un-augmented and trains a third, the fusion model with
+augmentation at the same budget (steps, batch, seed), to show the effect. A rerun with the same arguments gives identical metrics.
 Synthetic scenes say nothing about View-of-Delft numbers; see ``docs/demo.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Dict, List
 
@@ -40,15 +45,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mssf_blocks.diagnostics import blur_curves, classify_projection, plot_blur_curves  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
+from mssf_blocks.errors import MSSFError  # noqa: E402
+from mssf_examples.augment import augment_batches  # noqa: E402
 from mssf_examples.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
+from mssf_examples.distributed import AMP_MODES, resolve_amp, resolve_device  # noqa: E402
 from mssf_examples.evaluation import evaluate, format_table  # noqa: E402
 from mssf_examples.image_branch import ImageBranch  # noqa: E402
 from mssf_examples.image_pretrain import (  # noqa: E402
     SemanticReadout, collate_with_features, precompute_features, pretrain_image_branch, segmentation_metrics,
     semantic_map)
-from mssf_examples.presets import VOD, DetectorPreset, tiny_preset  # noqa: E402
+from mssf_examples.kitti_io import Calibration  # noqa: E402
+from mssf_examples.presets import VOD, VOD_RECIPE, DetectorPreset, tiny_preset  # noqa: E402
 from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig, SyntheticDataset  # noqa: E402
 from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
+from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
 from mssf_examples.training import batch_order, train_detector  # noqa: E402
 from mssf_examples.training import predict as predict_detections  # noqa: E402
 
@@ -59,6 +69,8 @@ except ImportError:  # pragma: no cover - tqdm is in the examples extra
         return it
 
 MODELS = ("MSSF (n=1)", "Radar only (n=0)")
+#: The fusion model trained with augmentation (``--augmentation compare``).
+AUGMENTED_MODEL = "MSSF (n=1) + augmentation"
 
 
 def demo_preset(scene_cfg: SceneConfig, quick: bool = False) -> DetectorPreset:
@@ -77,8 +89,16 @@ def demo_preset(scene_cfg: SceneConfig, quick: bool = False) -> DetectorPreset:
     )
 
 
-def ground_truths(scenes: List[Scene]) -> List[Dict[str, torch.Tensor]]:
-    return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, lidar2cam=s.sensor_to_camera) for s in scenes]
+def ground_truths(scenes: List[Scene], scene_cfg: SceneConfig) -> List[Dict]:
+    """Per val scene the GT dict of the official VoD protocol: sensor boxes plus the calibration of
+    VoD's full-resolution camera (the scenes render a scaled-down image of it), so that the kit's 40 px
+    image-box rule means what it means on the real 1216-pixel-high images."""
+    fx, fy, cx, cy = scene_cfg.full_intrinsics
+    p2 = torch.tensor([[fx, 0.0, cx, 0.0], [0.0, fy, cy, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
+    return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, image_size=tuple(scene_cfg.full_image_size),
+                 calib=Calibration(P2=p2, R0_rect=torch.eye(3, dtype=torch.float64),
+                                   Tr_velo_to_cam=s.sensor_to_camera.to(torch.float64)[:3].clone()))
+            for s in scenes]
 
 
 def scene_collate(scenes: List[Scene], features=None):
@@ -90,12 +110,17 @@ def scene_collate(scenes: List[Scene], features=None):
 
 
 def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
-          collate=None) -> Dict:
-    """Train ``model`` in place on a seeded data order; ``collate(indices)`` builds a batch (default:
-    ``Scene.collate``). The loop is :func:`mssf_examples.training.train_detector`."""
+          collate=None, augmentation=None, amp_dtype=None) -> Dict:
+    """Train ``model`` in place (on its device) on a seeded data order; ``collate(indices)`` builds a batch
+    (default: ``Scene.collate``); ``augmentation`` (an :class:`~mssf_examples.augment.AugmentationConfig`)
+    augments every sample, drawn from ``seed``; ``amp_dtype`` the autocast dtype (``None``: float32).
+    The loop is :func:`mssf_examples.training.train_detector`."""
     collate = collate or scene_collate(scenes)
     order = batch_order(len(scenes), batch_size, steps, seed)
-    return train_detector(model, (collate(idx) for idx in order), steps, lr, desc=f"train {desc}")
+    batches = (collate(idx) for idx in order)
+    if augmentation is not None:  # the scenes' 7 columns are VoD's
+        batches = augment_batches(batches, VOD_RECIPE.feature_kinds, augmentation, seed)
+    return train_detector(model, batches, steps, lr, desc=f"train {desc}", amp_dtype=amp_dtype)
 
 
 def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None) -> List[Dict[str, torch.Tensor]]:
@@ -114,6 +139,7 @@ def semantic_scores(model, scenes: List[Scene], batch_size: int, collate=None):
     for i in range(0, len(scenes), batch_size):
         chunk = scenes[i:i + batch_size]
         batch = collate(list(range(i, i + len(chunk))))
+        batch = batch.to(next(model.parameters()).device)
         _, out, pts, pb = model.extract(batch)
         v = out.seg_voxels
         proj = projector(v, pts, pb, batch.lidar2img, batch.image_size)
@@ -280,10 +306,18 @@ def parse_args(argv=None):
     ap.add_argument("--image-pretrain-steps", type=int, default=None, help="default 1000")
     ap.add_argument("--image-pretrain-lr", type=float, default=3e-3)
     ap.add_argument("--lighting", action="store_true", help="also report AP per lighting condition")
+    ap.add_argument("--augmentation", choices=("off", "on", "compare"), default="off",
+                    help="off: no augmentation; on: both models train with the VoD recipe's augmentation; "
+                         "compare: also train the fusion model with it (same budget) and report both")
     ap.add_argument("--save-checkpoint", type=Path, default=None)
     ap.add_argument("--load-checkpoint", type=Path, default=None, help="skip training, evaluate these weights")
     ap.add_argument("--figure-scenes", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=DEFAULT_THREADS,
+                    help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
+    ap.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda or cuda:N: where the "
+                    "detectors train and predict (the image branch pre-training stays on the CPU)")
+    ap.add_argument("--amp", choices=tuple(AMP_MODES), default="off",
+                    help="mixed precision of the detector training (bf16 / fp16 autocast; see docs/gpus.md)")
     ap.add_argument("--quick", action="store_true", help="tiny run (a few steps and scenes) for tests")
     ap.add_argument("--out", type=Path, default=Path("outputs/demo"))
     args = ap.parse_args(argv)
@@ -303,6 +337,11 @@ def parse_args(argv=None):
             ap.error(f"--{name.replace('_', '-')}: expected a positive int, got {getattr(args, name)}")
     if args.batch_size > args.train_scenes:
         ap.error(f"--batch-size ({args.batch_size}) must be <= --train-scenes ({args.train_scenes})")
+    try:
+        args.device = resolve_device(args.device)
+        args.amp_dtype = resolve_amp(args.amp, args.device, args.detector)
+    except MSSFError as exc:
+        ap.error(str(exc))
     return args
 
 
@@ -334,9 +373,15 @@ def _run(args) -> int:
     train_scenes = [train_ds[i] for i in tqdm(range(len(train_ds)), desc="scenes train", unit="scene")]
     val_scenes = [val_ds[i] for i in tqdm(range(len(val_ds)), desc="scenes val", unit="scene")]
     t_scenes = time.perf_counter() - t0
-    gts = ground_truths(val_scenes)
+    gts = ground_truths(val_scenes, scene_cfg)
 
     blocks = {MODELS[0]: args.fusion_blocks, MODELS[1]: 0}
+    # the recipe's augmentation; GT boxes whose centre leaves the grid after it are dropped
+    augmentation = replace(VOD_RECIPE.augmentation, gt_range=tuple(preset.pillar_range))
+    augmented = {MODELS[0]: args.augmentation == "on", MODELS[1]: args.augmentation == "on"}
+    if args.augmentation == "compare":
+        blocks[AUGMENTED_MODEL] = args.fusion_blocks
+        augmented[AUGMENTED_MODEL] = True
     models, timings, histories, results, preds_by_model, lighting = {}, {}, {}, {}, {}, {}
     ckpt = torch.load(args.load_checkpoint, map_location="cpu", weights_only=True) if args.load_checkpoint else None
 
@@ -381,14 +426,18 @@ def _run(args) -> int:
     for name, n in blocks.items():
         torch.manual_seed(args.seed)  # same initialisation stream for both models
         model = build_detector(args.detector, preset, num_fusion_blocks=n, fusion=args.fusion,
-                               image_features=image_source if n else "backbone")
+                               image_features=image_source if n else "backbone").to(args.device)
         val_collate = fusion_collate_val if n else None
         if ckpt is not None:
+            if name not in ckpt["models"]:
+                raise SystemExit(f"--load-checkpoint {args.load_checkpoint}: no weights for {name!r} "
+                                 f"(it holds {sorted(ckpt['models'])}); rerun with the --augmentation it was saved with")
             model.load_state_dict(ckpt["models"][name])
             timings[name] = {"train_seconds": 0.0, "loaded": str(args.load_checkpoint)}
         else:
             log = train(model, train_scenes, args.steps, args.batch_size, args.lr, args.seed, name,
-                        collate=fusion_collate_train if n else None)
+                        collate=fusion_collate_train if n else None,
+                        augmentation=augmentation if augmented[name] else None, amp_dtype=args.amp_dtype)
             timings[name] = {"train_seconds": log["seconds"], "seconds_per_step": log["seconds_per_step"]}
             histories[name] = log["history"]
         t0 = time.perf_counter()
@@ -399,7 +448,7 @@ def _run(args) -> int:
         timings[name]["eval_seconds"] = time.perf_counter() - t0
         timings[name]["parameters"] = sum(p.numel() for p in model.parameters())
         models[name] = model
-    config = {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}
+    config = {k: (str(v) if isinstance(v, (Path, torch.device, torch.dtype)) else v) for k, v in vars(args).items()}
     if args.save_checkpoint:
         args.save_checkpoint.parent.mkdir(parents=True, exist_ok=True)
         state = {"models": {k: m.state_dict() for k, m in models.items()}, "config": config}
@@ -445,10 +494,17 @@ def _run(args) -> int:
 
     gap = {r: results[MODELS[0]][r]["mAP"]["AP3D_R11"] - results[MODELS[1]][r]["mAP"]["AP3D_R11"]
            for r in results[MODELS[0]]}
+    aug_gain = None
+    if AUGMENTED_MODEL in results:
+        aug_gain = {r: results[AUGMENTED_MODEL][r]["mAP"]["AP3D_R11"] - results[MODELS[0]][r]["mAP"]["AP3D_R11"]
+                    for r in results[MODELS[0]]}
     metrics = {
         "results": results,
         "table": table,
         "fusion_minus_radar_mAP_AP3D_R11": gap,
+        "augmentation": {"mode": args.augmentation, "config": dataclasses.asdict(augmentation),
+                         "augmented_models": [m for m in blocks if augmented[m]],
+                         "augmented_minus_plain_mAP_AP3D_R11": aug_gain},
         "lighting": lighting or None,
         "image_pretrain": image_pretrain,
         "blur_curves": None if curves is None else {
@@ -467,6 +523,9 @@ def _run(args) -> int:
     }
     (args.out / "metrics.json").write_text(json.dumps(_finite(metrics), indent=1))
     print("\nfusion - radar-only mAP (AP3D_R11): " + ", ".join(f"{r} {g:+.2f}" for r, g in gap.items()))
+    if aug_gain is not None:
+        print("fusion with - without augmentation, mAP (AP3D_R11): "
+              + ", ".join(f"{r} {g:+.2f}" for r, g in aug_gain.items()))
     print(f"total {metrics['timings']['total_seconds']:.0f} s; wrote {args.out}/metrics.json and "
           f"{', '.join(figures.values())}")
     return 0

@@ -18,6 +18,13 @@ _EXAMPLES = str(REPO_ROOT / "examples")
 if _EXAMPLES not in sys.path:
     sys.path.insert(0, _EXAMPLES)
 
+from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
+
+# The suite's thread count (one place for it: mssf_examples/threads.py, which says why); an explicit
+# OMP_NUM_THREADS wins.
+if "OMP_NUM_THREADS" not in os.environ:
+    torch.set_num_threads(DEFAULT_THREADS)
+
 #: Default location of the real frames (never copied into the repository).
 DEFAULT_REALDATA = REPO_ROOT.parent / "shared" / "realdata"
 
@@ -52,3 +59,14 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+#: The devices the device-parametrised tests run on: the CPU, plus CUDA when this torch build sees a GPU.
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    """``torch.device`` to run the test on: once per entry of :data:`DEVICES` (``cpu``; ``cuda`` where
+    available), so a GPU machine runs the same assertions (``benchmarks/gpu_check.py``)."""
+    return torch.device(request.param)

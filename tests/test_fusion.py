@@ -33,12 +33,13 @@ def width_kw(width, embed_dim):
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def make_projection(uv, valid, batch_index):
+def make_projection(uv, valid, batch_index, device=None):
     n, v = valid.shape
+    uv, valid, batch_index = (t.to(device) for t in (uv, valid, batch_index))
     return CentroidProjection(
-        uv=uv, depth=torch.ones(n, v, dtype=uv.dtype), valid=valid,
-        centroid=torch.zeros(n, 3, dtype=uv.dtype), has_points=torch.ones(n, dtype=torch.bool),
-        batch_index=batch_index,
+        uv=uv, depth=torch.ones(n, v, dtype=uv.dtype, device=uv.device), valid=valid,
+        centroid=torch.zeros(n, 3, dtype=uv.dtype, device=uv.device),
+        has_points=torch.ones(n, dtype=torch.bool, device=uv.device), batch_index=batch_index,
     )
 
 
@@ -126,17 +127,17 @@ def randomize_msdff(mod: MSDFF, gen, scale=0.5):
 # ---------------------------------------------------------------------------------------------------
 # SFF
 # ---------------------------------------------------------------------------------------------------
-def test_sff_matches_reference():
+def test_sff_matches_reference(device):
     gen = torch.Generator().manual_seed(0)
     levels, uv, valid, bidx = scene(gen)
     sff = SFF([3, 2], 4, dtype=D64).eval()
     randomize_norm(sff.norm, gen)
-    proj = make_projection(uv, valid, bidx)
     sampled = reference_sff_sample(levels, uv, valid, bidx)
-    assert_close(sff.sample(levels, proj), sampled)
     y = ref_bn_eval(sampled @ sff.linear.weight.T + sff.linear.bias, sff.norm)
     y[~valid.any(1)] = 0.0
-    assert_close(sff(levels, proj), y)
+    sff, proj, levels = sff.to(device), make_projection(uv, valid, bidx, device), [l.to(device) for l in levels]
+    assert_close(sff.sample(levels, proj).cpu(), sampled)
+    assert_close(sff(levels, proj).detach().cpu(), y)
 
 
 def test_sff_gradcheck_train_mode():
@@ -284,7 +285,7 @@ def test_permutation_and_batch_independence(kind):
     [("auto", "after_sampling"), ("reference", "after_sampling"), ("fast", "after_sampling"),
      ("fast", "before_sampling"), ("reference", "before_sampling")],
 )
-def test_msdff_sample_then_project_equals_project_then_sample(method, value_projection, width):
+def test_msdff_sample_then_project_equals_project_then_sample(method, value_projection, width, device):
     gen = torch.Generator().manual_seed(7)
     levels, uv, valid, bidx = scene(gen, chans=(4, 4), sizes=((5, 6), (3, 4)))
     uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside (mass < 1)
@@ -300,7 +301,8 @@ def test_msdff_sample_then_project_equals_project_then_sample(method, value_proj
     loc = uv[3, 0] + off[3] / sizes[None, :, None, :]
     pix = loc * sizes[None, :, None, :] - 0.5
     assert ((pix < 0) | (pix > sizes[None, :, None, :] - 1)).any()
-    assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
+    out = mod.to(device)(query.to(device), [l.to(device) for l in levels], make_projection(uv, valid, bidx, device))
+    assert_close(out.detach().cpu(), want)
 
 
 @pytest.mark.parametrize("width", WIDTHS)

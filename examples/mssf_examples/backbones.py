@@ -29,7 +29,7 @@ import spconv.pytorch as spconv
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.sparse import SparseVoxels
 
-from .spconv_compat import enable_cpu_backward
+from .spconv_compat import dense, enable_cpu_backward, quiet
 from .voxelize import PillarFeatureNet, VoxelGrid, dynamic_voxelize
 
 # spconv's CPU backward needs this on CPU-only torch builds (see spconv_compat).
@@ -264,6 +264,10 @@ class SparseFusionBackbone(nn.Module):
         """
         if self.num_fusion_blocks and fusion_inputs is None:
             raise MSSFError("fusion_inputs: required when num_fusion_blocks > 0, got None")
+        with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
+            return self._forward_stages(voxels, fusion_inputs)
+
+    def _forward_stages(self, voxels: SparseVoxels, fusion_inputs) -> BackboneOutput:
         x = spconv.SparseConvTensor(voxels.features, voxels.coords, list(self.input_shape), voxels.batch_size)
         x = self.conv_input(x)
         outs: List[SparseVoxels] = []
@@ -327,9 +331,9 @@ class _DenseBEVBackbone(SparseFusionBackbone):
 
     def forward(self, voxels: SparseVoxels, fusion_inputs=None) -> BackboneOutput:
         out = self.forward_stages(voxels, fusion_inputs)
-        x = self.conv_out(out.stages[-1].to_spconv())
-        dense = x.dense()  # (B, C, D, H, W)
-        out.bev = dense.flatten(1, 2)
+        with quiet():
+            x = self.conv_out(out.stages[-1].to_spconv())
+        out.bev = dense(x).flatten(1, 2)  # (B, C, D, H, W) -> (B, C * D, H, W)
         return out
 
 
@@ -437,8 +441,8 @@ class VoxelNeXtBackbone(SparseFusionBackbone):
             [(s4.features, s4.coords), (s5.features, s5.coords), (s6.features, s6.coords)],
             [1, 2, 4], voxels.batch_size, self.bev_shape,
         )
-        t = spconv.SparseConvTensor(feats, coords, list(self.bev_shape), voxels.batch_size)
-        t = self.conv_out(t)
+        with quiet():
+            t = self.conv_out(spconv.SparseConvTensor(feats, coords, list(self.bev_shape), voxels.batch_size))
         out.sparse_bev = (t.features, t.indices)
         return out
 

@@ -11,9 +11,10 @@ Run from the repository root (``examples/`` must be on the import path)::
 with :func:`mssf_examples.training.train_detector` and writes ``<out>/checkpoint.pt`` and
 ``<out>/config.json``; with ``--val-split`` it then evaluates like ``eval`` into ``<out>/eval_<split>/``.
 ``eval`` writes ``<out>/predictions/<frame id>.txt`` (KITTI format, score last; an empty file for a frame
-without detections) for every frame and, when the split has labels, prints the VoD-protocol table
-(entire annotated area and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and writes
-``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
+without detections) for every frame and, when the split has labels, scores them with the dataset's
+official protocol (:func:`mssf_examples.evaluation.evaluate`: ``protocol="vod"``, the VoD kit's entire
+annotated area and driving corridor, R11; ``protocol="tj4d"``, the TJ4DRadSet range bins, R40) on the
+label files and the prediction files as written, prints the table and writes ``<out>/metrics.json``. See ``docs/real-data.md`` ("Train and evaluate").
 """
 
 from __future__ import annotations
@@ -30,16 +31,21 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import torch
-import torch.nn.functional as F
 
 from mssf_blocks.errors import MSSFError
 
+from . import distributed
+from .augment import add_augmentation_arguments, augment_batches, augmentation_from_args
+from .cli_data import (  # noqa: F401 - scale_batch, _Collate: part of this module's interface
+    _Collate, _CollateWithFrames, _Frames, _jsonable, _loader, _open_dataset, _preset_from_json, _preset_to_json,
+    scale_batch)
 from .detectors import DETECTOR_NAMES, build_detector
-from .evaluation import DEFAULT_REGIONS, TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
+from .evaluation import TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS, evaluate, format_table
 from .kitti_export import kitti_lines, write_kitti_file
-from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, frames_to_batch
-from .presets import TJ4D, VOD, DetectorPreset, tiny_preset
-from .training import batch_order, load_checkpoint, predict, save_checkpoint, train_detector
+from .kitti_io import TJ4D_RADAR, VOD_RADAR, Frame, KittiFormatDataset, PointFormat, parse_labels
+from .presets import TJ4D, TJ4D_RECIPE, VOD, VOD_RECIPE, DetectorPreset, TrainingRecipe, authors_preset, tiny_preset
+from .training import batch_order, load_checkpoint, load_resume_state, predict, save_checkpoint, train_detector
+from .threads import DEFAULT_THREADS
 
 __all__ = ["DatasetSpec", "DATASETS", "cli_tiny_preset", "build_parser", "main"]
 
@@ -54,6 +60,9 @@ class DatasetSpec:
     preset: DetectorPreset
     default_sensor: Optional[str]
     iou_thresholds: Dict[str, float]
+    #: :func:`mssf_examples.evaluation.evaluate` protocol and the AP its tables report.
+    protocol: str = "vod"
+    table_metrics: Tuple[str, ...] = ("AP3D_R11", "APBEV_R11")
 
     @property
     def class_names(self) -> Tuple[str, ...]:
@@ -64,8 +73,11 @@ class DatasetSpec:
 #: Cyclist. ``tj4d``: KITTI layout (``training/`` under the root), classes Car / Pedestrian / Cyclist / Truck.
 DATASETS: Dict[str, DatasetSpec] = {
     "vod": DatasetSpec(VOD_RADAR, VOD, "radar_5frames", VOD_IOU_THRESHOLDS),
-    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS),
+    "tj4d": DatasetSpec(TJ4D_RADAR, TJ4D, None, TJ4D_IOU_THRESHOLDS, "tj4d", ("AP3D_R40", "APBEV_R40")),
 }
+
+#: The training recipe (augmentation, learning rate) of each ``--dataset`` (docs/training.md).
+RECIPES: Dict[str, TrainingRecipe] = {"vod": VOD_RECIPE, "tj4d": TJ4D_RECIPE}
 
 
 def cli_tiny_preset(base: DetectorPreset, image_size: Tuple[int, int]) -> DetectorPreset:
@@ -123,10 +135,12 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="sensor sub-folder (VoD: radar, radar_3frames, radar_5frames [default]; 'none' for a "
                         "root holding training/ directly, the TJ4DRadSet default)")
     p.add_argument("--batch-size", type=_positive_int, default=argparse.SUPPRESS, help="frames per batch (default 4)")
-    p.add_argument("--threads", type=_positive_int, default=2, help="torch CPU threads (default 2)")
+    p.add_argument("--threads", type=_positive_int, default=DEFAULT_THREADS,
+                   help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
     p.add_argument("--workers", type=_non_negative_int, default=0,
                    help="data-loading worker processes (default 0: load in the main process)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    distributed.add_arguments(p, training=p.prog.endswith(" train"))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -145,8 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--fusion-blocks", type=_non_negative_int, default=2,
                    help="n fusion blocks (paper default 2; 0 = radar only)")
     t.add_argument("--fusion", choices=("msdff", "sff"), default="msdff")
-    t.add_argument("--preset", choices=("paper", "tiny"), default="paper",
-                   help="paper: the dataset's paper preset; tiny: few channels and coarse voxels for CPU smoke runs")
+    t.add_argument("--preset", choices=("paper", "authors", "tiny"), default="paper",
+                   help="paper: the dataset's paper preset; authors: where the authors' config differs (TJ4D "
+                        "voxel z 0.15 m); tiny: few channels and coarse voxels for CPU smoke runs")
     t.add_argument("--train-image-branch", action="store_true",
                    help="train the image branch (the paper's is pre-trained and frozen)")
     t.add_argument("--image-weights", type=Path, default=None,
@@ -155,15 +170,19 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resize images by this factor before the image branch (lidar2img is scaled to match)")
     t.add_argument("--epochs", type=_positive_float, default=80.0, help="passes over the split (default 80)")
     t.add_argument("--steps", type=_positive_int, default=None, help="optimiser steps (overrides --epochs)")
-    t.add_argument("--lr", type=_positive_float, default=3e-3, help="one-cycle peak learning rate (default 3e-3)")
+    t.add_argument("--lr", type=_positive_float, default=None,
+                   help="one-cycle peak learning rate (default: the recipe's, 10 x its initial lr: VoD n=2 5e-3, "
+                        "otherwise 1e-2; docs/training.md)")
     t.add_argument("--seed", type=_non_negative_int, default=0, help="initialisation and data-order seed")
     t.add_argument("--score-threshold", type=_unit_float, default=0.1, help="detections kept in eval (default 0.1)")
     t.add_argument("--out", type=Path, required=True, help="output folder")
+    add_augmentation_arguments(t)
     t.set_defaults(parser=t)
 
-    e = sub.add_parser("eval", help="write KITTI prediction files and VoD-protocol metrics",
+    e = sub.add_parser("eval", help="write KITTI prediction files and official-protocol metrics",
                        description="Predict every frame of --split, write <out>/predictions/<id>.txt and, with "
-                       "labels, print the VoD-protocol table and write <out>/metrics.json.")
+                       "labels, print the official-protocol table (VoD kit / TJ4DRadSet) and write "
+                       "<out>/metrics.json.")
     e.add_argument("--checkpoint", type=Path, required=True, help="checkpoint.pt written by train")
     _common(e)
     e.add_argument("--split", default="val",
@@ -173,84 +192,6 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <checkpoint dir>/eval_<split>)")
     e.set_defaults(parser=e)
     return ap
-
-
-# --------------------------------------------------------------------------------------------------
-# Data
-# --------------------------------------------------------------------------------------------------
-def _open_dataset(ap: argparse.ArgumentParser, root: Path, spec: DatasetSpec, sensor: Optional[str],
-                  split: str) -> KittiFormatDataset:
-    if not root.is_dir():
-        ap.error(f"--data-root: expected an existing dataset folder, got {root} (not found)")
-    try:
-        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=None if split == "all" else split,
-                                  class_names=spec.class_names)
-    except (FileNotFoundError, MSSFError) as exc:
-        ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}")
-    raise AssertionError("unreachable")  # pragma: no cover
-
-
-class _Frames(torch.utils.data.Dataset):
-    """Frames of a :class:`KittiFormatDataset` for a ``DataLoader`` (labels optional)."""
-
-    def __init__(self, ds: KittiFormatDataset, with_labels: bool) -> None:
-        self.ds, self.with_labels = ds, with_labels
-
-    def __len__(self) -> int:
-        return len(self.ds)
-
-    def __getitem__(self, i: int) -> Frame:
-        return self.ds.load(self.ds.frame_ids[i], with_labels=self.with_labels)
-
-
-def scale_batch(batch, scale: float):
-    """Resize a batch's images by ``scale`` and map ``lidar2img`` to the resized pixels.
-
-    With pixel ``i``'s centre at ``i`` and edges kept aligned, ``u' = (u + 0.5) s_x - 0.5`` where
-    ``s_x = W' / W`` (the same for ``v``), i.e. ``lidar2img' = S @ lidar2img`` with
-    ``S = [[s_x, 0, (s_x - 1) / 2], [0, s_y, (s_y - 1) / 2], [0, 0, 1]]``.
-    """
-    if scale == 1.0:
-        return batch
-    b, v, c, h, w = batch.images.shape
-    nh, nw = max(1, round(h * scale)), max(1, round(w * scale))
-    images = F.interpolate(batch.images.flatten(0, 1), size=(nh, nw), mode="bilinear", align_corners=False,
-                           antialias=nh < h).unflatten(0, (b, v))
-    sx, sy = nw / w, nh / h
-    s = torch.tensor([[sx, 0.0, (sx - 1) / 2], [0.0, sy, (sy - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    lidar2img = (s @ batch.lidar2img.to(torch.float64)).to(batch.lidar2img.dtype)
-    return dataclasses.replace(batch, images=images, lidar2img=lidar2img, image_size=None)
-
-
-def _loader(frames: _Frames, batches: Sequence[Sequence[int]], workers: int, collate):
-    return torch.utils.data.DataLoader(frames, batch_sampler=batches, num_workers=workers, collate_fn=collate)
-
-
-# --------------------------------------------------------------------------------------------------
-# Config <-> preset
-# --------------------------------------------------------------------------------------------------
-def _tuples(x):
-    return tuple(_tuples(v) for v in x) if isinstance(x, (list, tuple)) else x
-
-
-def _preset_to_json(p: DetectorPreset) -> Dict:
-    return {f.name: getattr(p, f.name) for f in dataclasses.fields(p)}
-
-
-def _preset_from_json(d: Dict) -> DetectorPreset:
-    return DetectorPreset(**{k: _tuples(v) for k, v in d.items()})
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, Path):
-        return str(x)
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 # --------------------------------------------------------------------------------------------------
@@ -282,15 +223,27 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     first = ds.load(ds.frame_ids[0], with_labels=False)
     h, w = first.image_size
     image_size = (max(1, round(h * args.image_scale)), max(1, round(w * args.image_scale)))
-    base = spec.preset if args.preset == "paper" else cli_tiny_preset(spec.preset, image_size)
+    base = {"paper": spec.preset, "authors": authors_preset(spec.preset)}.get(args.preset) or \
+        cli_tiny_preset(spec.preset, image_size)
     preset = dataclasses.replace(base, image_size=image_size,
                                  freeze_image_branch=base.freeze_image_branch and not args.train_image_branch)
-    torch.manual_seed(args.seed)
+    torch.manual_seed(args.seed)  # the same initial weights in every process
     model = build_detector(args.detector, preset, num_fusion_blocks=args.fusion_blocks, fusion=args.fusion,
                            score_threshold=args.score_threshold)
     if args.image_weights is not None and model.image_branch is not None:
         model.image_branch.load_state_dict(torch.load(args.image_weights, map_location="cpu", weights_only=True))
 
+    recipe = RECIPES[args.dataset]
+    if recipe.feature_names != tuple(spec.point_format.features):
+        ap.error(f"--dataset {args.dataset}: the recipe names point columns {recipe.feature_names}, the point "
+                 f"format has {spec.point_format.features}")
+    gt_range = preset.pillar_range if args.detector == "pointpillars" else preset.point_cloud_range
+    try:
+        augmentation = augmentation_from_args(args, recipe.augmentation, gt_range)
+    except MSSFError as exc:
+        ap.error(f"augmentation options: {exc}")
+    if args.lr is None:
+        args.lr = recipe.peak_lr(args.fusion_blocks)
     config = dict(
         command="train", dataset=args.dataset, data_root=str(args.data_root), sensor=sensor, split=args.split,
         detector=args.detector, fusion_blocks=args.fusion_blocks, fusion=args.fusion, preset_name=args.preset,
@@ -298,15 +251,46 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         image_weights=None if args.image_weights is None else str(args.image_weights), steps=steps,
         epochs=steps * batch_size / len(ds), batch_size=batch_size, lr=args.lr, seed=args.seed,
         score_threshold=args.score_threshold, num_frames=len(ds), preset=_preset_to_json(preset),
+        augmentation=dataclasses.asdict(augmentation), recipe=recipe.name,
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    order = batch_order(len(ds), batch_size, steps, args.seed)
+    run = _runtime(ap, args, batch_size)
+    resume = _resume_state(ap, args.resume, _jsonable(config)) if args.resume is not None else None
+    if resume is not None:
+        model.load_state_dict(resume["model"])
+    config.update(run.config)
+    dist, device = run.dist, run.device
+    if dist.is_main:
+        args.out.mkdir(parents=True, exist_ok=True)
+    start = resume["step"] if resume is not None else 0
+    # every process reads its share of the same global batches (one global batch per optimiser step)
+    order = distributed.shard_batches(batch_order(len(ds), batch_size, steps, args.seed)[start:], dist.rank,
+                                      dist.world_size, args.accumulate)
     collate = _Collate(args.image_scale, preset.pillar_range if args.detector == "pointpillars"
                        else preset.point_cloud_range)
-    print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} frames "
-          f"of {ds!r}: {steps} steps of {batch_size}", file=sys.stderr)
-    log = train_detector(model, _loader(_Frames(ds, True), order, args.workers, collate), steps, args.lr,
-                         desc=f"train {args.detector}", progress=not args.no_progress)
+    if dist.is_main:
+        print(f"train {args.detector} (n={args.fusion_blocks}, {args.fusion}, preset {preset.name}) on {len(ds)} "
+              f"frames of {ds!r}: {steps} steps of {batch_size} ({run.describe()})"
+              + (f", resumed at step {start}" if resume else ""), file=sys.stderr)
+    distributed.init_distributed(dist, device)
+    model = distributed.wrap_model(model, device, dist, args.sync_bn)
+
+    def checkpoint(step: int, state: Dict) -> None:
+        if dist.is_main:
+            save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config), state, step)
+
+    batches = _loader(_Frames(ds, True), order, args.workers, collate, device)
+    if not augmentation.is_identity:  # drawn in this process, after the loader: the seed alone fixes the draws
+        # every process its own stream (rank 0's is a single process's); a resumed run draws afresh
+        batches = augment_batches(batches, recipe.feature_kinds, augmentation,
+                                  args.seed + 1_000_003 * dist.rank + 7_919 * start)
+    log = train_detector(model, batches, steps, args.lr,
+                         desc=f"train {args.detector}", progress=not args.no_progress and dist.is_main,
+                         device=device, amp_dtype=run.amp_dtype, accumulate=args.accumulate, start_step=start,
+                         state=None if resume is None else resume["train_state"], checkpoint=checkpoint,
+                         checkpoint_every=args.checkpoint_every)
+    if not dist.is_main:  # rank 0 alone writes and evaluates
+        return 0
+    model = distributed.unwrap_model(model)
     config["train_seconds"] = log["seconds"]
     config["final_loss"] = log["history"][-1]
     ckpt = save_checkpoint(args.out / "checkpoint.pt", model, _jsonable(config))
@@ -320,30 +304,18 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     return 0
 
 
-class _Collate:
-    """Picklable ``collate_fn``: frames -> batch (images scaled by ``scale``).
-
-    With ``gt_range = (x0, y0, z0, x1, y1, z1)`` the ground truth keeps boxes whose centre has
-    ``x0 <= x < x1`` and ``y0 <= y < y1`` (as OpenPCDet does before training: boxes the BEV grid cannot
-    hold would give the heads targets outside their maps).
-    """
-
-    def __init__(self, scale: float, gt_range: Optional[Sequence[float]] = None) -> None:
-        self.scale, self.gt_range = scale, None if gt_range is None else tuple(float(v) for v in gt_range)
-
-    def __call__(self, frames: List[Frame]):
-        batch = frames_to_batch(frames)
-        if self.gt_range is not None:
-            x0, y0, _, x1, y1, _ = self.gt_range
-            keep = [(g[:, 0] >= x0) & (g[:, 0] < x1) & (g[:, 1] >= y0) & (g[:, 1] < y1) for g in batch.gt_boxes]
-            batch = dataclasses.replace(batch, gt_boxes=[g[k] for g, k in zip(batch.gt_boxes, keep)],
-                                        gt_labels=[g[k] for g, k in zip(batch.gt_labels, keep)])
-        return scale_batch(batch, self.scale)
+def _runtime(ap: argparse.ArgumentParser, args, batch_size: int) -> "distributed.Runtime":
+    try:
+        return distributed.Runtime.from_args(args, batch_size)
+    except MSSFError as exc:
+        ap.error(str(exc))
 
 
-class _CollateWithFrames(_Collate):
-    def __call__(self, frames: List[Frame]):
-        return super().__call__(frames), frames
+def _resume_state(ap: argparse.ArgumentParser, path: Path, config: Dict) -> Dict:
+    try:  # the options that must match: training.RESUME_KEYS (device, processes, --accumulate may differ)
+        return load_resume_state(path, expect_config=config)
+    except (FileNotFoundError, MSSFError) as exc:
+        ap.error(f"--resume: {exc}")
 
 
 def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size: int, workers: int,
@@ -357,7 +329,8 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
     loader = _loader(_Frames(ds, with_labels), chunks, workers, _CollateWithFrames(config.get("image_scale", 1.0)))
     t0 = time.perf_counter()
     preds: List[Dict] = []
-    gts: List[Dict] = []
+    written: List = []  # the prediction files as the official kit reads them
+    gts: List = []
     frames_seen: List[Frame] = []  # without their images and points: a split's images do not fit in memory
 
     def batches():
@@ -375,7 +348,8 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
         num_det += len(lines)
         write_kitti_file(pred_dir / f"{frame.frame_id}.txt", lines)
         if with_labels:
-            gts.append(dict(boxes=frame.gt_boxes, labels=frame.gt_labels, lidar2cam=frame.calib.sensor_to_camera))
+            written.append(parse_labels("\n".join(lines), source=str(pred_dir / f"{frame.frame_id}.txt")))
+            gts.append(frame.objects)  # every label line, as the kit reads label_2
     seconds = time.perf_counter() - t0
     print(f"wrote {len(frames_seen)} prediction files ({num_det} detections) to {pred_dir}", file=sys.stderr)
     metrics: Dict = dict(split=ds.split, num_frames=len(frames_seen), num_detections=num_det,
@@ -383,11 +357,13 @@ def _evaluate(model, config: Dict, ds: KittiFormatDataset, out: Path, batch_size
                          config=config, environment=dict(torch=torch.__version__, python=platform.python_version(),
                                                          threads=torch.get_num_threads()))
     if with_labels:
-        results = evaluate(preds, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, regions=DEFAULT_REGIONS)
+        results = evaluate(written, gts, spec.class_names, iou_thresholds=spec.iou_thresholds, protocol=spec.protocol)
         name = f"{config['detector']} n={config['fusion_blocks']}"
-        table = "\n\n".join(format_table({name: results}, metric=m) for m in ("AP3D_R11", "APBEV_R11"))
+        table = "\n\n".join(format_table({name: results}, metric=m) for m in spec.table_metrics)
         print("\n" + table)
-        metrics.update(results=results, table=table, num_gt=sum(len(g["labels"]) for g in gts))
+        wanted = {c.lower() for c in spec.class_names}
+        metrics.update(results=results, table=table, protocol=spec.protocol,
+                       num_gt=sum(sum(n.lower() in wanted for n in g.names) for g in gts))
         (out / "metrics.json").write_text(json.dumps(_jsonable(metrics), indent=1))
         print(f"\nwrote {out / 'metrics.json'}", file=sys.stderr)
     else:
@@ -411,7 +387,13 @@ def _eval(ap: argparse.ArgumentParser, args) -> int:
     thr = args.score_threshold if args.score_threshold is not None else config.get("score_threshold", 0.1)
     model = build_detector(config["detector"], preset, num_fusion_blocks=config["fusion_blocks"],
                            fusion=config["fusion"], score_threshold=thr)
-    model.load_state_dict(state)
+    model.load_state_dict(state)  # the checkpoint's tensors are on the CPU, whatever device wrote them
+    try:
+        if distributed.distributed_from_env().enabled:
+            raise MSSFError("eval runs in one process; start it without torchrun")
+        model.to(distributed.resolve_device(args.device))
+    except MSSFError as exc:
+        ap.error(str(exc))
     config = dict(config, score_threshold=thr)
     out = args.out if args.out is not None else args.checkpoint.parent / f"eval_{args.split}"
     _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint, progress=not args.no_progress)
@@ -430,7 +412,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         # errors name the sub-command (its own parser prints the usage)
         return _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+    except Exception as exc:
+        distributed.report_failure(exc)  # under torchrun: which rank failed, before torchrun stops the others
+        raise
     finally:
+        distributed.shutdown()
         torch.set_num_threads(saved_threads)
 
 

@@ -29,7 +29,8 @@ class RadarCameraBatch:
             (possibly augmented) sensor frame, the rest are the preset's point features (e.g. RCS,
             v_r, v_rc, t for VoD). ``C_in`` must be equal across samples.
         lidar2img: ``(B, V, 3, 4)`` projection of homogeneous *un-augmented* sensor-frame points to
-            ``(u*d, v*d, d)`` (OpenCV pixels of ``images``).
+            ``(u*d, v*d, d)`` (OpenCV pixels of ``images``; when an image was flipped or resized, its
+            pixel affine is folded in: ``A @ lidar2img``, see :mod:`mssf_examples.augment`).
         images: ``(B, V, 3, H, W)`` float images, or ``None`` (precomputed ``image_features``, or a
             radar-only detector).
         image_features: optional precomputed image features, a sequence of ``L`` levels, each
@@ -117,12 +118,18 @@ class RadarCameraBatch:
         )
         return pts, batch
 
-    def to(self, device: torch.device | str) -> "RadarCameraBatch":
-        """A copy with every tensor on ``device``."""
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> "RadarCameraBatch":
+        """A copy with every tensor on ``device`` (``non_blocking`` copies from pinned memory overlap)."""
+        return self._map(lambda x: x.to(device, non_blocking=non_blocking))
 
+    def pin_memory(self) -> "RadarCameraBatch":
+        """A copy in page-locked memory (``DataLoader(pin_memory=True)`` calls this), for fast host-to-GPU copies."""
+        return self._map(lambda x: x.pin_memory())
+
+    def _map(self, fn) -> "RadarCameraBatch":
         def move(x):
             if isinstance(x, Tensor):
-                return x.to(device)
+                return fn(x)
             if isinstance(x, (list, tuple)):
                 return [move(t) for t in x]
             return x

@@ -11,6 +11,7 @@ mode it returns per-sample detections.
 
 from __future__ import annotations
 
+import contextlib
 from typing import Dict, List, Optional, Sequence
 
 import torch
@@ -223,24 +224,47 @@ class MSSFDetector(nn.Module):
         v = out.seg_voxels
         centroids, _ = voxel_centroids(pts, pb, v.coords, v.spatial_shape, v.batch_size, v.voxel_size,
                                        v.point_range_min, v.stride)
-        return self.backbone.seg_head.loss_from_boxes(out.seg_logits, centroids.to(out.seg_logits.dtype), v.batch_index,
+        logits = _float32(out.seg_logits)  # float16 centroids would round 50 m coordinates to 3 cm
+        return self.backbone.seg_head.loss_from_boxes(logits, centroids.to(logits.dtype), v.batch_index,
                                                       [g.to(centroids) for g in gt_boxes])
 
     def forward(self, batch: RadarCameraBatch):
         preds, out, pts, pb = self.extract(batch)
-        if not self.training:
-            return self.head.decode(preds, self.score_threshold, self.nms_iou, self.max_detections)
-        if batch.gt_boxes is None:
-            raise MSSFError("batch.gt_boxes: required in training mode, got None")
-        losses: Dict[str, Tensor] = {f"det_{k}": v for k, v in self.head.loss(preds, batch.gt_boxes, batch.gt_labels).items()}
-        if out.seg_logits is not None:
-            losses["seg"] = self.seg_loss(out, pts, pb, batch.gt_boxes)
-        losses["loss"] = sum(losses.values())
+        # Under autocast the head's maps come out in float16 / bfloat16; its losses and box decoding run in
+        # float32 (a float16 focal loss or box encoding of 50 m ranges overflows / rounds to NaN).
+        preds = _float32(preds)
+        with _autocast_disabled(pts.device.type):
+            if not self.training:
+                return self.head.decode(preds, self.score_threshold, self.nms_iou, self.max_detections)
+            if batch.gt_boxes is None:
+                raise MSSFError("batch.gt_boxes: required in training mode, got None")
+            losses: Dict[str, Tensor] = {f"det_{k}": v for k, v in
+                                         self.head.loss(preds, batch.gt_boxes, batch.gt_labels).items()}
+            if out.seg_logits is not None:
+                losses["seg"] = self.seg_loss(out, pts, pb, batch.gt_boxes)
+            losses["loss"] = sum(losses.values())
         return losses
 
     def extra_repr(self) -> str:
         return (f"name={self.name!r}, preset={self.preset.name!r}, num_fusion_blocks={self.num_fusion_blocks}, "
                 f"image_features={self.image_feature_source!r}")
+
+
+def _float32(x):
+    """Floating tensors in ``x`` (nested dicts / lists / tuples) in float32 at least."""
+    if isinstance(x, Tensor):
+        return x.float() if x.is_floating_point() and x.dtype in (torch.float16, torch.bfloat16) else x
+    if isinstance(x, dict):
+        return {k: _float32(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return type(x)(_float32(v) for v in x)
+    return x
+
+
+def _autocast_disabled(device_type: str):
+    if torch.is_autocast_enabled(device_type):
+        return torch.autocast(device_type, enabled=False)
+    return contextlib.nullcontext()
 
 
 def build_detector(

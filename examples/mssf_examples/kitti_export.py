@@ -9,8 +9,9 @@
   with ``(x, y, z)`` the bottom-face centre, ``(h, w, l) = (dz, dy, dx)`` and ``rotation_y`` from the
   exact inverse conversion :func:`~mssf_examples.kitti_io.sensor_boxes_to_camera`; ``alpha =
   rotation_y - atan2(x_c, z_c)`` (``x_c, z_c`` the camera-frame box centre) wrapped to ``(-pi, pi]``; the
-  2D box encloses the projected corners of the camera-upright box (the solid the line describes), clipped
-  to ``[0, W - 1] x [0, H - 1]`` (:func:`~mssf_examples.kitti_io.project_boxes_2d`).
+  2D box is :func:`image_boxes_2d`: the image extent of the camera-upright box (the solid the line
+  describes), cut at the camera's near plane and clipped to ``[0, W - 1] x [0, H - 1]``.
+  :func:`kitti_objects` gives the same objects as a :class:`~mssf_examples.kitti_io.KittiObjects`.
 * :func:`write_vod_tree` saves generated :class:`~mssf_examples.scenes.Scene` s as a View-of-Delft
   release tree (``<root>/<sensor>/training/{velodyne,calib,image_2,label_2}``, ``<root>/<sensor>/ImageSets``)
   that :class:`~mssf_examples.kitti_io.KittiFormatDataset` and the CLI read like the real download.
@@ -30,13 +31,13 @@ from mssf_blocks.errors import MSSFError
 
 from .kitti_io import (
     Calibration,
+    KittiObjects,
     camera_box_corners,
-    project_boxes_2d,
     sensor_boxes_to_camera,
-    transform_points,
 )
 
-__all__ = ["kitti_lines", "write_kitti_file", "calibration_text", "scene_calibration", "write_vod_tree"]
+__all__ = ["image_boxes_2d", "kitti_objects", "kitti_lines", "write_kitti_file", "calibration_text",
+           "scene_calibration", "write_vod_tree"]
 
 PathLike = Union[str, Path]
 
@@ -45,6 +46,122 @@ def _wrap(a: Tensor) -> Tensor:
     """Angles to ``(-pi, pi]``."""
     out = torch.remainder(a + math.pi, 2 * math.pi) - math.pi
     return torch.where(out <= -math.pi, out + 2 * math.pi, out)
+
+
+#: The 12 edges of the :func:`~mssf_examples.kitti_io.camera_box_corners` ordering (bottom, top, verticals).
+_EDGES = torch.tensor([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                       [0, 4], [1, 5], [2, 6], [3, 7]])
+
+
+def image_boxes_2d(corners: Tensor, P2: Tensor, image_size: Sequence[int], near: float = 1e-3) -> Tensor:
+    """Image extent of boxes given by their camera-frame corners, clipped to the image.
+
+    A box with every corner in front of the camera (depth ``> near``) gets the enclosing rectangle of its
+    8 projected corners. A box that reaches behind the camera is first cut at the plane ``depth = near``:
+    the corners in front plus the points where its 12 edges cross that plane; those crossings project
+    far outside the image, so the box reaches the image border on the side where the object leaves the
+    view -- what an annotator's 2D box of a truncated object shows. The rectangle is clipped to
+    ``left, right in [0, W - 1]``, ``top, bottom in [0, H - 1]`` (KITTI / VoD labels). A box entirely
+    behind the camera is not in the image: ``(0, 0, 0, 0)``.
+
+    Args:
+        corners: ``(G, 8, 3)`` corners in the rectified camera frame (:func:`~mssf_examples.kitti_io.camera_box_corners`).
+        P2: ``(3, 4)`` rectified camera projection.
+        image_size: ``(H, W)``.
+        near: depth of the cutting plane in metres (``> 0``).
+
+    Returns:
+        ``(G, 4)`` float64 ``(left, top, right, bottom)``.
+    """
+    if not isinstance(corners, Tensor) or corners.dim() != 3 or tuple(corners.shape[1:]) != (8, 3):
+        got = tuple(corners.shape) if isinstance(corners, Tensor) else type(corners).__name__
+        raise MSSFError(f"corners: expected shape (G, 8, 3), got {got}")
+    if not near > 0:
+        raise MSSFError(f"near: expected a positive depth, got {near}")
+    h, w = (int(v) for v in image_size)
+    p = P2.to(torch.float64).reshape(3, 4)
+    pts = corners.to(torch.float64)
+    g = pts.shape[0]
+    depth = pts @ p[2, :3] + p[2, 3]                                   # (G, 8)
+    a, b = pts[:, _EDGES[:, 0]], pts[:, _EDGES[:, 1]]                  # (G, 12, 3)
+    da, db = depth[:, _EDGES[:, 0]], depth[:, _EDGES[:, 1]]
+    crosses = (da > near) != (db > near)
+    t = ((da - near) / torch.where(crosses, da - db, torch.ones_like(da))).clamp(0, 1)
+    cut = a + t[..., None] * (b - a)                                   # on the plane where crosses
+    cand = torch.cat([pts, cut], dim=1)                                # (G, 20, 3)
+    keep = torch.cat([depth > near, crosses], dim=1)
+    hom = cand @ p[:, :3].T + p[:, 3]
+    d = torch.where(keep, hom[..., 2], torch.ones_like(hom[..., 2]))
+    uv = hom[..., :2] / d[..., None]
+    big = torch.tensor(float("inf"), dtype=torch.float64)
+    lo = torch.where(keep[..., None], uv, big).amin(dim=1)
+    hi = torch.where(keep[..., None], uv, -big).amax(dim=1)
+    boxes = torch.cat([lo, hi], dim=1)
+    boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, w - 1)
+    boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, h - 1)
+    visible = keep.any(dim=1) if g else torch.zeros(0, dtype=torch.bool)
+    return torch.where(visible[:, None], boxes, torch.zeros_like(boxes))
+
+
+def kitti_objects(
+    boxes: Tensor,
+    labels: Tensor,
+    class_names: Sequence[str],
+    calib: Calibration,
+    image_size: Sequence[int],
+    scores: Optional[Tensor] = None,
+    truncated: float = -1.0,
+    occluded: int = -1,
+    names: Optional[Sequence[str]] = None,
+) -> KittiObjects:
+    """Sensor-frame boxes as the KITTI objects of a label / prediction file (see :func:`kitti_lines`).
+
+    Args:
+        boxes: ``(K, 7)`` sensor boxes ``(x, y, z, dx, dy, dz, yaw)``, z = box centre.
+        labels: ``(K,)`` indices into ``class_names`` (ignored where ``names`` is given).
+        class_names: the type string of each label.
+        calib: the frame's :class:`~mssf_examples.kitti_io.Calibration`.
+        image_size: ``(H, W)`` of the frame's image (the 2D boxes are clipped to it).
+        scores: ``(K,)`` detection scores, or ``None`` (labels).
+        truncated, occluded: the value of every object (predictions: ``-1``, which KITTI kits ignore).
+        names: optional ``K`` type strings overriding ``class_names[labels]`` (e.g. ``"DontCare"``).
+
+    Returns:
+        :class:`~mssf_examples.kitti_io.KittiObjects` (float64, camera frame).
+    """
+    if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
+        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
+        raise MSSFError(f"boxes: expected shape (K, 7), got {got}")
+    k = boxes.shape[0]
+    if names is None:
+        if not isinstance(labels, Tensor) or tuple(labels.shape) != (k,):
+            got = tuple(labels.shape) if isinstance(labels, Tensor) else type(labels).__name__
+            raise MSSFError(f"labels: expected shape ({k},) to match boxes, got {got}")
+        bad = [int(v) for v in labels.tolist() if not 0 <= int(v) < len(class_names)]
+        if bad:
+            raise MSSFError(f"labels: expected values in [0, {len(class_names)}) (class_names {tuple(class_names)}), "
+                            f"got {bad[:5]}")
+        names = [class_names[int(v)] for v in labels.tolist()]
+    elif len(names) != k:
+        raise MSSFError(f"names: expected {k} strings to match boxes, got {len(names)}")
+    if scores is not None and (not isinstance(scores, Tensor) or tuple(scores.shape) != (k,)):
+        got = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
+        raise MSSFError(f"scores: expected shape ({k},) to match boxes, got {got}")
+    f64 = dict(dtype=torch.float64)
+    if k == 0:
+        return KittiObjects(names=[], truncation=torch.zeros(0, **f64), occlusion=torch.zeros(0, dtype=torch.long),
+                            alpha=torch.zeros(0, **f64), boxes_2d=torch.zeros(0, 4, **f64),
+                            dimensions=torch.zeros(0, 3, **f64), location=torch.zeros(0, 3, **f64),
+                            rotation_y=torch.zeros(0, **f64),
+                            score=None if scores is None else torch.zeros(0, **f64))
+    loc, hwl, ry = sensor_boxes_to_camera(boxes.detach().cpu(), calib)
+    centre_cam = loc - torch.stack([torch.zeros_like(hwl[:, 0]), hwl[:, 0] / 2, torch.zeros_like(hwl[:, 0])], 1)
+    alpha = _wrap(ry - torch.atan2(centre_cam[:, 0], centre_cam[:, 2]))
+    box2d = image_boxes_2d(camera_box_corners(loc, hwl, ry), calib.P2, image_size)
+    return KittiObjects(names=list(names), truncation=torch.full((k,), float(truncated), **f64),
+                        occlusion=torch.full((k,), int(occluded), dtype=torch.long), alpha=alpha, boxes_2d=box2d,
+                        dimensions=hwl, location=loc, rotation_y=ry,
+                        score=None if scores is None else scores.detach().cpu().to(torch.float64))
 
 
 def kitti_lines(
@@ -65,7 +182,7 @@ def kitti_lines(
         labels: ``(K,)`` indices into ``class_names`` (ignored where ``names`` is given).
         class_names: the type string of each label.
         calib: the frame's :class:`~mssf_examples.kitti_io.Calibration`.
-        image_size: ``(H, W)`` of the frame's image (the 2D boxes are clipped to it).
+        image_size: ``(H, W)`` of the frame's image (the 2D boxes are clipped to it, :func:`image_boxes_2d`).
         scores: ``(K,)`` detection scores, written as a 16th column; ``None`` writes 15 columns (labels).
         truncated, occluded: written as is (predictions: ``-1``, the value KITTI kits ignore).
         names: optional ``K`` type strings overriding ``class_names[labels]`` (e.g. ``"DontCare"``).
@@ -73,35 +190,13 @@ def kitti_lines(
     Returns:
         ``K`` strings without newline.
     """
-    if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
-        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
-        raise MSSFError(f"boxes: expected shape (K, 7), got {got}")
-    k = boxes.shape[0]
-    if names is None:
-        if not isinstance(labels, Tensor) or tuple(labels.shape) != (k,):
-            got = tuple(labels.shape) if isinstance(labels, Tensor) else type(labels).__name__
-            raise MSSFError(f"labels: expected shape ({k},) to match boxes, got {got}")
-        bad = [int(v) for v in labels.tolist() if not 0 <= int(v) < len(class_names)]
-        if bad:
-            raise MSSFError(f"labels: expected values in [0, {len(class_names)}) (class_names {tuple(class_names)}), "
-                            f"got {bad[:5]}")
-        names = [class_names[int(v)] for v in labels.tolist()]
-    elif len(names) != k:
-        raise MSSFError(f"names: expected {k} strings to match boxes, got {len(names)}")
-    if scores is not None and (not isinstance(scores, Tensor) or tuple(scores.shape) != (k,)):
-        got = tuple(scores.shape) if isinstance(scores, Tensor) else type(scores).__name__
-        raise MSSFError(f"scores: expected shape ({k},) to match boxes, got {got}")
-    if k == 0:
-        return []
-    loc, hwl, ry = sensor_boxes_to_camera(boxes.detach().cpu(), calib)
-    centre_cam = loc - torch.stack([torch.zeros_like(hwl[:, 0]), hwl[:, 0] / 2, torch.zeros_like(hwl[:, 0])], 1)
-    alpha = _wrap(ry - torch.atan2(centre_cam[:, 0], centre_cam[:, 2]))
-    corners = transform_points(camera_box_corners(loc, hwl, ry), calib.camera_to_sensor)
-    box2d, _ = project_boxes_2d(corners, calib.lidar2img, image_size)
+    obj = kitti_objects(boxes, labels, class_names, calib, image_size, scores=scores, truncated=truncated,
+                        occluded=occluded, names=names)
     lines = []
-    for i in range(k):
-        nums = [float(alpha[i]), *box2d[i].tolist(), *hwl[i].tolist(), *loc[i].tolist(), float(ry[i])]
-        line = f"{names[i]} {truncated:.2f} {int(occluded)} " + " ".join(f"{v:.6f}" for v in nums)
+    for i in range(len(obj)):
+        nums = [float(obj.alpha[i]), *obj.boxes_2d[i].tolist(), *obj.dimensions[i].tolist(),
+                *obj.location[i].tolist(), float(obj.rotation_y[i])]
+        line = f"{obj.names[i]} {truncated:.2f} {int(occluded)} " + " ".join(f"{v:.6f}" for v in nums)
         if scores is not None:
             line += f" {float(scores[i]):.9g}"  # float32 scores exactly: the order (and ties) survive
         lines.append(line)

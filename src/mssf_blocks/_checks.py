@@ -163,6 +163,22 @@ def check_finite(x: Tensor, name: str) -> Tensor:
 
 
 @value_check
+def check_index_ranges(checks) -> None:
+    """:func:`check_index_range` for several ``(x, name, upper, upper_name)`` at once, with one host
+    synchronisation for all of them (each ``min`` / ``max`` read back stalls a GPU); same messages."""
+    checks = [c for c in checks if c[0].numel()]
+    if not checks:
+        return
+    bounds = torch.stack([t for c in checks for t in (c[0].min().long(), c[0].max().long())]).tolist()
+    for i, (_, name, upper, upper_name) in enumerate(checks):
+        lo, hi = bounds[2 * i], bounds[2 * i + 1]
+        if lo < 0 or hi >= upper:
+            raise MSSFError(
+                f"{name}: expected values in [0, {upper}) ({upper_name}={upper}), got values in [{lo}, {hi}]"
+            )
+
+
+@value_check
 def check_index_range(x: Tensor, name: str, upper: int, upper_name: str) -> Tensor:
     """Integer tensor with every entry in ``[0, upper)``."""
     if x.numel():

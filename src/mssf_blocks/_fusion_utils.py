@@ -165,3 +165,15 @@ def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: T
     y = norm(linear(x[rows]))
     out = y.new_zeros(x.shape[0], y.shape[1])
     return out.index_put((rows,), y)
+
+
+def _corner_aligned_uv(uv: Tensor, height: int, width: int) -> Tensor:
+    """``uv`` moved so that ``align_corners=False`` sampling of an ``(height, width)`` level reads what
+    ``F.grid_sample(..., align_corners=True)`` reads at ``uv``: pixel ``x = uv * (W_l - 1)``.
+
+    ``align_corners=False`` reads pixel ``uv' * W_l - 0.5``, so ``uv' = (uv * (W_l - 1) + 0.5) / W_l``
+    (and the same in ``v``); zero padding is the same in both.
+    """
+    scale = uv.new_tensor([(width - 1) / width, (height - 1) / height])
+    shift = uv.new_tensor([0.5 / width, 0.5 / height])
+    return uv * scale + shift

@@ -83,7 +83,8 @@ class FusionBlock(nn.Module):
         position: ``"before_residual"`` (paper: fuse between downsample and residual blocks) or
             ``"after_residual"`` (fuse after the residual blocks).
         query_init: MSDFF only; when given, the query is ``query_init(f_vox, f_img^1, centre)``
-            (first fusion block, eq. 8), otherwise the voxel feature itself.
+            (first fusion block, eq. 8), otherwise the voxel feature itself (``centre``: the voxel
+            centre, or the centroid for ``QueryInit(position="centroid")``).
         downsample_stride: ``(sz, sy, sx)`` of ``downsample``; inferred from its spconv convolutions
             when ``None``.
         voxel_size, point_range_min, in_stride: base-grid ``(x, y, z)`` voxel size, range minimum and
@@ -93,6 +94,10 @@ class FusionBlock(nn.Module):
 
     ``forward(x, inputs)``: ``x`` a :class:`SparseVoxels` or spconv ``SparseConvTensor``, ``inputs`` a
     :class:`FusionInputs`; returns the same type as ``x`` at stride ``in_stride * downsample_stride``.
+
+    Host synchronisation: the centroid join (``torch.unique`` over voxel and point keys: a
+    data-dependent size) and the range checks of the points and of voxels built from an spconv tensor
+    (one read-back each), plus the sampler's (see :class:`SFF`, :class:`MSDFF`). Inherent to voxel sets.
     """
 
     def __init__(
@@ -183,8 +188,11 @@ class FusionBlock(nn.Module):
                         f"query_init: expected voxel_channels={c} (voxel features), "
                         f"got {self.query_init.voxel_channels}"
                     )
-                f_img0 = sample_at_projection(inputs.image_features[0], projection)
-                query = self.query_init(f_vox, f_img0, voxels.voxel_centers(dtype=f_vox.dtype))
+                qi = self.query_init
+                f_img0 = sample_at_projection(inputs.image_features[0], projection, align_corners=qi.align_corners)
+                where = projection.centroid.to(f_vox.dtype) if qi.position == "centroid" else (
+                    voxels.voxel_centers(dtype=f_vox.dtype))
+                query = qi(f_vox, f_img0, where)
             else:
                 query = f_vox
             f_img = self.fusion(query, inputs.image_features, projection)

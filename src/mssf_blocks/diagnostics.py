@@ -489,7 +489,7 @@ def plot_blur_curves(
 ):
     """Plot blur ratio and foreground recall against ``tau`` side by side (paper Fig. 7).
 
-    Needs matplotlib (``pip install matplotlib``, included in the ``examples``/``dev`` extras).
+    Needs matplotlib (``pip install matplotlib``, or the ``plot`` extra; the ``dev`` extra includes it).
 
     Args:
         curves: one :class:`BlurCurves` or ``{label: BlurCurves}`` (one line per model).
@@ -504,7 +504,7 @@ def plot_blur_curves(
         import matplotlib.pyplot as plt
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise ImportError(
-            "plot_blur_curves needs matplotlib: pip install matplotlib (or 'mssf-blocks[examples]')"
+            "plot_blur_curves needs matplotlib: pip install matplotlib (or 'mssf-blocks[plot]')"
         ) from exc
     if isinstance(curves, BlurCurves):
         curves = {"": curves}

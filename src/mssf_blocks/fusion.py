@@ -39,6 +39,7 @@ from torch import Tensor, nn
 from ._checks import check_floating, check_positive_int, check_shape
 from ._fusion_utils import (
     _autocast_off,
+    _corner_aligned_uv,
     _check_projection,
     _factory,
     _linear_bn_visible,
@@ -64,7 +65,7 @@ __all__ = [
 
 
 
-def sample_at_projection(image_feature: Tensor, projection: CentroidProjection) -> Tensor:
+def sample_at_projection(image_feature: Tensor, projection: CentroidProjection, align_corners: bool = False) -> Tensor:
     """Bilinear sample of one level at every voxel's projection, averaged over its valid cameras.
 
     This is ``Sample(F_I,i, c_img)`` of the paper (eq. 6) with the multi-camera mean.
@@ -73,6 +74,9 @@ def sample_at_projection(image_feature: Tensor, projection: CentroidProjection) 
         image_feature: ``(B, C, H, W)`` or ``(B, V, C, H, W)``.
         projection: :class:`~mssf_blocks.geometry.CentroidProjection` with ``uv (N, V, 2)``,
             ``valid (N, V)``, ``batch_index (N,)``.
+        align_corners: ``False`` (default, the library's convention): pixel ``x = u_norm * W - 0.5``.
+            ``True``: ``x = u_norm * (W - 1)``, what ``F.grid_sample(align_corners=True)`` reads (the
+            MSSF authors' SFF and query initialisation).
 
     Returns:
         ``(N, C)`` in float32 (float64 for a float64 level); zeros (and no gradient into the image) for
@@ -81,8 +85,11 @@ def sample_at_projection(image_feature: Tensor, projection: CentroidProjection) 
     (level,) = check_image_features([image_feature], name="image_feature")
     uv, valid, batch_index = _check_projection(projection, level.shape[0], level.shape[1])
     dtype = _sampling_dtype(level)
+    uv = uv.to(dtype)
+    if align_corners:
+        uv = _corner_aligned_uv(uv, level.shape[-2], level.shape[-1])
     with _autocast_off(level.device.type):
-        return camera_mean(bilinear_sample(level.to(dtype), uv.to(dtype), batch_index, valid), valid)
+        return camera_mean(bilinear_sample(level.to(dtype), uv, batch_index, valid), valid)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -146,7 +153,11 @@ class SFF(nn.Module):
     Args:
         in_channels: ``C_l`` of every image level (``L = len(in_channels)``).
         out_channels: channels of ``f_img`` (the voxel feature's channels in a fusion block).
-        norm_layer: normalisation applied after the linear layer.
+        norm_layer: normalisation applied after the linear layer (``None``: none).
+        align_corners: ``False`` (default): sample at pixel ``x = u_norm * W_l - 0.5`` (every level reads
+            the same physical spot). ``True``: ``x = u_norm * (W_l - 1)``, ``F.grid_sample``'s
+            ``align_corners=True`` as the MSSF authors' ``VoxelFusion`` samples (each level shifted by a
+            different fraction of a pixel; :mod:`mssf_blocks.compat.mssf_official`).
         device, dtype: factory arguments of the parameters.
 
     Shapes:
@@ -156,6 +167,10 @@ class SFF(nn.Module):
 
     The sampling runs in float32 (float64 for a float64 module), also under ``torch.autocast``;
     float16 / bfloat16 levels are read as float32.
+
+    Host synchronisation (what stalls a GPU): the projection's batch-index range check (one read-back)
+    and which voxels are visible (``nonzero``; the BatchNorm runs on the visible rows, a
+    data-dependent size). Both inherent; the backward has none.
 
     Example:
         >>> import torch
@@ -173,11 +188,15 @@ class SFF(nn.Module):
         self,
         in_channels: Sequence[int],
         out_channels: int,
-        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        norm_layer: Optional[Type[nn.Module]] = nn.BatchNorm1d,
         device=None,
         dtype=None,
+        align_corners: bool = False,
     ) -> None:
         super().__init__()
+        if not isinstance(align_corners, bool):
+            raise MSSFError(f"align_corners: expected a bool, got {align_corners!r}")
+        self.align_corners = align_corners
         if isinstance(in_channels, int) or not isinstance(in_channels, Sequence) or len(in_channels) == 0:
             raise MSSFError(f"in_channels: expected a non-empty sequence of ints (one per level), got {in_channels!r}")
         self.in_channels = tuple(check_positive_int(c, f"in_channels[{i}]") for i, c in enumerate(in_channels))
@@ -201,7 +220,8 @@ class SFF(nn.Module):
         uv = uv.to(dtype)
         with _autocast_off(uv.device.type):
             parts = [
-                camera_mean(bilinear_sample(_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "SFF"), uv,
+                camera_mean(bilinear_sample(_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "SFF"),
+                                            _corner_aligned_uv(uv, *lvl.shape[-2:]) if self.align_corners else uv,
                                             batch_index, valid), valid)
                 for i, lvl in enumerate(levels)
             ]
@@ -212,12 +232,16 @@ class SFF(nn.Module):
         return _linear_bn_visible(self.linear, self.norm, sampled, projection.valid.any(dim=1))
 
     def extra_repr(self) -> str:
-        return f"in_channels={self.in_channels}, out_channels={self.out_channels}"
+        extra = ", align_corners=True" if self.align_corners else ""
+        return f"in_channels={self.in_channels}, out_channels={self.out_channels}{extra}"
 
 
 # ---------------------------------------------------------------------------------------------------
 # QueryInit
 # ---------------------------------------------------------------------------------------------------
+_QUERY_POSITIONS = ("voxel_centre", "centroid")
+
+
 class QueryInit(nn.Module):
     """MSDFF query initialisation (paper eq. 8): ``Linear_BN(cat(f_vox, f_img^1, p))``.
 
@@ -227,12 +251,22 @@ class QueryInit(nn.Module):
         out_channels: query channels (the MSDFF ``embed_dim``).
         point_cloud_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` used to normalise voxel
             centres to ``p`` in ``[0, 1]^3``.
-        norm_layer: normalisation after the linear layer.
+        norm_layer: normalisation after the linear layer (``None``: none).
         device, dtype: factory arguments of the parameters.
+        position: what :class:`~mssf_blocks.blocks.FusionBlock` passes as ``centers``:
+            ``"voxel_centre"`` (default; the paper's eq. 8 position of the voxel) or ``"centroid"`` (the
+            centroid of the voxel's points, its centre where it holds none: the MSSF authors' code).
+        align_corners: how :class:`~mssf_blocks.blocks.FusionBlock` samples ``f_img^1``: as
+            :func:`sample_at_projection` (``True``: the authors' ``align_corners=True``).
+
+    The columns of ``linear.weight`` are ``[f_vox | f_img^1 | p]``; the authors' ``query_proj`` reads
+    ``[f_img^1 | f_vox | p]`` (:mod:`mssf_blocks.compat.mssf_official` permutes them on loading).
 
     Shapes:
         - f_vox ``(N, C_v)``, f_img0 ``(N, C_i)``, centers ``(N, 3)`` metric ``(x, y, z)``.
         - output ``(N, out_channels)``.
+
+    No host synchronisation in forward or backward.
     """
 
     def __init__(
@@ -241,11 +275,18 @@ class QueryInit(nn.Module):
         image_channels: int,
         out_channels: int,
         point_cloud_range: Sequence[float],
-        norm_layer: Type[nn.Module] = nn.BatchNorm1d,
+        norm_layer: Optional[Type[nn.Module]] = nn.BatchNorm1d,
         device=None,
         dtype=None,
+        position: str = "voxel_centre",
+        align_corners: bool = False,
     ) -> None:
         super().__init__()
+        if position not in _QUERY_POSITIONS:
+            raise MSSFError(f"position: expected one of {_QUERY_POSITIONS}, got {position!r}")
+        if not isinstance(align_corners, bool):
+            raise MSSFError(f"align_corners: expected a bool, got {align_corners!r}")
+        self.position, self.align_corners = position, align_corners
         self.voxel_channels = check_positive_int(voxel_channels, "voxel_channels")
         self.image_channels = check_positive_int(image_channels, "image_channels")
         self.out_channels = check_positive_int(out_channels, "out_channels")
@@ -286,5 +327,6 @@ class QueryInit(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"voxel_channels={self.voxel_channels}, image_channels={self.image_channels}, "
-            f"out_channels={self.out_channels}, point_cloud_range={self.point_cloud_range}"
+            f"out_channels={self.out_channels}, point_cloud_range={self.point_cloud_range}, "
+            f"position={self.position!r}, align_corners={self.align_corners}"
         )

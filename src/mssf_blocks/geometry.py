@@ -57,6 +57,15 @@ class VoxelCentroidProjector(nn.Module):
         eps: depths ``<= eps`` are invalid (behind the camera).
         point_range_max: optional ``(x, y, z)`` upper corner of the point-cloud range; points at or
             above it are ignored (by default, points beyond the grid are ignored).
+        half_pixel: ``True`` (default): ``uv = ((u + 0.5) / W, (v + 0.5) / H)``, pixel ``i``'s centre at
+            ``(i + 0.5) / W`` (every FPN level samples the same spot). ``False``: ``uv = (u / W, v / H)``,
+            the paper's ``c = (u / W, v / H)`` taken literally and the MSSF authors' reference points
+            (half a base pixel to the left and up; :mod:`mssf_blocks.compat.mssf_official`).
+        inside_image_only: ``True`` (default): ``valid`` needs the point inside the image; a voxel
+            outside gets an exact zero image feature. ``False``: ``valid`` is ``depth > eps`` only, so
+            an out-of-image voxel in front of the camera is sampled (zero padding; MSDFF offsets may
+            reach into the image) and goes through the samplers' output layers, as in the authors'
+            code.
 
     Shapes:
         - voxels: N voxels at any stride; points ``(P, 3+)``; points_batch ``(P,)``.
@@ -77,8 +86,13 @@ class VoxelCentroidProjector(nn.Module):
         (tensor([[0.2500, 0.5000, 0.7500]]), tensor([[[0.1875, 0.2500]]]))
     """
 
-    def __init__(self, eps: float = 1e-5, point_range_max: Optional[Sequence[float]] = None) -> None:
+    def __init__(self, eps: float = 1e-5, point_range_max: Optional[Sequence[float]] = None,
+                 half_pixel: bool = True, inside_image_only: bool = True) -> None:
         super().__init__()
+        for name, flag in (("half_pixel", half_pixel), ("inside_image_only", inside_image_only)):
+            if not isinstance(flag, bool):
+                raise MSSFError(f"{name}: expected a bool, got {flag!r}")
+        self.half_pixel, self.inside_image_only = half_pixel, inside_image_only
         if not (isinstance(eps, (int, float)) and eps >= 0):
             raise MSSFError(f"eps: expected a non-negative float, got {eps!r}")
         self.eps = float(eps)
@@ -117,13 +131,25 @@ class VoxelCentroidProjector(nn.Module):
         )
         batch_index = voxels.batch_index
         proj = project_points(centroid, batch_index, lidar2img, image_size, points_to_sensor, self.eps)
+        uv, valid = proj.uv, proj.valid
+        ok_depth = proj.depth > self.eps
+        if not self.half_pixel:  # u / W (project_points validated image_size)
+            h, w = (int(x) for x in image_size)
+            uv = proj.pixel / torch.tensor([w, h], dtype=proj.pixel.dtype, device=proj.pixel.device)
+            uv = torch.where(ok_depth[..., None], uv, torch.full_like(uv, -1.0))
+        if not self.inside_image_only:
+            valid = ok_depth
+        elif not self.half_pixel:  # inside the image in the u / W coordinates
+            valid = ok_depth & (uv >= 0).all(dim=-1) & (uv <= 1).all(dim=-1)
         return CentroidProjection(
-            uv=proj.uv, depth=proj.depth, valid=proj.valid, centroid=centroid,
+            uv=uv, depth=proj.depth, valid=valid, centroid=centroid,
             has_points=has_points, batch_index=batch_index,
         )
 
     def extra_repr(self) -> str:
-        return f"eps={self.eps}, point_range_max={self.point_range_max}"
+        extra = "" if self.half_pixel and self.inside_image_only else (
+            f", half_pixel={self.half_pixel}, inside_image_only={self.inside_image_only}")
+        return f"eps={self.eps}, point_range_max={self.point_range_max}{extra}"
 
 
 def augmentation_matrix(

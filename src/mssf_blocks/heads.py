@@ -52,6 +52,9 @@ class SemanticGuidedHead(nn.Module):
         - output: ``(SparseVoxels with features (N, C), scores (N,))`` [``, logits (N,)`` with
           ``return_logits=True``].
 
+    Host synchronisation: none in ``forward``; one read-back in :meth:`loss` (the targets' checks);
+    :meth:`loss_from_boxes` also selects each sample's voxels (``nonzero`` per sample, data-dependent).
+
     Example:
         >>> import torch
         >>> from mssf_blocks.sparse import SparseVoxels

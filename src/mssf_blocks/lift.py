@@ -85,6 +85,10 @@ class PillarLift(nn.Module):
         - bev: ``(B, C, H_b, W_b)``; voxels: :class:`SparseVoxels` with ``spatial_shape (D, H, W)``.
         - output: :class:`SparseVoxels` with ``features (N, C)``.
 
+    Host synchronisation: one read-back in ``forward`` and in :meth:`to_bev` (the coordinate range
+    checks, all at once); :meth:`to_bev_sparse` also sizes the occupied pillars (``torch.unique``).
+    The backward has none.
+
     Example:
         >>> import torch
         >>> from mssf_blocks.functional.lift import voxelize_points

@@ -90,6 +90,12 @@ class MSDFF(nn.Module):
             per head; ``O(pixels * C * D_v + N * M * L * P * D_v / M)``). All give the same result
             (tested).
         device, dtype: factory arguments of the parameters.
+        add_query: ``False`` (default; paper eq. 10, ``f_img = Linear_BN(...)``): the output is the
+            image feature. ``True``: the output is ``query + f_img`` (the authors' attention adds its
+            input back, so their fusion block computes ``f_vox + query + f_img``, i.e.
+            ``2 f_vox + f_img`` when the query is the voxel feature).
+        output_dropout: dropout probability on ``f_img`` in training mode (default 0; the authors use
+            0.1, applied before the query is added back).
 
     Shapes:
         - query: ``(N, E)``; image_features: ``L`` levels ``(B, [V,] C, H_l, W_l)``;
@@ -99,6 +105,13 @@ class MSDFF(nn.Module):
     Precision: the locations, attention weights and sampling run in float32 (float64 for a float64
     module), also under ``torch.autocast``; float16 / bfloat16 levels are read as float32
     (``docs/fusion.md``, "Precision and mixed-precision training").
+
+    Host synchronisation (what stalls a GPU), all data-dependent and so inherent: the projection's
+    batch-index range check; ``valid.all()`` (one camera seeing every voxel takes a path without
+    gathers); with several cameras the ``(voxel, camera)`` pairs (``nonzero``); the visible rows of the
+    output BatchNorm (``nonzero``); ``method="auto"`` and ``"fast"`` also size their per-level gathers
+    by the pixels the voxels touch. None grows with the number of voxels (``tests/test_devices.py``
+    counts them on CUDA).
 
     Weights: ``sampling_offsets (M*L*P*2, E)``, ``attention_weights (M*L*P, E)``, ``value_proj
     (D_v, C)``, ``output_proj (E, D_v)`` (plus biases) have the names and layout of Deformable DETR's
@@ -123,8 +136,15 @@ class MSDFF(nn.Module):
         value_projection: str = "after_sampling",
         device=None,
         dtype=None,
+        add_query: bool = False,
+        output_dropout: float = 0.0,
     ) -> None:
         super().__init__()
+        if not isinstance(add_query, bool):
+            raise MSSFError(f"add_query: expected a bool, got {add_query!r}")
+        if isinstance(output_dropout, bool) or not isinstance(output_dropout, (int, float)) or not 0 <= output_dropout < 1:
+            raise MSSFError(f"output_dropout: expected a probability in [0, 1), got {output_dropout!r}")
+        self.add_query, self.output_dropout = add_query, float(output_dropout)
         self.embed_dim = check_positive_int(embed_dim, "embed_dim")
         self.num_heads = check_positive_int(num_heads, "num_heads")
         self.num_levels = check_positive_int(num_levels, "num_levels")
@@ -305,7 +325,10 @@ class MSDFF(nn.Module):
                 per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
                 attended = camera_mean(per_camera, valid)
         attended = attended.to(self.output_proj.weight.dtype)
-        return _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
+        f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
+        if self.output_dropout:
+            f_img = F.dropout(f_img, self.output_dropout, self.training)
+        return query.to(f_img.dtype) + f_img if self.add_query else f_img
 
     def extra_repr(self) -> str:
         return (
@@ -313,4 +336,6 @@ class MSDFF(nn.Module):
             f"num_heads={self.num_heads}, "
             f"num_levels={self.num_levels}, num_points={self.num_points}, method={self.method!r}, "
             f"value_projection={self.value_projection!r}"
+            + (f", add_query={self.add_query}, output_dropout={self.output_dropout}"
+               if self.add_query or self.output_dropout else "")
         )

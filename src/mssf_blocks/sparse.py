@@ -17,7 +17,7 @@ from torch import Tensor
 from ._checks import (
     check_dtype,
     check_floating,
-    check_index_range,
+    check_index_ranges,
     check_positive_int,
     check_shape,
     check_triple,
@@ -81,14 +81,12 @@ class SparseVoxels:
         check_shape(coords, "coords", ("N", 4))
         check_dtype(coords, "coords", (torch.int32,), hint=" (convert with coords.int())")
         if coords.numel():
-            check_index_range(coords[:, 0], "coords[:, 0] (batch index)", self.batch_size, "batch_size")
-            for axis, name in zip((1, 2, 3), ("z", "y", "x")):
-                check_index_range(
-                    coords[:, axis],
-                    f"coords[:, {axis}] ({name} index)",
-                    self.spatial_shape[axis - 1],
-                    f"spatial_shape[{axis - 1}]",
-                )
+            # one host synchronisation for the four range checks, not eight (a GPU stalls on each)
+            check_index_ranges(
+                [(coords[:, 0], "coords[:, 0] (batch index)", self.batch_size, "batch_size")]
+                + [(coords[:, a], f"coords[:, {a}] ({n} index)", self.spatial_shape[a - 1], f"spatial_shape[{a - 1}]")
+                   for a, n in zip((1, 2, 3), ("z", "y", "x"))]
+            )
 
     @staticmethod
     def _check_features(features: Tensor, n: int) -> None:
@@ -212,17 +210,21 @@ class SparseVoxels:
         the source's index cache (``indice_dict``, grid, benchmark settings), so later ``SubMConv3d`` /
         inverse convs with the same ``indice_key`` still find their indices.
         """
+        from .compat.spconv import quiet  # drops spconv's own torch.fx message (see there)
+
         if self.spconv_source is not None:
-            return self.spconv_source.replace_feature(self.features)
+            with quiet():
+                return self.spconv_source.replace_feature(self.features)
         try:
             import spconv.pytorch as spconv
         except ImportError as exc:  # pragma: no cover - depends on the environment
             raise ImportError(
                 "SparseVoxels.to_spconv needs spconv: pip install 'mssf-blocks[spconv]'"
             ) from exc
-        return spconv.SparseConvTensor(
-            self.features, self.coords, list(self.spatial_shape), self.batch_size
-        )
+        with quiet():
+            return spconv.SparseConvTensor(
+                self.features, self.coords, list(self.spatial_shape), self.batch_size
+            )
 
     def __repr__(self) -> str:
         return (

@@ -30,6 +30,7 @@ from mssf_examples.kitti_io import (  # noqa: E402
     KittiFormatDataset,
     camera_boxes_to_sensor,
     parse_labels,
+    read_labels,
     read_calibration,
 )
 from mssf_examples.scenes import SceneConfig, SyntheticDataset  # noqa: E402
@@ -237,7 +238,7 @@ def test_eval_writes_one_prediction_file_per_frame_and_metrics(tree, trained, tm
     m = json.loads((out / "metrics.json").read_text())
     assert set(m["results"]) == {"entire_area", "driving_corridor"}
     assert m["num_frames"] == 2 and m["num_gt"] == sum(len(s.gt_labels) for s in scenes["val"])
-    # Independent re-evaluation from the written files: parse, convert to the sensor frame, evaluate.
+    # Independent re-evaluation from the written files (what the official kit reads): parse, evaluate.
     preds, gts = [], []
     ds = KittiFormatDataset(root, VOD_RADAR, sensor="radar_5frames", split="val")
     total = 0
@@ -245,12 +246,11 @@ def test_eval_writes_one_prediction_file_per_frame_and_metrics(tree, trained, tm
         obj = parse_labels((out / "predictions" / f"{frame.frame_id}.txt").read_text())
         total += len(obj)
         assert obj.score is not None or len(obj) == 0
-        boxes = camera_boxes_to_sensor(obj.location, obj.dimensions, obj.rotation_y, frame.calib)
-        preds.append(dict(boxes=boxes, labels=torch.tensor([VOD_CLASSES.index(n) for n in obj.names], dtype=torch.long),
-                          scores=obj.score if obj.score is not None else torch.zeros(0, dtype=torch.float64)))
-        gts.append(dict(boxes=frame.gt_boxes, labels=frame.gt_labels, lidar2cam=frame.calib.sensor_to_camera))
+        preds.append(obj)
+        gts.append(read_labels(root / "radar_5frames" / "training" / "label_2" / f"{frame.frame_id}.txt"))
     assert total == m["num_detections"] > 0  # score threshold 0 keeps up to 100 per frame
-    again = evaluate(preds, gts, VOD_CLASSES)
+    assert m["protocol"] == "vod"
+    again = evaluate(preds, gts, VOD_CLASSES, protocol="vod")
     for region in again:
         for cls, vals in again[region].items():
             for key, v in vals.items():
@@ -387,8 +387,9 @@ def test_tj4d_layout_train_and_eval(tree, tmp_path):
     assert cli.main(["eval", "--checkpoint", str(out / "checkpoint.pt"), "--split", "val", "--score-threshold", "0",
                      "--threads", "1", "--no-progress"]) == 0
     m = json.loads((out / "eval_val" / "metrics.json").read_text())
-    assert set(m["results"]["entire_area"]) == {"Car", "Pedestrian", "Cyclist", "Truck", "mAP"}
-    assert m["results"]["entire_area"]["Truck"]["AP3D_R11"] is None  # no truck in the scenes: undefined AP
+    assert m["protocol"] == "tj4d" and set(m["results"]) == {"range_0_50", "range_0_70", "range_all"}
+    assert set(m["results"]["range_all"]) == {"Car", "Pedestrian", "Cyclist", "Truck", "mAP"}
+    assert m["results"]["range_all"]["Truck"]["AP3D_R40"] is None  # no truck in the scenes: undefined AP
     assert sorted(p.stem for p in (out / "eval_val" / "predictions").glob("*.txt")) == ids["val"]
 
 

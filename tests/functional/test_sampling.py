@@ -67,8 +67,8 @@ def grads_of(values, image_index, locations, weights, method, dtype=F64):
     wt = weights.detach().clone().requires_grad_(True)
     out, mass = ms_deform_sample(vals, image_index, loc, wt, method=method, return_mass=True)
     g = torch.Generator().manual_seed(7)
-    go = torch.randn(out.shape, generator=g, dtype=dtype)
-    gm = torch.randn(mass.shape, generator=g, dtype=dtype)
+    go = torch.randn(out.shape, generator=g, dtype=dtype).to(out.device)
+    gm = torch.randn(mass.shape, generator=g, dtype=dtype).to(out.device)
     grads = torch.autograd.grad((out * go).sum() + (mass * gm).sum(), vals + [loc, wt])
     return out.detach(), mass.detach(), grads
 
@@ -161,14 +161,16 @@ def test_camera_mean_hand_numbers():
 # ms_deform_sample
 # ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("mv", [1, 2])
-def test_ms_deform_sample_matches_naive_loop(mv):
+def test_ms_deform_sample_matches_naive_loop(mv, device):
     values, image_index, locations, weights = random_inputs(mv=mv, m=2)
     expected, expected_mass = naive_ms_deform(values, image_index, locations, weights)
+    values, (image_index, locations, weights) = [v.to(device) for v in values], \
+        (t.to(device) for t in (image_index, locations, weights))
     for method in ("reference", "fast", "auto"):
         out, mass = ms_deform_sample(values, image_index, locations, weights, method=method, return_mass=True)
         assert out.shape == (6, 2, 3)
-        assert_close(out, expected, msg=method)
-        assert_close(mass, expected_mass, msg=method)
+        assert_close(out.cpu(), expected, msg=method)
+        assert_close(mass.cpu(), expected_mass, msg=method)
 
 
 def border_locations(sizes, q, m, p, dtype, seed=3):
@@ -187,13 +189,15 @@ def border_locations(sizes, q, m, p, dtype, seed=3):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("mv", [1, 3])
 @pytest.mark.parametrize("where", ["random", "borders"])
-def test_fast_equals_reference_forward_and_all_gradients(dtype, mv, where):
+def test_fast_equals_reference_forward_and_all_gradients(dtype, mv, where, device):
     sizes = ((8, 16), (4, 8), (2, 4))
     values, image_index, locations, weights = random_inputs(
         num_images=3, mv=mv, m=3, d=4, sizes=sizes, q=17, p=2, dtype=dtype, spread=0.4
     )
     if where == "borders":
         locations = border_locations(sizes, 17, 3, 2, dtype)
+    values, (image_index, locations, weights) = [v.to(device) for v in values], \
+        (t.to(device) for t in (image_index, locations, weights))
     ref = grads_of(values, image_index, locations, weights, "reference", dtype)
     fast = grads_of(values, image_index, locations, weights, "fast", dtype)
     assert_close(fast[0], ref[0], msg="out")

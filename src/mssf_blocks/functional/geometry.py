@@ -193,8 +193,8 @@ def voxel_centroids(
         slot = segment_slots(keys)
         m = keys.shape[0]
     else:
-        _, slot = torch.unique(keys, sorted=True, return_inverse=True)
-        m = int(slot.max()) + 1
+        uniq, slot = torch.unique(keys, sorted=True, return_inverse=True)
+        m = uniq.shape[0]  # slot.max() + 1, already known on the host (no second synchronisation)
     row_slot, point_slot = slot[:n], slot[n:]
 
     sums = torch.zeros(m, 3, dtype=dtype, device=device).index_add_(0, point_slot, points[:, :3])

@@ -23,6 +23,7 @@ from .._checks import (
     check_finite,
     check_floating,
     check_index_range,
+    check_index_ranges,
     check_nonnegative,
     check_positive_int,
     check_shape,
@@ -106,16 +107,18 @@ def pillar_lift(
     bi, zi = c64[:, 0], c64[:, 1]
     yi = torch.div(c64[:, 2], sy, rounding_mode="floor")
     xi = torch.div(c64[:, 3], sx, rounding_mode="floor")
-    check_index_range(bi, "coords[:, 0] (batch index)", b_, "bev.shape[0]")
-    check_index_range(yi, f"coords[:, 2] // {sy} (BEV row)", hb, "bev.shape[2]")
-    check_index_range(xi, f"coords[:, 3] // {sx} (BEV column)", wb, "bev.shape[3]")
+    checks = [(bi, "coords[:, 0] (batch index)", b_, "bev.shape[0]"),
+              (yi, f"coords[:, 2] // {sy} (BEV row)", hb, "bev.shape[2]"),
+              (xi, f"coords[:, 3] // {sx} (BEV column)", wb, "bev.shape[3]")]
+    if height_embedding is not None:
+        check_shape(height_embedding, "height_embedding", (None, c))
+        check_floating(height_embedding, "height_embedding")
+        checks.append((zi, "coords[:, 1] (z index)", height_embedding.shape[0], "height_embedding.shape[0]"))
+    check_index_ranges(checks)  # one host synchronisation for all (not two per check)
     # Advanced indexing reads only N x C values (no channels-last copy of the whole map); its backward
     # is an accumulating index_put (sums the gradients of voxels sharing a pillar).
     out = bev[bi, :, yi, xi]
     if height_embedding is not None:
-        check_shape(height_embedding, "height_embedding", (None, c))
-        check_floating(height_embedding, "height_embedding")
-        check_index_range(zi, "coords[:, 1] (z index)", height_embedding.shape[0], "height_embedding.shape[0]")
         out = out + height_embedding.to(out.dtype)[zi]
     return out
 
@@ -170,9 +173,9 @@ def _pillar_index(coords: Tensor, batch_size: int, hb: int, wb: int, sy: int, sx
     c64 = coords.long()
     yi = torch.div(c64[:, 2], sy, rounding_mode="floor")
     xi = torch.div(c64[:, 3], sx, rounding_mode="floor")
-    check_index_range(c64[:, 0], "coords[:, 0] (batch index)", batch_size, "batch_size")
-    check_index_range(yi, f"coords[:, 2] // {sy} (BEV row)", hb, "bev_shape[0]")
-    check_index_range(xi, f"coords[:, 3] // {sx} (BEV column)", wb, "bev_shape[1]")
+    check_index_ranges([(c64[:, 0], "coords[:, 0] (batch index)", batch_size, "batch_size"),
+                        (yi, f"coords[:, 2] // {sy} (BEV row)", hb, "bev_shape[0]"),
+                        (xi, f"coords[:, 3] // {sx} (BEV column)", wb, "bev_shape[1]")])
     return (c64[:, 0] * hb + yi) * wb + xi
 
 

@@ -56,3 +56,10 @@ def msdff_auto_method(device_type: str, static: bool) -> str:
 def bilinear_auto_method(device_type: str, static: bool) -> str:
     """``bilinear_sample``'s method for ``method="auto"`` on ``device_type`` (``"gather"`` or ``"grid"``)."""
     return _STATIC if static else _BILINEAR_AUTO.get(device_type, _STATIC)
+# The projected plans ("dense", "project") then read d = E / M channels per head and corner: forward
+# from an embedding bag over the projected table (_BAG_COST per element), with gradients through
+# F.grid_sample on the (M, d, H, W) per-head views of the projected map, whose forward + backward
+# costs about 400 multiply-adds per element (measured on one core with benchmarks/msdff.py at the
+# paper's width, d = 32: 12-16 ns per element against 0.035 ns per GEMM multiply-add). Negligible at
+# d = 2-4 (the narrow layout), it decides the plan at d = 32.
+_GRID_SAMPLE_COST = 400.0

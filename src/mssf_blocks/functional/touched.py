@@ -22,6 +22,7 @@ from .plan_costs import (
     _DIRECT_BAG_COST,
     _FILL_COST,
     _GATHER_COST,
+    _GRID_SAMPLE_COST,
     _PROJECT_CHUNK,
 )
 
@@ -218,10 +219,12 @@ def _touched_level(
         corners = m * q * 4 * p
         bag = 1.0 + _BAG_BACKWARD if needs_grad else 1.0  # forward (+ backward) passes over the corners
         gemm = 2.0 if needs_grad else 1.0  # the projection (+ its weight gradient)
+        # the projected plans' sampling: d channels per head and corner (per input channel: / D)
+        read = corners * d / dch * (_GRID_SAMPLE_COST if needs_grad else _BAG_COST)
         costs = {
-            "dense": n_pix * e * gemm,
+            "dense": n_pix * e * gemm + read,
             # (with gradients the touched rows are gathered again for the weight gradient)
-            "project": u * (e + _GATHER_COST) * gemm + (n_pix * e * _FILL_COST if needs_grad else 0.0),
+            "project": u * (e + _GATHER_COST) * gemm + (n_pix * e * _FILL_COST if needs_grad else 0.0) + read,
             "sample": u * (_GATHER_COST + _COPY_COST) + corners * _BAG_COST * bag + q * e * gemm,
         }
         if _is_row_table(value):

@@ -1,0 +1,430 @@
+"""One-command device check: tests on the GPU, the MSDFF benchmark on the GPU, a training step per detector.
+
+Run on a GPU machine from the repository root (``make gpu-check``)::
+
+    python benchmarks/gpu_check.py [--out outputs/gpu_check] [--skip-install]
+
+From a bare machine it first makes sure the packages it needs import (torch with CUDA, einops,
+numpy, pytest, spconv for the GPU's CUDA version, tqdm, pillow): missing ones are installed with pip
+(``spconv-cu1xx`` matching ``torch.version.cuda``), or, with ``--skip-install`` or when pip fails,
+named in the report. Then, each stage timed and bounded so the whole finishes in under 8 minutes
+on one modern GPU:
+
+1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``; the ``device`` fixture adds
+   ``cuda``), the host-synchronisation count, the pinned-memory test, the distributed/CLI option
+   tests (``-k cuda or sync or pin``) - pass/fail counts and the failures' names;
+2. the MSDFF benchmark on VoD shapes (one 1216 x 1952 camera, FPN strides 4-64 with 256 channels,
+   8 heads, 4 points, 5 levels, E = 64): the reference formulation (``method="reference"``,
+   ``value_projection="before_sampling"``: ``value_proj`` on every pixel + ``grid_sample``, Deformable
+   DETR's) against ours (``method="auto"``), forward and forward+backward, float32 and bfloat16
+   autocast, N = 2,500 / 8,000 / 40,000 voxels; CUDA-event timing (median of repeats after a
+   warm-up), peak memory (``torch.cuda.max_memory_allocated``), the output difference;
+3. one training step (forward + backward + AdamW step) of each example detector (VoD paper preset,
+   n = 2 MSDFF blocks) on a VoD-sized synthetic frame (2,500 radar points, 1216 x 1936 image): median
+   step time, peak memory; and the same step under bf16 and fp16 autocast (whether spconv's CUDA
+   kernels take them is what this answers).
+
+Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.md`` (GPU, driver, torch, CUDA, spconv
+versions; the tables). ``--smoke`` runs every stage at toy sizes on ``--device cpu`` (the test suite
+runs it so that the script is known to work on machines without a GPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: What each stage may take on a GPU (seconds); the whole stays under 8 minutes.
+BUDGET_S = {"install": 150, "tests": 150, "msdff": 120, "detectors": 60}
+
+
+# --------------------------------------------------------------------------------------------------
+# set-up
+# --------------------------------------------------------------------------------------------------
+def _spconv_wheel(cuda: Optional[str]) -> Optional[str]:
+    """``spconv-cu1xx`` for a torch built with CUDA ``cuda`` (spconv publishes cu113 ... cu124 wheels)."""
+    if not cuda:
+        return None
+    major, minor = (int(x) for x in cuda.split(".")[:2])
+    tags = [(11, 3), (11, 4), (11, 6), (11, 7), (11, 8), (12, 0), (12, 1), (12, 4)]
+    best = [t for t in tags if t[0] == major and t[1] <= minor] or [t for t in tags if t[0] <= major]
+    if not best:
+        return None
+    a, b = best[-1]
+    return f"spconv-cu{a}{b}"
+
+
+def ensure_packages(install: bool, need_spconv: bool = True) -> Dict[str, str]:
+    """Import every package the check needs; pip-install the missing ones when ``install``.
+
+    Returns ``{package: version or "MISSING: why"}``; torch itself is never installed here (a CUDA
+    build must match the driver: install it first, https://pytorch.org/get-started/locally/).
+    """
+    report: Dict[str, str] = {}
+    try:
+        import torch
+    except ImportError:
+        return {"torch": "MISSING: install a CUDA build of torch first (https://pytorch.org/get-started/locally/)"}
+    report["torch"] = torch.__version__
+    wanted = {"numpy": "numpy", "einops": "einops", "pytest": "pytest", "tqdm": "tqdm", "PIL": "pillow"}
+    if need_spconv:
+        wanted["spconv"] = _spconv_wheel(torch.version.cuda) or "spconv"
+    for module, pip_name in wanted.items():
+        try:
+            report[pip_name] = getattr(importlib.import_module(module), "__version__", "present")
+            continue
+        except ImportError:
+            pass
+        if not install:
+            report[pip_name] = f"MISSING: pip install {pip_name}"
+            continue
+        r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", pip_name], capture_output=True,
+                           text=True, timeout=BUDGET_S["install"])
+        try:
+            importlib.invalidate_caches()
+            report[pip_name] = getattr(importlib.import_module(module), "__version__", "installed")
+        except ImportError:
+            report[pip_name] = f"MISSING: pip install {pip_name} failed: {r.stderr.strip()[-300:]}"
+    try:  # the library itself, from this checkout
+        sys.path[:0] = [str(REPO / "src"), str(REPO / "examples")]
+        import mssf_blocks
+
+        report["mssf_blocks"] = getattr(mssf_blocks, "__version__", "present")
+    except ImportError as exc:
+        report["mssf_blocks"] = f"MISSING: {exc}"
+    return report
+
+
+def environment(device) -> Dict[str, object]:
+    import torch
+
+    env: Dict[str, object] = dict(python=platform.python_version(), torch=torch.__version__,
+                                  cuda=torch.version.cuda, cudnn=torch.backends.cudnn.version(), device=str(device))
+    if device.type == "cuda":
+        p = torch.cuda.get_device_properties(device)
+        env.update(gpu=p.name, gpu_memory_gib=round(p.total_memory / 2**30, 1), capability=f"{p.major}.{p.minor}",
+                   bf16=torch.cuda.is_bf16_supported())
+        try:
+            env["driver"] = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                                           capture_output=True, text=True, timeout=20).stdout.strip()
+        except (OSError, subprocess.TimeoutExpired):
+            env["driver"] = None
+    else:
+        env["threads"] = torch.get_num_threads()
+    try:
+        import spconv
+
+        env["spconv"] = spconv.__version__
+    except ImportError:
+        env["spconv"] = None
+    return env
+
+
+# --------------------------------------------------------------------------------------------------
+# 1. tests
+# --------------------------------------------------------------------------------------------------
+def run_tests(smoke: bool) -> Dict[str, object]:
+    """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode)."""
+    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/examples/test_distributed.py"])
+    select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
+    cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "src"), str(REPO / "examples"),
+                                                        os.environ.get("PYTHONPATH", "")]))
+    t0 = time.perf_counter()
+    try:
+        r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=BUDGET_S["tests"])
+        out, code = r.stdout + r.stderr, r.returncode
+    except subprocess.TimeoutExpired as exc:
+        out, code = (exc.stdout or "") if isinstance(exc.stdout, str) else "", "timeout"
+    summary = [line for line in out.splitlines() if " passed" in line or " failed" in line or "error" in line.lower()]
+    return dict(command=" ".join(cmd[1:]), returncode=code, seconds=time.perf_counter() - t0,
+                summary=summary[-1] if summary else out[-500:],
+                failures=[line for line in out.splitlines() if line.startswith(("FAILED", "ERROR"))],
+                host_syncs=[line for line in out.splitlines() if "host syncs" in line])
+
+
+# --------------------------------------------------------------------------------------------------
+# 2. MSDFF: reference vs ours
+# --------------------------------------------------------------------------------------------------
+STRIDES = (4, 8, 16, 32, 64)
+
+
+def _timer(device) -> Callable[[Callable[[], object], int], float]:
+    import torch
+
+    def cuda_time(fn, repeats):
+        fn()  # warm-up
+        torch.cuda.synchronize(device)
+        times = []
+        for _ in range(repeats):
+            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            a.record()
+            fn()
+            b.record()
+            torch.cuda.synchronize(device)
+            times.append(a.elapsed_time(b) / 1e3)
+        return sorted(times)[len(times) // 2]
+
+    def cpu_time(fn, repeats):
+        fn()
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return sorted(times)[len(times) // 2]
+
+    return cuda_time if device.type == "cuda" else cpu_time
+
+
+def _peak(device, fn) -> Optional[float]:
+    import torch
+
+    if device.type != "cuda":
+        return None
+    torch.cuda.synchronize(device)
+    torch.cuda.reset_peak_memory_stats(device)
+    base = torch.cuda.memory_allocated(device)
+    fn()
+    torch.cuda.synchronize(device)
+    return (torch.cuda.max_memory_allocated(device) - base) / 2**20
+
+
+def msdff_benchmark(device, smoke: bool, repeats: int) -> List[Dict[str, object]]:
+    """Reference (project every pixel + grid_sample) vs ours (method="auto") on VoD shapes."""
+    import torch
+
+    from mssf_blocks.fusion import MSDFF
+    from mssf_blocks.geometry import CentroidProjection
+
+    h, w = (64, 96) if smoke else (1216, 1952)
+    strides = STRIDES[:2] if smoke else STRIDES
+    channels, heads, points, embed = (16, 2, 2, 8) if smoke else (256, 8, 4, 64)
+    sizes = (50, 200) if smoke else (2500, 8000, 40000)
+    g = torch.Generator().manual_seed(0)
+    feats = [torch.randn(1, channels, -(-h // s), -(-w // s), generator=g).to(device) for s in strides]
+    time_it = _timer(device)
+    rows = []
+    for n in sizes:
+        uv = torch.rand(n, 1, 2, generator=g)
+        proj = CentroidProjection(uv=uv.to(device), depth=torch.ones(n, 1, device=device),
+                                  valid=torch.ones(n, 1, dtype=torch.bool, device=device),
+                                  centroid=torch.zeros(n, 3, device=device),
+                                  has_points=torch.ones(n, dtype=torch.bool, device=device),
+                                  batch_index=torch.zeros(n, dtype=torch.long, device=device))
+        query = torch.randn(n, embed, generator=g).to(device)
+        torch.manual_seed(0)
+        ref = MSDFF(embed, channels, num_heads=heads, num_levels=len(strides), num_points=points,
+                    method="reference", value_projection="before_sampling").to(device).train()
+        ours = MSDFF(embed, channels, num_heads=heads, num_levels=len(strides), num_points=points,
+                     method="auto").to(device).train()
+        ours.load_state_dict(ref.state_dict())
+        for amp in ("float32", "bfloat16"):
+            if amp == "bfloat16" and device.type == "cuda" and not torch.cuda.is_bf16_supported():
+                continue
+            ctx = (lambda: torch.autocast(device.type, dtype=torch.bfloat16)) if amp == "bfloat16" else None
+            row: Dict[str, object] = dict(N=n, precision=amp if amp == "float32" else "bf16 autocast")
+
+            def fwd(mod):
+                def f():
+                    with torch.no_grad(), (ctx() if ctx else _null()):
+                        return mod(query, feats, proj)
+                return f
+
+            def fwd_bwd(mod):
+                q = query.clone().requires_grad_(True)
+
+                def f():
+                    with ctx() if ctx else _null():
+                        out = mod(q, feats, proj)
+                    out.float().sum().backward()
+                return f
+
+            with torch.no_grad(), (ctx() if ctx else _null()):
+                diff = (ref(query, feats, proj).float() - ours(query, feats, proj).float()).abs().max().item()
+            row["max_abs_diff"] = diff
+            for kind, make in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
+                t_ref, t_ours = time_it(make(ref), repeats), time_it(make(ours), repeats)
+                row[f"{kind}_ref_ms"], row[f"{kind}_ours_ms"] = t_ref * 1e3, t_ours * 1e3
+                row[f"{kind}_ratio"] = t_ref / t_ours
+                m_ref, m_ours = _peak(device, make(ref)), _peak(device, make(ours))
+                row[f"{kind}_ref_MiB"], row[f"{kind}_ours_MiB"] = m_ref, m_ours
+            rows.append(row)
+            print(f"  MSDFF N={n} {row['precision']}: fwd ratio {row['fwd_ratio']:.2f}, fwd+bwd ratio "
+                  f"{row['fwd_bwd_ratio']:.2f}, max |diff| {diff:.2e}", flush=True)
+    return rows
+
+
+class _null:
+    def __enter__(self):
+        return None
+
+    def __exit__(self, *exc):
+        return False
+
+
+# --------------------------------------------------------------------------------------------------
+# 3. one training step per detector
+# --------------------------------------------------------------------------------------------------
+def detector_steps(device, smoke: bool, repeats: int) -> List[Dict[str, object]]:
+    import torch
+
+    from mssf_examples.data import RadarCameraBatch
+    from mssf_examples.detectors import DETECTOR_NAMES, build_detector
+    from mssf_examples.presets import TINY, VOD
+    from mssf_examples.spconv_compat import enable_cpu_backward
+
+    enable_cpu_backward()
+    preset = TINY if smoke else VOD
+    h, w = (32, 64) if smoke else (1216, 1936)
+    g = torch.Generator().manual_seed(0)
+    x0, y0, z0, x1, y1, z1 = preset.point_cloud_range
+    num_points = 300 if smoke else 2500
+    lo, hi = torch.tensor([x0, y0, z0]), torch.tensor([x1, y1, z1])
+    xyz = lo + torch.rand(num_points, 3, generator=g) * (hi - lo) * 0.999
+    pts = torch.cat([xyz, torch.randn(num_points, preset.num_point_features - 3, generator=g)], 1)
+    l2i = torch.zeros(1, 1, 3, 4)
+    l2i[0, 0, 0, 1], l2i[0, 0, 1, 2], l2i[0, 0, 2, 0] = -w / 2, -w / 2, 1.0
+    l2i[0, 0, 0, 0], l2i[0, 0, 1, 0] = w / 2, h / 2
+    cx = (x0 + x1) / 2
+    box = torch.tensor([[max(cx, 5.0), 0.0, -0.5, 3.9, 1.6, 1.56, 0.3]])
+    batch = RadarCameraBatch(points=[pts], lidar2img=l2i, images=torch.rand(1, 1, 3, h, w, generator=g),
+                             gt_boxes=[box], gt_labels=[torch.tensor([0])]).to(device)
+    time_it = _timer(device)
+    rows = []
+    for name in DETECTOR_NAMES:
+        row: Dict[str, object] = dict(detector=name, fusion_blocks=2)
+        try:
+            torch.manual_seed(0)
+            model = build_detector(name, preset, num_fusion_blocks=2).to(device).train()
+            opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
+
+            def step(dtype=None):
+                opt.zero_grad(set_to_none=True)
+                with torch.autocast(device.type, dtype=dtype) if dtype is not None else _null():
+                    loss = model(batch)["loss"]
+                loss.backward()
+                opt.step()
+                return loss
+
+            row["step_ms"] = time_it(step, repeats) * 1e3
+            row["peak_MiB"] = _peak(device, step)
+            row["loss_finite"] = bool(torch.isfinite(step()).item())
+        except Exception as exc:  # noqa: BLE001 - the report says what failed, the other detectors still run
+            row["error"] = f"{type(exc).__name__}: {str(exc)[:300]}"
+        # the same step under autocast (what --amp bf16 / fp16 run; spconv on CUDA is the open question)
+        for tag, dtype in (("bf16", torch.bfloat16), ("fp16", torch.float16)):
+            if "error" in row:
+                break
+            if device.type == "cpu" and name != "pointpillars":
+                row[f"{tag}_step_ms"] = "n/a (spconv CPU)"
+                continue
+            try:
+                row[f"{tag}_step_ms"] = time_it(lambda: step(dtype), repeats) * 1e3
+                row[f"{tag}_loss_finite"] = bool(torch.isfinite(step(dtype)).item())
+            except Exception as exc:  # noqa: BLE001
+                row[f"{tag}_step_ms"] = f"{type(exc).__name__}: {str(exc)[:120]}"
+        rows.append(row)
+        print(f"  {name}: " + (f"{row['step_ms']:.1f} ms/step" if "step_ms" in row else row["error"]), flush=True)
+    return rows
+
+
+# --------------------------------------------------------------------------------------------------
+# report
+# --------------------------------------------------------------------------------------------------
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e-2 else f"{v:.2f}"
+    return str(v)
+
+
+def _table(rows: List[Dict[str, object]], cols: List[str]) -> str:
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def markdown(result: Dict[str, object]) -> str:
+    env = result["environment"]
+    parts = ["# GPU check", "", "Environment: " + ", ".join(f"{k} {v}" for k, v in env.items()), "",
+             "Packages: " + ", ".join(f"{k} {v}" for k, v in result["packages"].items()), ""]
+    t = result.get("tests")
+    if t:
+        parts += ["## Tests", "", f"`{t['command']}`: {t['summary']} (exit {t['returncode']}, {t['seconds']:.0f} s)", ""]
+        parts += [f"- {f}" for f in t["failures"]] + [f"- {s}" for s in t["host_syncs"]] + [""]
+    if result.get("msdff"):
+        parts += ["## MSDFF, reference / ours (ratio > 1: ours faster)", "",
+                  _table(result["msdff"], ["N", "precision", "fwd_ref_ms", "fwd_ours_ms", "fwd_ratio", "fwd_bwd_ref_ms",
+                                           "fwd_bwd_ours_ms", "fwd_bwd_ratio", "fwd_bwd_ref_MiB", "fwd_bwd_ours_MiB",
+                                           "max_abs_diff"]), ""]
+    if result.get("detectors"):
+        parts += ["## One training step per detector (n = 2 MSDFF blocks)", "",
+                  _table(result["detectors"], ["detector", "step_ms", "peak_MiB", "loss_finite", "bf16_step_ms",
+                                               "bf16_loss_finite", "fp16_step_ms", "fp16_loss_finite", "error"]), ""]
+    parts += [f"Total {result['seconds']:.0f} s."]
+    return "\n".join(parts) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=REPO / "outputs" / "gpu_check")
+    ap.add_argument("--device", default="cuda", help="cuda (default), cuda:N, or cpu (with --smoke)")
+    ap.add_argument("--smoke", action="store_true", help="toy sizes (CPU smoke test of this script)")
+    ap.add_argument("--skip-install", action="store_true", help="do not pip-install missing packages, report them")
+    ap.add_argument("--skip-tests", action="store_true")
+    ap.add_argument("--repeats", type=int, default=None, help="timed repeats (default 5; 2 with --smoke)")
+    args = ap.parse_args(argv)
+    t0 = time.perf_counter()
+    packages = ensure_packages(install=not args.skip_install)
+    missing = {k: v for k, v in packages.items() if str(v).startswith("MISSING")}
+    if "torch" in missing or "mssf_blocks" in missing:
+        print("gpu_check: cannot start: " + "; ".join(f"{k}: {v}" for k, v in missing.items()), file=sys.stderr)
+        return 2
+    import torch
+
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        print(f"gpu_check: --device {args.device}: torch {torch.__version__} sees no CUDA GPU "
+              f"(torch.version.cuda = {torch.version.cuda}); install a CUDA build of torch, or run --smoke "
+              f"--device cpu", file=sys.stderr)
+        return 2
+    if device.type == "cpu" and not args.smoke:
+        print("gpu_check: --device cpu only with --smoke (the figures are for GPUs)", file=sys.stderr)
+        return 2
+    repeats = args.repeats or (2 if args.smoke else 5)
+    result: Dict[str, object] = dict(environment=environment(device), packages=packages, smoke=args.smoke)
+    print(f"gpu_check on {result['environment']}", flush=True)
+    if not args.skip_tests:
+        print("1/3 tests", flush=True)
+        result["tests"] = run_tests(args.smoke)
+        print(f"  {result['tests']['summary']}", flush=True)
+    print("2/3 MSDFF benchmark", flush=True)
+    result["msdff"] = msdff_benchmark(device, args.smoke, repeats)
+    if "spconv" in missing:
+        result["detectors"] = [dict(detector="all", error=packages["spconv"])]
+    else:
+        print("3/3 one training step per detector", flush=True)
+        result["detectors"] = detector_steps(device, args.smoke, repeats)
+    result["seconds"] = time.perf_counter() - t0
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "gpu_check.json").write_text(json.dumps(result, indent=1, default=str))
+    (args.out / "gpu_check.md").write_text(markdown(result))
+    print(f"wrote {args.out / 'gpu_check.json'} and {args.out / 'gpu_check.md'} ({result['seconds']:.0f} s)")
+    failed = result.get("tests", {}).get("returncode", 0) not in (0, 5)  # 5: nothing selected
+    return 1 if failed or any("error" in r for r in result["detectors"]) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

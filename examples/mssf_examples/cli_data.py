@@ -1,0 +1,131 @@
+"""Data loading of the training / eval CLI (``python -m mssf_examples``): the dataset, the ``DataLoader``,
+the collate functions (ground truth kept on the grid, image scaling with ``lidar2img`` to match), and
+the preset / configuration JSON helpers.
+
+Split from :mod:`mssf_examples.cli` (one concept per file); the CLI re-exports these names.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from mssf_blocks import apply_image_augmentation, image_augmentation_matrix
+from mssf_blocks.errors import MSSFError
+
+from .kitti_io import Frame, KittiFormatDataset, frames_to_batch
+from .presets import DetectorPreset
+
+__all__ = ["scale_batch"]
+
+
+def _open_dataset(ap: argparse.ArgumentParser, root: Path, spec, sensor: Optional[str],
+                  split: str) -> KittiFormatDataset:
+    """The ``split`` frames under ``root`` for ``spec`` (a :class:`~mssf_examples.cli.DatasetSpec`);
+    errors become ``ap.error`` messages naming ``--data-root``."""
+    if not root.is_dir():
+        ap.error(f"--data-root: expected an existing dataset folder, got {root} (not found)")
+    try:
+        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=None if split == "all" else split,
+                                  class_names=spec.class_names)
+    except (FileNotFoundError, MSSFError) as exc:
+        ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}")
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+class _Frames(torch.utils.data.Dataset):
+    """Frames of a :class:`KittiFormatDataset` for a ``DataLoader`` (labels optional)."""
+
+    def __init__(self, ds: KittiFormatDataset, with_labels: bool) -> None:
+        self.ds, self.with_labels = ds, with_labels
+
+    def __len__(self) -> int:
+        return len(self.ds)
+
+    def __getitem__(self, i: int) -> Frame:
+        return self.ds.load(self.ds.frame_ids[i], with_labels=self.with_labels)
+
+
+def scale_batch(batch, scale: float):
+    """Resize a batch's images by ``scale`` and map ``lidar2img`` to the resized pixels.
+
+    With pixel ``i``'s centre at ``i`` and edges kept aligned, ``u' = (u + 0.5) s_x - 0.5`` where
+    ``s_x = W' / W`` (the same for ``v``), i.e. ``lidar2img' = S @ lidar2img`` with
+    ``S = [[s_x, 0, (s_x - 1) / 2], [0, s_y, (s_y - 1) / 2], [0, 0, 1]]``.
+    """
+    if scale == 1.0:
+        return batch
+    b, v, c, h, w = batch.images.shape
+    nh, nw = max(1, round(h * scale)), max(1, round(w * scale))
+    images = F.interpolate(batch.images.flatten(0, 1), size=(nh, nw), mode="bilinear", align_corners=False,
+                           antialias=nh < h).unflatten(0, (b, v))
+    s, _ = image_augmentation_matrix((h, w), resize=(nh, nw))
+    lidar2img = apply_image_augmentation(batch.lidar2img, s)
+    return dataclasses.replace(batch, images=images, lidar2img=lidar2img, image_size=None)
+
+
+def _loader(frames: _Frames, batches: Sequence[Sequence[int]], workers: int, collate, device=None):
+    # pinned host memory when the batches go to a GPU: the copies then overlap the computation
+    pin = device is not None and torch.device(device).type == "cuda"
+    return torch.utils.data.DataLoader(frames, batch_sampler=batches, num_workers=workers, collate_fn=collate,
+                                       pin_memory=pin)
+
+
+
+class _Collate:
+    """Picklable ``collate_fn``: frames -> batch (images scaled by ``scale``).
+
+    With ``gt_range = (x0, y0, z0, x1, y1, z1)`` the ground truth keeps boxes whose centre has
+    ``x0 <= x < x1`` and ``y0 <= y < y1`` (as OpenPCDet does before training: boxes the BEV grid cannot
+    hold would give the heads targets outside their maps).
+    """
+
+    def __init__(self, scale: float, gt_range: Optional[Sequence[float]] = None) -> None:
+        self.scale, self.gt_range = scale, None if gt_range is None else tuple(float(v) for v in gt_range)
+
+    def __call__(self, frames: List[Frame]):
+        batch = frames_to_batch(frames)
+        if self.gt_range is not None:
+            x0, y0, _, x1, y1, _ = self.gt_range
+            keep = [(g[:, 0] >= x0) & (g[:, 0] < x1) & (g[:, 1] >= y0) & (g[:, 1] < y1) for g in batch.gt_boxes]
+            batch = dataclasses.replace(batch, gt_boxes=[g[k] for g, k in zip(batch.gt_boxes, keep)],
+                                        gt_labels=[g[k] for g, k in zip(batch.gt_labels, keep)])
+        return scale_batch(batch, self.scale)
+
+
+class _CollateWithFrames(_Collate):
+    def __call__(self, frames: List[Frame]):
+        return super().__call__(frames), frames
+
+
+# --------------------------------------------------------------------------------------------------
+# Config <-> preset
+# --------------------------------------------------------------------------------------------------
+def _tuples(x):
+    return tuple(_tuples(v) for v in x) if isinstance(x, (list, tuple)) else x
+
+
+def _preset_to_json(p: DetectorPreset) -> Dict:
+    return {f.name: getattr(p, f.name) for f in dataclasses.fields(p)}
+
+
+def _preset_from_json(d: Dict) -> DetectorPreset:
+    return DetectorPreset(**{k: _tuples(v) for k, v in d.items()})
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, Path):
+        return str(x)
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x

@@ -1,0 +1,99 @@
+"""The example fusion backbones (SECOND / CenterPoint layouts) behind both frameworks' contracts.
+
+The sparse layers live in ``mssf_examples.backbones`` (spconv); this module builds them from a
+framework's grid description and runs them up to the layers a framework's neck expects (the
+``conv_out`` spconv tensor). ``mssf_examples`` and spconv are imported when a backbone is built,
+never at import time.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, Optional, Sequence, Tuple
+
+import torch
+from torch import Tensor
+
+from ..errors import MSSFError
+from ..sparse import SparseVoxels
+
+__all__: list = []
+
+#: framework layout name -> example backbone class
+LAYOUTS = {"VoxelBackBone8x": "SECONDBackbone", "VoxelResBackBone8x": "CenterPointBackbone"}
+FUSION_KWARGS = ("num_fusion_blocks", "fusion", "fusion_position", "image_channels", "msdff_heads",
+                 "msdff_points", "msdff_value_projection", "seg_hidden", "channels", "out_channels")
+
+
+def _examples_backbones() -> Any:
+    try:
+        from mssf_examples import backbones
+    except ImportError as exc:
+        raise ImportError(
+            "the framework backbones are built from mssf_examples.backbones (spconv): install the examples "
+            "package and spconv (see README, 'examples') to use them; the input adapters need neither"
+        ) from exc
+    return backbones
+
+
+def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], voxel_size: Sequence[float],
+          grid_size: Optional[Sequence[int]] = None, **kwargs: Any) -> Any:
+    """An example backbone of ``layout`` (``"VoxelBackBone8x"`` / ``"VoxelResBackBone8x"``).
+
+    ``grid_size`` ``(nx, ny, nz)`` (what the framework computed) must match the grid of
+    ``point_cloud_range`` / ``voxel_size``.
+    """
+    if layout not in LAYOUTS:
+        raise MSSFError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
+    unknown = sorted(set(kwargs) - set(FUSION_KWARGS))
+    if unknown:
+        raise MSSFError(f"backbone settings: unknown {unknown}; expected among {FUSION_KWARGS}")
+    kwargs = {k: v for k, v in kwargs.items() if v is not None or k == "seg_hidden"}
+    if kwargs.get("seg_hidden", None) is not None:
+        kwargs["seg_hidden"] = tuple(int(c) for c in kwargs["seg_hidden"])
+    if "image_channels" in kwargs:
+        kwargs["image_channels"] = [int(c) for c in kwargs["image_channels"]]
+    kwargs.setdefault("seg_hidden", None)
+    bb = _examples_backbones()
+    from mssf_examples.voxelize import VoxelGrid
+
+    grid = VoxelGrid(tuple(float(v) for v in point_cloud_range), tuple(float(v) for v in voxel_size))
+    if grid_size is not None:
+        given = tuple(int(g) for g in (grid_size.tolist() if hasattr(grid_size, "tolist") else grid_size))
+        if given != grid.grid_size:
+            raise MSSFError(
+                f"grid_size: expected {grid.grid_size} (point_cloud_range / voxel_size), got {given}"
+            )
+    return getattr(bb, LAYOUTS[layout])(int(in_channels), grid, **kwargs)
+
+
+def run_dense_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int,
+                     fusion_inputs: Any) -> Tuple[Any, Any]:
+    """``(BackboneOutput, conv_out spconv tensor)`` of a SECOND/CenterPoint example backbone."""
+    if not isinstance(voxel_coords, Tensor) or voxel_coords.dim() != 2 or voxel_coords.shape[1] != 4:
+        raise MSSFError(f"voxel_coords: expected (N, 4) (batch, z, y, x), got {getattr(voxel_coords, 'shape', voxel_coords)!r}")
+    coords = voxel_coords.to(torch.int32)
+    if not torch.equal(coords.to(voxel_coords.dtype), voxel_coords):
+        raise MSSFError("voxel_coords: expected integer voxel indices")
+    from ..compat.spconv import enable_cpu_backward, quiet
+
+    enable_cpu_backward()  # spconv's backward on a CPU-only torch (no effect on CUDA builds)
+    voxels = net.grid.sparse_voxels(voxel_features, coords, int(batch_size))
+    out = net.forward_stages(voxels, fusion_inputs)
+    with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
+        return out, net.conv_out(out.stages[-1].to_spconv())
+
+
+def stage_spconv(out: Any) -> Dict[str, Any]:
+    """``{'x_conv1': ..., 'x_conv4': ...}`` spconv tensors of the four stages (index caches kept)."""
+    return {f"x_conv{i + 1}": s.to_spconv() for i, s in enumerate(out.stages[:4])}
+
+
+def seg_loss(net: Any, out: Any, points: Tensor, points_batch: Tensor, gt_boxes: Sequence[Tensor]) -> Tensor:
+    """Semantic-head focal loss on the centroids of the last fusion block's voxels (augmented frame)."""
+    from ..functional.geometry import voxel_centroids
+
+    v: SparseVoxels = out.seg_voxels
+    centroids, _ = voxel_centroids(points[:, :3], points_batch, v.coords, v.spatial_shape, v.batch_size,
+                                   v.voxel_size, v.point_range_min, v.stride)
+    return net.seg_head.loss_from_boxes(out.seg_logits, centroids.to(out.seg_logits.dtype), v.batch_index,
+                                        [g.to(centroids) for g in gt_boxes])

@@ -1,0 +1,177 @@
+"""mmdetection3d plugin: registers the MSSF middle encoder with mmdet3d's ``MODELS`` registry.
+
+Import it from a config (mmengine runs ``custom_imports`` before building anything)::
+
+    custom_imports = dict(imports=["mssf_blocks.integrations.mmdet3d_plugin"], allow_failed_imports=False)
+    model = dict(
+        type="VoxelNet",  # or MVXFasterRCNN / your detector; see docs/frameworks.md for the one call it changes
+        middle_encoder=dict(
+            type="MSSFSparseEncoder", in_channels=7, sparse_shape=[41, 1024, 1024],
+            point_cloud_range=[0, -25.6, -3, 51.2, 25.6, 2], voxel_size=[0.05, 0.05, 0.125],
+            num_fusion_blocks=2, image_channels=[256, 256, 256, 256]),
+        ...)
+
+Importing registers :class:`MSSFSparseEncoder` when mmdet3d is importable and does nothing otherwise
+(:func:`register_mmdet3d_modules` returns whether it registered). The encoder itself is a plain
+``nn.Module`` and needs neither mmdet3d nor mmengine.
+"""
+
+from __future__ import annotations
+
+from typing import Any, List, Mapping, Optional, Sequence, Tuple, Union
+
+from torch import Tensor, nn
+
+from ..errors import MSSFError
+from . import _backbones
+from .mmdet3d import fusion_inputs_from_mmdet3d
+
+__all__ = ["MSSFSparseEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
+
+
+class MSSFSparseEncoder(nn.Module):
+    """mmdet3d middle encoder (``SparseEncoder`` contract) running an MSSF fusion backbone.
+
+    ``forward(voxel_features (N, C), coors (N, 4) (batch, z, y, x), batch_size, points=None,
+    img_features=None, batch_input_metas=None)`` returns the dense BEV ``(B, C_out * D, H, W)`` of
+    ``conv_out`` (as ``SparseEncoder``; with ``return_middle_feats`` also the four stage spconv tensors).
+    The camera keyword arguments are those the authors' MSSF detectors pass to their middle encoder:
+    ``points`` (per-sample ``(P_i, 3 + C)``), ``img_features`` (``extract_img_feat``'s levels) and
+    ``batch_input_metas`` (``[s.metainfo for s in batch_data_samples]``); they are needed only when
+    ``num_fusion_blocks > 0``.
+
+    Args:
+        in_channels: voxel feature channels.
+        sparse_shape: ``(D + 1, H, W)`` as in ``SparseEncoder`` configs (checked against the grid).
+        point_cloud_range, voxel_size: the data preprocessor's ``voxel_layer`` values.
+        layout: ``"VoxelBackBone8x"`` (SECOND; mmdet3d's default ``SparseEncoder``) or
+            ``"VoxelResBackBone8x"`` (CenterPoint's residual layout).
+        num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
+        msdff_value_projection, seg_hidden, channels, out_channels: as the example backbones
+            (``mssf_examples.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
+        image_aug: ``"meta"`` or ``"none"``, see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
+        return_middle_feats: also return the stage outputs (as ``SparseEncoder``).
+    """
+
+    def __init__(
+        self,
+        in_channels: int,
+        sparse_shape: Sequence[int],
+        point_cloud_range: Sequence[float],
+        voxel_size: Sequence[float],
+        layout: str = "VoxelBackBone8x",
+        num_fusion_blocks: int = 1,
+        fusion: str = "msdff",
+        fusion_position: str = "before_residual",
+        image_channels: Optional[Sequence[int]] = None,
+        msdff_heads: int = 8,
+        msdff_points: int = 4,
+        msdff_value_projection: Optional[str] = None,
+        seg_hidden: Optional[Sequence[int]] = None,
+        channels: Optional[Sequence[int]] = None,
+        out_channels: Optional[int] = None,
+        image_aug: str = "meta",
+        return_middle_feats: bool = False,
+    ) -> None:
+        super().__init__()
+        self.net = _backbones.build(
+            layout, in_channels, point_cloud_range, voxel_size, num_fusion_blocks=num_fusion_blocks, fusion=fusion,
+            fusion_position=fusion_position, image_channels=image_channels, msdff_heads=msdff_heads,
+            msdff_points=msdff_points, msdff_value_projection=msdff_value_projection, seg_hidden=seg_hidden,
+            channels=channels, out_channels=out_channels,
+        )
+        if [int(s) for s in sparse_shape] != list(self.net.input_shape):
+            raise MSSFError(
+                f"sparse_shape: expected {list(self.net.input_shape)} (z + 1, y, x of point_cloud_range / voxel_size), "
+                f"got {list(sparse_shape)}"
+            )
+        self.sparse_shape = list(self.net.input_shape)
+        self.in_channels = int(in_channels)
+        self.image_aug = image_aug
+        self.return_middle_feats = bool(return_middle_feats)
+        self.last_output = None  # the backbone output of the latest forward (for seg_loss)
+
+    @property
+    def num_fusion_blocks(self) -> int:
+        return self.net.num_fusion_blocks
+
+    def forward(
+        self,
+        voxel_features: Tensor,
+        coors: Tensor,
+        batch_size: Union[int, Tensor],
+        points: Optional[Sequence[Tensor]] = None,
+        img_features: Optional[Sequence[Tensor]] = None,
+        batch_input_metas: Optional[Sequence[Mapping]] = None,
+        **kwargs: Any,
+    ) -> Union[Tensor, Tuple[Tensor, List[Any]]]:
+        inputs = None
+        if self.num_fusion_blocks:
+            missing = [n for n, v in (("points", points), ("img_features", img_features),
+                                      ("batch_input_metas", batch_input_metas)) if v is None]
+            if missing:
+                raise MSSFError(
+                    f"{', '.join(missing)}: required by the fusion blocks; pass points=..., img_features=..., "
+                    "batch_input_metas=... to the middle encoder (docs/frameworks.md)"
+                )
+            inputs = fusion_inputs_from_mmdet3d(points, img_features, batch_input_metas, image_aug=self.image_aug)
+        out, encoded = _backbones.run_dense_layout(self.net, voxel_features, coors, int(batch_size), inputs)
+        self.last_output = out if out.seg_logits is not None else None
+        from ..compat.spconv import dense
+
+        bev = dense(encoded).flatten(1, 2)  # (B, C, D, H, W) -> (B, C * D, H, W), as SparseEncoder
+        if self.return_middle_feats:
+            return bev, list(_backbones.stage_spconv(out).values())
+        return bev
+
+    def seg_loss(self, points: Sequence[Tensor], gt_bboxes_3d: Sequence[Any]) -> Tensor:
+        """The semantic head's focal loss for the latest forward.
+
+        Args:
+            points: the per-sample points given to ``forward``.
+            gt_bboxes_3d: per sample ``LiDARInstance3DBoxes`` (their ``.tensor``) or ``(G, 7+)`` tensors,
+                mmdet3d's bottom-centre boxes.
+        """
+        if self.last_output is None:
+            raise MSSFError("seg_loss: no semantic-head output; build with seg_hidden and num_fusion_blocks > 0, then run forward")
+        import torch
+
+        boxes = [getattr(b, "tensor", b)[:, :7] for b in gt_bboxes_3d]
+        flat = torch.cat(list(points), 0)
+        batch = torch.cat([torch.full((p.shape[0],), i, dtype=torch.long, device=flat.device) for i, p in enumerate(points)])
+        out = self.last_output
+        from ..functional.geometry import voxel_centroids
+
+        v = out.seg_voxels
+        centroids, _ = voxel_centroids(flat[:, :3], batch, v.coords, v.spatial_shape, v.batch_size, v.voxel_size,
+                                       v.point_range_min, v.stride)
+        return self.net.seg_head.loss_from_boxes(out.seg_logits, centroids.to(out.seg_logits.dtype), v.batch_index,
+                                                 [g.to(centroids) for g in boxes], origin="bottom")
+
+
+#: name -> class, registered by :func:`register_mmdet3d_modules`
+MMDET3D_MODULES = {"MSSFSparseEncoder": MSSFSparseEncoder}
+
+
+def register_mmdet3d_modules(registry: Any = None) -> bool:
+    """Register :data:`MMDET3D_MODULES` with ``registry`` (default ``mmdet3d.registry.MODELS``).
+
+    Idempotent (a name already bound to the same class is skipped). Returns ``False`` without a
+    registry and without mmdet3d; raises :class:`MSSFError` if a name is taken by another class.
+    """
+    if registry is None:
+        try:
+            from mmdet3d.registry import MODELS as registry
+        except ImportError:
+            return False
+    for name, cls in MMDET3D_MODULES.items():
+        existing = registry.module_dict.get(name)
+        if existing is cls:
+            continue
+        if existing is not None:
+            raise MSSFError(f"registry: {name!r} is already registered to {existing!r}")
+        registry.register_module(name=name, module=cls)
+    return True
+
+
+REGISTERED = register_mmdet3d_modules()

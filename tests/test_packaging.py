@@ -1,0 +1,131 @@
+"""The distributions: the wheel holds both packages and works installed; the sdist is a runnable tree.
+
+Both are built (PEP 517, setuptools, no network) from a copy of the source tree. Checks:
+
+* wheel: ``mssf_blocks`` and ``mssf_examples`` (every module of both), nothing else; unpacked
+  outside the repository, ``python -m mssf_examples --help`` runs from it; the ``examples`` extra
+  lists exactly the third-party packages ``mssf_examples`` imports beyond the core dependencies;
+* sdist: every file of the source tree (tests with conftest.py and sub-folders, docs, examples,
+  benchmarks, Makefile, mkdocs.yml), and pytest collects the suite from the unpacked sdist with no error.
+"""
+
+from __future__ import annotations
+
+import ast
+import email
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tarfile
+import zipfile
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+_IGNORE = shutil.ignore_patterns(".git", ".venv", "__pycache__", "*.egg-info", ".pytest_cache", ".hypothesis",
+                                 "build", "dist", "outputs", "*.pt", "*.pyc", "site", "results")
+# import name -> distribution name, for the examples' third-party imports
+_DIST_OF = {"PIL": "pillow", "spconv": "spconv", "tqdm": "tqdm", "torch": "torch", "numpy": "numpy",
+            "einops": "einops", "matplotlib": "matplotlib"}
+
+setuptools = pytest.importorskip("setuptools")
+if tuple(int(x) for x in re.findall(r"\d+", setuptools.__version__)[:1]) < (77,):
+    pytest.skip(f"needs setuptools>=77 (the dev extra), found {setuptools.__version__}", allow_module_level=True)
+
+
+def _tree_files(root: Path):
+    return {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """``(source copy, its files before the build, sdist path, wheel path)``."""
+    tmp = tmp_path_factory.mktemp("dist")
+    src = tmp / "src"
+    shutil.copytree(REPO, src, ignore=_IGNORE)
+    files = _tree_files(src)
+    out = tmp / "out"
+    names = []
+    for hook in ("build_sdist", "build_wheel"):  # one process each, as a PEP 517 frontend does
+        code = f"import sys; from setuptools import build_meta as b; print(b.{hook}(sys.argv[1]))"
+        r = subprocess.run([sys.executable, "-c", code, str(out)], cwd=src, capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stdout + r.stderr
+        names.append(r.stdout.strip().splitlines()[-1])
+    return src, files, out / names[0], out / names[1]
+
+
+def test_wheel_holds_both_packages_and_nothing_else(built):
+    src, _, _, wheel = built
+    names = set(zipfile.ZipFile(wheel).namelist())
+    tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
+    assert tops == {"mssf_blocks", "mssf_examples"}, tops
+    for pkg, root in (("mssf_blocks", src / "src" / "mssf_blocks"), ("mssf_examples", src / "examples" / "mssf_examples")):
+        want = {f"{pkg}/{p}" for p in _tree_files(root) if p.endswith(".py")}
+        assert want <= names, sorted(want - names)
+    assert "mssf_blocks/py.typed" in names
+
+
+def _third_party_imports(root: Path):
+    found = set()
+    for path in root.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                found |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module.split(".")[0])
+    return {n for n in found if n not in sys.stdlib_module_names and n not in ("mssf_blocks", "mssf_examples")}
+
+
+@pytest.mark.skipif(not hasattr(sys, "stdlib_module_names"), reason="Python >= 3.10 lists the standard library")
+def test_examples_extra_promises_what_the_examples_import(built):
+    src, _, _, wheel = built
+    with zipfile.ZipFile(wheel) as z:
+        meta = email.message_from_bytes(z.read(next(n for n in z.namelist() if n.endswith(".dist-info/METADATA"))))
+    reqs = meta.get_all("Requires-Dist")
+    core = {re.match(r"[\w.-]+", r).group(0).lower() for r in reqs if "extra ==" not in r}
+    examples = {re.match(r"[\w.-]+", r).group(0).lower() for r in reqs if re.search(r"extra == .examples.", r)}
+    used = {_DIST_OF[n] for n in _third_party_imports(src / "examples" / "mssf_examples")}
+    assert core == {"torch", "numpy", "einops"}
+    assert examples == used - core, f"examples extra {sorted(examples)} vs what mssf_examples imports {sorted(used)}"
+
+
+def test_installed_wheel_runs_the_cli_outside_the_repository(built, tmp_path):
+    _, _, _, wheel = built
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)  # a pure-Python wheel: unpacking it is installing it
+    env = dict(os.environ, PYTHONPATH=str(site))
+    code = ("import mssf_blocks, mssf_examples; print(mssf_blocks.__file__); print(mssf_examples.__file__)")
+    r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert all(Path(p).resolve().is_relative_to(site.resolve()) for p in r.stdout.split()), r.stdout
+    pytest.importorskip("spconv")
+    r = subprocess.run([sys.executable, "-m", "mssf_examples", "--help"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "usage: python -m mssf_examples" in r.stdout and "{train,eval}" in r.stdout
+
+
+def test_sdist_is_the_whole_source_tree(built):
+    _, want, sdist, _ = built
+    with tarfile.open(sdist) as t:
+        top = t.getnames()[0].split("/")[0]
+        names = {n.split("/", 1)[1] for n in t.getnames() if "/" in n and t.getmember(n).isfile()}
+    extra = {n for n in names if n == "PKG-INFO" or n == "setup.cfg" or ".egg-info/" in n}
+    assert {"tests/conftest.py", "tests/examples/test_cli.py", "mkdocs.yml", "Makefile", "docs/index.md"} <= want
+    assert names - extra == want, f"missing: {sorted(want - names)[:20]}; unexpected: {sorted(names - extra - want)[:20]}"
+    assert top.startswith("mssf_blocks-")
+
+
+def test_sdist_test_suite_collects(built, tmp_path):
+    _, _, sdist, _ = built
+    with tarfile.open(sdist) as t:
+        t.extractall(tmp_path, **({"filter": "data"} if hasattr(tarfile, "data_filter") else {}))
+    root = next(tmp_path.iterdir())
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root / "src"), str(root / "examples")]))
+    r = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"], cwd=root,
+                       env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert re.search(r"\d+ tests? collected", r.stdout) and "error" not in r.stdout.splitlines()[-1], r.stdout[-2000:]
