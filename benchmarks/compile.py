@@ -11,7 +11,8 @@ a 384 x 640 image with four 64-channel FPN levels (strides 8-64), forward in eva
   of the eager module (the default CPU plans) and of the eager static-shape path (``static_path()``,
   the formulation the compiled graph contains), and the ratio eager / compiled.
 
-Run: ``python benchmarks/compile.py [--threads 1] [--backend inductor] [--json out.json]``. The machine
+Run: ``python benchmarks/compile.py [--threads 1] [--backend inductor] [--cases MSDFF SFF "FusionBlock(MSDFF)"]
+[--json out.json]`` (default: MSDFF only). The machine
 this was written on is shared: the figures in docs/performance.md are a single run.
 """
 
@@ -99,7 +100,8 @@ def main() -> None:
     ap.add_argument("--backend", default="inductor")
     ap.add_argument("--voxels", type=int, nargs="+", default=[2000, 2600, 3300, 4100, 5000])
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--cases", nargs="+", default=None)
+    ap.add_argument("--cases", nargs="+", default=["MSDFF"],
+                    help="of SFF, MSDFF, 'FusionBlock(MSDFF)' (each costs two inductor compiles, ~5 min each here)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
