@@ -246,7 +246,7 @@ def run(data_root: Path, frame_id: str, out_dir: Path, sensor: str = "radar", se
     voxels, projections, result = {}, {}, {"points": int(pts.shape[0]), "points_in_image": n_img}
     for s in STRIDES:
         vox = coarsen(base, s)
-        proj = projector(vox, pts, batch, l2i, frame.image_size)
+        proj = projector(vox, pts[:, :3], batch, l2i, frame.image_size)
         voxels[s], projections[s] = vox, proj
         n, k = int(vox.coords.shape[0]), int(proj.valid.sum())
         result[f"stride{s}"] = (n, k)

@@ -152,7 +152,7 @@ def random_frame(batch_size: int = 2, points_per_frame: int = 300, seed: int = 0
     radar_to_cam = torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0.3], [1, 0, 0, 0]])
     lidar2img = (k @ radar_to_cam).expand(batch_size, 1, 3, 4).contiguous()
     fpn = [torch.randn(batch_size, 1, FPN_CHANNELS, h // s, w // s, generator=gen) for s in FPN_STRIDES]
-    inputs = FusionInputs(fpn, lidar2img, IMAGE_SIZE, points, points_batch)
+    inputs = FusionInputs(fpn, lidar2img, IMAGE_SIZE, points[:, :3], points_batch)
     return feats, coords.int(), inputs
 
 

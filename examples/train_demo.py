@@ -142,7 +142,7 @@ def semantic_scores(model, scenes: List[Scene], batch_size: int, collate=None):
         batch = batch.to(next(model.parameters()).device)
         _, out, pts, pb = model.extract(batch)
         v = out.seg_voxels
-        proj = projector(v, pts, pb, batch.lidar2img, batch.image_size)
+        proj = projector(v, pts[:, :3], pb, batch.lidar2img, batch.image_size)
         s = torch.sigmoid(out.seg_logits.float())
         classes.append(classify_projection(proj, [c.gt_boxes for c in chunk],
                                            boxes_2d=[c.gt_boxes_2d for c in chunk], image_size=batch.image_size))

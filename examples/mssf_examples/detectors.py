@@ -205,7 +205,7 @@ class MSSFDetector(nn.Module):
         if self.num_fusion_blocks:
             if batch.image_size is None:
                 raise MSSFError("batch.image_size: required by the fusion blocks (give images or image_size)")
-            fusion_inputs = FusionInputs(self._image_features(batch), batch.lidar2img, batch.image_size, pts, pb,
+            fusion_inputs = FusionInputs(self._image_features(batch), batch.lidar2img, batch.image_size, pts[:, :3], pb,
                                          batch.points_to_sensor)
         if self.name == "pointpillars":
             out = self.backbone(pts, pb, b, fusion_inputs)

@@ -13,6 +13,7 @@ data and run once at capture time on the (symbolic) shapes. See ``docs/conventio
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from typing import Any, Callable, Mapping, MutableMapping, Sequence, TypeVar, Union
 
@@ -154,6 +155,15 @@ def autocast_on(device_type: str) -> bool:
         return bool(torch.is_autocast_enabled())
 
 
+def autocast_off(device_type: str):
+    """A context that disables autocast for ``device_type`` when it is on (else does nothing).
+
+    Geometry (projection, centroids, sampling locations) runs inside it: autocast would round its
+    matrix products to bfloat16 / float16, pixels off by several pixels at 50 m.
+    """
+    return torch.autocast(device_type, enabled=False) if autocast_on(device_type) else contextlib.nullcontext()
+
+
 @value_check
 def check_finite(x: Tensor, name: str) -> Tensor:
     if x.is_floating_point() and x.numel() and not bool(torch.isfinite(x).all()):
@@ -199,6 +209,104 @@ def check_nonnegative(x: Tensor, name: str, what: str = "indices") -> Tensor:
         if lo < 0:
             raise MSSFError(f"{name}: expected non-negative {what}, got min {lo}")
     return x
+
+
+@value_check
+def check_voxel_coords(coords: Tensor, spatial_shape: Sequence[int], batch_size: int, name: str = "coords") -> Tensor:
+    """``(N, 4)`` ``(batch, z, y, x)`` rows inside ``[0, batch_size) x [0, D) x [0, H) x [0, W)``.
+
+    The error names the column and its bound, as :class:`~mssf_blocks.sparse.SparseVoxels` does. Two
+    reductions over ``coords`` (not one per column).
+    """
+    if coords.numel():
+        lows, highs = coords.amin(0).tolist(), coords.amax(0).tolist()
+        bounds = [(batch_size, "batch_size", "batch index")] + [
+            (int(spatial_shape[a]), f"spatial_shape[{a}]", f"{axis} index") for a, axis in enumerate("zyx")
+        ]
+        for col, ((upper, upper_name, what), lo, hi) in enumerate(zip(bounds, lows, highs)):
+            if lo < 0 or hi >= upper:
+                raise MSSFError(
+                    f"{name}[:, {col}] ({what}): expected values in [0, {upper}) ({upper_name}={upper}), "
+                    f"got values in [{lo}, {hi}]"
+                )
+    return coords
+
+
+def check_points(
+    points: Any, points_batch: Any, exact_xyz: bool = False, name: str = "points", batch_name: str = "points_batch",
+    rows: str = "P",
+) -> Tensor:
+    """Raw points ``(P, 3)`` (``exact_xyz``) or ``(P, 3+)`` with x, y, z first, and ``points_batch (P,)``.
+
+    A transposed ``(3, P)`` array is blamed on ``points`` (not on ``points_batch``'s length); with
+    ``exact_xyz`` extra columns are refused with how to slice them (OpenPCDet's ``batch_dict["points"]``
+    is ``(b, x, y, z, ...)``: taking its first three columns as x, y, z would silently be wrong).
+    """
+    check_tensor(points, name)
+    expected = f"({rows}, 3)" if exact_xyz else f"({rows}, >=3) with x, y, z first"
+    if points.dim() != 2:
+        raise MSSFError(f"{name}: expected a 2-d tensor of shape {expected}, got shape {tuple(points.shape)}")
+    p, c = points.shape
+    n_batch = points_batch.shape[0] if isinstance(points_batch, Tensor) and points_batch.dim() == 1 else None
+    if c != 3 and p == 3 and (n_batch is None or n_batch == c):
+        raise MSSFError(
+            f"{name}: expected shape {expected} (one row per point), got shape {tuple(points.shape)}; "
+            f"transposed? pass {name}.T"
+        )
+    if c < 3:
+        raise MSSFError(f"{name}: expected shape {expected}, got shape {tuple(points.shape)}")
+    if exact_xyz and c != 3:
+        raise MSSFError(
+            f"{name}: expected shape {expected}, got shape {tuple(points.shape)}; slice the coordinates: "
+            f"{name}[:, :3] for (x, y, z, features...) rows, or for OpenPCDet's batch_dict['points'] "
+            f"(b, x, y, z, ...) {name}=pts[:, 1:4] and {batch_name}=pts[:, 0].long()"
+        )
+    check_floating(points, name)
+    check_shape(points_batch, batch_name, (p,))
+    return points
+
+
+def to_module_dtype(x: Any, name: str, dtype: torch.dtype, owner: str) -> Tensor:
+    """``x`` in the dtype of ``owner``'s parameters, by the library's one dtype rule
+    (``docs/conventions.md``, "Dtypes").
+
+    Lower or equal precision is converted (float16 / bfloat16 into float32, float32 into float64,
+    float32 into a half-precision module); a float64 ``x`` into a module whose parameters are not
+    float64 is refused: a float64 input means a float64 check, which silent rounding would defeat.
+    """
+    x = check_floating(check_tensor(x, name), name)
+    if x.dtype == dtype:
+        return x
+    if x.dtype == torch.float64:
+        raise MSSFError(
+            f"{name}: expected dtype {dtype} or lower precision (the dtype of {owner}'s parameters), got "
+            f"torch.float64; convert the module with .double() or the tensor with .to({dtype})"
+        )
+    return x.to(dtype)
+
+
+def check_image_size(image_size: Any, level_hw: Sequence[int] | None = None, name: str = "image_size",
+                     level_name: str = "image_features[0]") -> tuple:
+    """``(H, W)`` positive ints; with ``level_hw = (H_0, W_0)`` (the first image level), also that some
+    stride ``s`` gives ``|H / s - H_0| <= 1`` and ``|W / s - W_0| <= 1`` (one level-0 pixel each way,
+    which allows the rounding of strided convolutions and padding): a swapped ``(W, H)`` fails it."""
+    try:
+        h, w = (int(v) for v in image_size)
+    except (TypeError, ValueError):
+        raise MSSFError(f"{name}: expected (H, W), got {image_size!r}") from None
+    if h <= 0 or w <= 0:
+        raise MSSFError(f"{name}: expected positive (H, W), got {image_size!r}")
+    if level_hw is not None and not is_tracing():  # (int() of a symbolic level size would specialise a graph)
+        h0, w0 = (int(v) for v in level_hw)
+        # 1 / s must lie in [(H_0 - 1) / H, (H_0 + 1) / H] and in [(W_0 - 1) / W, (W_0 + 1) / W].
+        if max((h0 - 1) / h, (w0 - 1) / w) > min((h0 + 1) / h, (w0 + 1) / w):
+            hint = " (swapped? image_size is (H, W))" if (
+                max((h0 - 1) / w, (w0 - 1) / h) <= min((h0 + 1) / w, (w0 + 1) / h)) else ""
+            raise MSSFError(
+                f"{name}: expected (H, W) with the aspect of {level_name} (H_0, W_0) = ({h0}, {w0}) within "
+                f"one level-0 pixel, got {(h, w)}{hint}"
+            )
+    return h, w
 
 
 def check_triple(value: Any, name: str, kind: type, positive: bool = False) -> tuple:

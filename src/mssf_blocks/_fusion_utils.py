@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import contextlib
 from typing import List, Optional, Sequence, Tuple, Type
 
 import torch
 from torch import Tensor, nn
 
-from ._checks import autocast_on, check_dtype, check_floating, check_index_range, check_shape
+from ._checks import autocast_off, check_dtype, check_floating, check_index_range, check_shape
 from ._static import use_static_path
 from .errors import MSSFError
 from .functional.static import linear_norm_visible_static
@@ -144,15 +143,13 @@ def _to_sampling_dtype(x: Tensor, dtype: torch.dtype, name: str, owner: str) -> 
         return x
     if x.dtype == torch.float64:
         raise MSSFError(
-            f"{name}: expected dtype {dtype} or lower (the precision {owner} samples in with its "
-            f"parameters), got torch.float64; convert the module with .double() or the tensor with .float()"
+            f"{name}: expected dtype {dtype} or lower precision (the precision {owner} samples in with its "
+            f"parameters), got torch.float64; convert the module with .double() or the tensor with .to({dtype})"
         )
     return x.to(dtype)
 
 
-def _autocast_off(device_type: str):
-    """A context that disables autocast for ``device_type`` when it is on (else does nothing)."""
-    return torch.autocast(device_type, enabled=False) if autocast_on(device_type) else contextlib.nullcontext()
+_autocast_off = autocast_off  # (the samplers' name for it)
 
 
 def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor, static: bool = False) -> Tensor:

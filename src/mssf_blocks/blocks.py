@@ -20,9 +20,11 @@ from __future__ import annotations
 
 from typing import Any, Optional, Sequence, Tuple, Union
 
+import torch
 from torch import nn
 
-from ._checks import check_triple
+from ._checks import check_triple, to_module_dtype
+from ._fusion_utils import check_image_features
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
 from .geometry import VoxelCentroidProjector
@@ -94,6 +96,8 @@ class FusionBlock(nn.Module):
 
     ``forward(x, inputs)``: ``x`` a :class:`SparseVoxels` or spconv ``SparseConvTensor``, ``inputs`` a
     :class:`FusionInputs`; returns the same type as ``x`` at stride ``in_stride * downsample_stride``.
+    The fused features are in the fusion's parameter dtype; voxel features of lower precision are read
+    in it, float64 ones into a non-float64 block are refused (``docs/conventions.md``, "Dtypes").
 
     Host synchronisation: the centroid join (``torch.unique`` over voxel and point keys: a
     data-dependent size) and the range checks of the points and of voxels built from an spconv tensor
@@ -175,6 +179,11 @@ class FusionBlock(nn.Module):
                 f"x: expected voxel features with {self.out_channels} channels at the fusion step "
                 f"({type(self.fusion).__name__} output), got {c}"
             )
+        # The dtype rule (docs/conventions.md): voxel features are read in the fusion's parameter dtype
+        # (float64 into a float32 block is refused) and f_fuse comes out in it.
+        out = self.fusion.linear if isinstance(self.fusion, SFF) else self.fusion.output_proj
+        dtype = out.weight.dtype
+        f_vox = to_module_dtype(f_vox, "x.features", dtype, "FusionBlock")
         projection = self.projector(
             voxels, inputs.points, inputs.points_batch, inputs.lidar2img, inputs.image_size,
             inputs.points_to_sensor,
@@ -188,15 +197,20 @@ class FusionBlock(nn.Module):
                         f"query_init: expected voxel_channels={c} (voxel features), "
                         f"got {self.query_init.voxel_channels}"
                     )
+                # Checked here, before level 0 is sampled for the query: a wrong level would otherwise be
+                # reported under QueryInit's internal name f_img0.
+                check_image_features(inputs.image_features, "inputs.image_features",
+                                     num_levels=self.fusion.num_levels,
+                                     channels=[self.fusion.value_channels] * self.fusion.num_levels)
                 qi = self.query_init
                 f_img0 = sample_at_projection(inputs.image_features[0], projection, align_corners=qi.align_corners)
-                where = projection.centroid.to(f_vox.dtype) if qi.position == "centroid" else (
-                    voxels.voxel_centers(dtype=f_vox.dtype))
+                geo = torch.float64 if dtype == torch.float64 else torch.float32  # positions: float32 or better
+                where = projection.centroid.to(geo) if qi.position == "centroid" else voxels.voxel_centers(dtype=geo)
                 query = qi(f_vox, f_img0, where)
             else:
                 query = f_vox
             f_img = self.fusion(query, inputs.image_features, projection)
-        return voxels.replace(features=f_vox + f_img.to(f_vox.dtype))
+        return voxels.replace(features=f_vox + f_img.to(dtype))
 
     def forward(self, x: Any, inputs: FusionInputs) -> Any:
         if not isinstance(inputs, FusionInputs):

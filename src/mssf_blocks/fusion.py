@@ -36,7 +36,14 @@ from typing import Optional, Sequence, Tuple, Type
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_floating, check_positive_int, check_shape
+from ._checks import (
+    check_floating,
+    check_image_size,
+    check_points,
+    check_positive_int,
+    check_shape,
+    to_module_dtype,
+)
 from ._fusion_utils import (
     _autocast_off,
     _corner_aligned_uv,
@@ -103,13 +110,16 @@ class FusionInputs:
         image_features: ``L`` levels, each ``(B, C_l, H_l, W_l)`` or ``(B, V, C_l, H_l, W_l)``.
         lidar2img: ``(B, V, 3, 4)`` (or ``(B, 3, 4)`` for one camera) sensor-to-pixel matrices.
         image_size: ``(H, W)`` of the image the features were computed from.
-        points: ``(P, 3+)`` raw points (for voxel centroids).
+        points: ``(P, 3)`` raw x, y, z (for voxel centroids); other columns are refused (slice them
+            off: ``pts[:, :3]``, or ``pts[:, 1:4]`` for OpenPCDet's ``(b, x, y, z, ...)``).
         points_batch: ``(P,)`` integer batch index of every point.
         points_to_sensor: optional ``(B, 4, 4)`` inverse of the point-cloud augmentation.
 
     Raises:
         MSSFError: levels with different batch sizes or cameras, ``V`` not matching ``lidar2img``, a
-            level that is not 4-d or 5-d, a bad ``image_size``.
+            level that is not 4-d or 5-d, a bad ``image_size`` (also one whose aspect disagrees with
+            level 0's by more than one level-0 pixel, e.g. a swapped ``(W, H)``), ``points`` that are not
+            ``(P, 3)``.
     """
 
     image_features: Sequence[Tensor]
@@ -121,19 +131,14 @@ class FusionInputs:
 
     def __post_init__(self) -> None:
         l2i = normalize_lidar2img(self.lidar2img)
-        check_image_features(
+        levels = check_image_features(
             self.image_features, "image_features", batch_size=l2i.shape[0], num_cameras=l2i.shape[1]
         )
-        try:
-            h, w = (int(s) for s in self.image_size)
-        except (TypeError, ValueError):
-            raise MSSFError(f"image_size: expected (H, W), got {self.image_size!r}") from None
-        if h <= 0 or w <= 0:
-            raise MSSFError(f"image_size: expected positive (H, W), got {self.image_size!r}")
+        # The levels know the image's aspect: a swapped (W, H) would silently move every sampling spot.
+        h, w = check_image_size(self.image_size, levels[0].shape[-2:])
         object.__setattr__(self, "image_size", (h, w))
         object.__setattr__(self, "image_features", tuple(self.image_features))
-        check_shape(self.points, "points", ("P", None))
-        check_shape(self.points_batch, "points_batch", (self.points.shape[0],))
+        check_points(self.points, self.points_batch, exact_xyz=True)
 
     @property
     def batch_size(self) -> int:
@@ -264,7 +269,9 @@ class QueryInit(nn.Module):
 
     Shapes:
         - f_vox ``(N, C_v)``, f_img0 ``(N, C_i)``, centers ``(N, 3)`` metric ``(x, y, z)``.
-        - output ``(N, out_channels)``.
+        - output ``(N, out_channels)`` in the parameters' dtype; ``f_vox`` and ``f_img0`` of lower
+          precision are read in it, float64 ones into a non-float64 module are refused
+          (``docs/conventions.md``, "Dtypes").
 
     No host synchronisation in forward or backward.
     """
@@ -319,10 +326,14 @@ class QueryInit(nn.Module):
         check_shape(f_vox, "f_vox", ("N", self.voxel_channels), dims)
         check_shape(f_img0, "f_img0", ("N", self.image_channels), dims)
         check_shape(centers, "centers", ("N", 3), dims)
-        for x, name in ((f_vox, "f_vox"), (f_img0, "f_img0"), (centers, "centers")):
-            check_floating(x, name)
-        p = self.normalized_centers(centers.to(f_vox.dtype))
-        return self.norm(self.linear(torch.cat([f_vox, f_img0.to(f_vox.dtype), p], dim=1)))
+        # The library's dtype rule: inputs are read in the parameters' dtype, float64 into a lower-precision
+        # module is refused; the centres are positions (float32 or float64, rounded like any geometry).
+        dtype = self.linear.weight.dtype
+        f_vox = to_module_dtype(f_vox, "f_vox", dtype, "QueryInit")
+        f_img0 = to_module_dtype(f_img0, "f_img0", dtype, "QueryInit")
+        check_floating(centers, "centers")
+        p = self.normalized_centers(centers.to(dtype))
+        return self.norm(self.linear(torch.cat([f_vox, f_img0, p], dim=1)))
 
     def extra_repr(self) -> str:
         return (

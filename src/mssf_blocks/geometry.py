@@ -14,7 +14,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_floating, check_shape, check_triple
+from ._checks import check_floating, check_points, check_shape, check_triple
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
 from .sparse import SparseVoxels
@@ -68,7 +68,8 @@ class VoxelCentroidProjector(nn.Module):
             code.
 
     Shapes:
-        - voxels: N voxels at any stride; points ``(P, 3+)``; points_batch ``(P,)``.
+        - voxels: N voxels at any stride; points ``(P, 3)`` x, y, z (slice other columns off: extra
+          columns are refused); points_batch ``(P,)``.
         - lidar2img ``(B, V, 3, 4)`` or ``(B, 3, 4)``; points_to_sensor ``(B, 4, 4)``.
         - output: :class:`CentroidProjection` with ``uv (N, V, 2)``, ``depth (N, V)``, ``valid (N, V)``,
           ``centroid (N, 3)``, ``has_points (N,)``, in the dtype of ``points`` (float32 for float16 /
@@ -119,12 +120,11 @@ class VoxelCentroidProjector(nn.Module):
             )
         if points_to_sensor is not None:
             check_shape(points_to_sensor, "points_to_sensor", (voxels.batch_size, 4, 4))
-        check_shape(points, "points", ("P", None))
-        check_floating(points, "points")
+        check_points(points, points_batch, exact_xyz=True)
         if points.dtype in (torch.float16, torch.bfloat16):
             # Centroids (sums of coordinates) and projections in half precision would be off by
             # decimetres and pixels: compute them in float32 (the coordinates themselves are exact).
-            points = points[:, :3].float()
+            points = points.float()
         centroid, has_points = voxel_centroids(
             points, points_batch, voxels.coords, voxels.spatial_shape, voxels.batch_size,
             voxels.voxel_size, voxels.point_range_min, voxels.stride, self.point_range_max,

@@ -15,7 +15,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ._checks import autocast_on
+from ._checks import to_module_dtype
 from .errors import MSSFError
 from .functional.heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .sparse import SparseVoxels
@@ -118,12 +118,8 @@ class SemanticGuidedHead(nn.Module):
         if not isinstance(features, Tensor) or features.dim() != 2 or features.shape[1] != self.in_channels:
             got = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
             raise MSSFError(f"features: expected shape (N, C={self.in_channels}), got {got}")
-        weight_dtype = self.classifier.weight.dtype
-        if features.dtype != weight_dtype and not autocast_on(features.device.type):
-            raise MSSFError(
-                f"features: expected dtype {weight_dtype} (the head's parameters; convert the head with "
-                f".to(dtype) or the features), got {features.dtype}"
-            )
+        # The dtype rule (docs/conventions.md): read in the parameters' dtype, float64 into float32 refused.
+        features = to_module_dtype(features, "features", self.classifier.weight.dtype, "SemanticGuidedHead")
         n = features.shape[0]
         if n == 0:
             # Zero rows: skip the MLP (BatchNorm cannot normalise an empty batch) but stay on the graph.
@@ -150,9 +146,11 @@ class SemanticGuidedHead(nn.Module):
         """
         if not isinstance(voxels, SparseVoxels):
             raise MSSFError(f"voxels: expected SparseVoxels, got {type(voxels).__name__}")
-        logits = self.logits(voxels.features)
+        features = to_module_dtype(voxels.features, "voxels.features", self.classifier.weight.dtype,
+                                   "SemanticGuidedHead")
+        logits = self.logits(features)
         scores = torch.sigmoid(logits)
-        out = voxels.replace(features=voxels.features * scores[:, None]) if self.use_weighting else voxels
+        out = voxels.replace(features=features * scores[:, None]) if self.use_weighting else voxels
         return (out, scores, logits) if return_logits else (out, scores)
 
     def loss(

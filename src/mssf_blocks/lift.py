@@ -13,7 +13,7 @@ from typing import Sequence, Tuple, Union
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_index_range, check_positive_int, check_shape
+from ._checks import check_index_range, check_positive_int, check_shape, to_module_dtype
 from .errors import MSSFError
 from .functional.lift import (
     _check_stride2,
@@ -145,6 +145,8 @@ class PillarLift(nn.Module):
                 f"got {tuple(bev.shape)}"
             )
         emb = None if self.height_embedding is None else self.height_embedding.weight
+        if emb is not None:  # the dtype rule (docs/conventions.md): bev is read in the embedding's dtype
+            bev = to_module_dtype(bev, "bev", emb.dtype, "PillarLift")
         feats = pillar_lift(bev, voxels.coords, emb, self.stride)
         return voxels.replace(features=feats)
 

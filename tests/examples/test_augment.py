@@ -130,7 +130,7 @@ def check_same_pixels(batch, out, image_ref, image_aug, rng=RANGE, voxel=VOXEL, 
     Returns the number of (voxel, camera) hits inside the image."""
     pts, pb = out.flat_points()
     vox = voxelize_points(pts, pb, out.batch_size, voxel, rng[:3], rng[3:])
-    proj = VoxelCentroidProjector()(vox, pts, pb, out.lidar2img, out.image_size, out.points_to_sensor)
+    proj = VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size, out.points_to_sensor)
     got = sample_at_projection(image_aug, proj)
     assert proj.has_points.all()
     p0_all, _ = batch.flat_points()
@@ -196,9 +196,9 @@ def test_missing_inverse_or_corner_flip_is_detected(scenes, monkeypatch):
     out = apply_fixed(batch_of(scenes), CASES["all"], monkeypatch)
     pts, pb = out.flat_points()
     vox = voxelize_points(pts, pb, out.batch_size, VOXEL, RANGE[:3], RANGE[3:])
-    right = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts, pb, out.lidar2img, out.image_size,
+    right = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size,
                                                                       out.points_to_sensor))
-    wrong = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts, pb, out.lidar2img, out.image_size))
+    wrong = sample_at_projection(out.images, VoxelCentroidProjector()(vox, pts[:, :3], pb, out.lidar2img, out.image_size))
     assert (right - wrong).abs().max() > 0.05
 
 

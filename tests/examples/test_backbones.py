@@ -41,7 +41,7 @@ def _scene(seed=0, p=200):
     l2i = torch.zeros(2, 1, 3, 4)
     l2i[:, :, 0, 1], l2i[:, :, 1, 2], l2i[:, :, 2, 0] = -20.0, -20.0, 1.0
     l2i[:, :, 0, 0], l2i[:, :, 1, 0] = 32.0, 16.0  # principal point (32, 16)
-    return pts, pb, FusionInputs(feats, l2i, (32, 64), pts, pb)
+    return pts, pb, FusionInputs(feats, l2i, (32, 64), pts[:, :3], pb)
 
 
 def test_merge_sparse_bev_equals_dense_scatter():
@@ -141,7 +141,7 @@ def test_fusion_backbone_uses_own_sample_images_only(cls, channels, fusion, posi
     feats2 = [f.clone() for f in fi.image_features]
     for f in feats2:
         f[1] = torch.randn_like(f[1])
-    out2 = bb(vox, FusionInputs(feats2, fi.lidar2img, fi.image_size, pts, pb))
+    out2 = bb(vox, FusionInputs(feats2, fi.lidar2img, fi.image_size, fi.points, pb))
     last, last2 = out.stages[-1], out2.stages[-1]
     s0 = last.batch_index == 0
     assert_close(last2.features[s0], last.features[s0])
@@ -152,7 +152,7 @@ def test_fusion_backbone_gradient_reaches_image_and_radar_only_ignores_it():
     pts, pb, fi = _scene()
     vox = DynamicVoxelizer(GRID.point_cloud_range, GRID.voxel_size)(pts, pb, 2)
     feats = [f.clone().requires_grad_(True) for f in fi.image_features]
-    fi = FusionInputs(feats, fi.lidar2img, fi.image_size, pts, pb)
+    fi = FusionInputs(feats, fi.lidar2img, fi.image_size, fi.points, pb)
     bb = CenterPointBackbone(5, GRID, channels=(4, 4, 8, 8, 16), out_channels=8, num_fusion_blocks=1, **FUSION)
     bb(vox, fi).bev.square().sum().backward()
     assert all(f.grad is not None and f.grad.abs().sum() > 0 for f in feats)

@@ -33,9 +33,15 @@ from mssf_blocks.integrations.mmdet3d import (
 RNG = np.random.default_rng(1)
 
 
-class Sample:  # the part of Det3DDataSample the adapter reads
-    def __init__(self, metainfo):
-        self.metainfo = metainfo
+try:  # Det3DDataSample's base class (mmdet3d.structures itself needs mmcv's compiled ops)
+    from mmengine.structures import BaseDataElement as Sample
+except ImportError:
+    class Sample:  # the part of Det3DDataSample the adapter reads
+        def __init__(self, metainfo):
+            self.metainfo = dict(metainfo)
+
+        def set_metainfo(self, metainfo):
+            self.metainfo.update(metainfo)
 
 
 def lidar2img(shift):
@@ -83,10 +89,11 @@ def pack_and_preprocess(results, divisor=32):
     batch = torch.stack([torch.nn.functional.pad(i, (0, mw - i.shape[2], 0, mh - i.shape[1])) for i in imgs])
     samples = []
     for r, i in zip(results, imgs):
-        meta = {k: r[k] for k in META_KEYS if k in r}
-        meta.update(batch_input_shape=(mh, mw), pad_shape=(math.ceil(i.shape[1] / divisor) * divisor,
-                                                           math.ceil(i.shape[2] / divisor) * divisor))
-        samples.append(Sample(meta))
+        sample = Sample(metainfo={k: r[k] for k in META_KEYS if k in r})  # Pack3DDetInputs
+        sample.set_metainfo({"batch_input_shape": (mh, mw),  # Det3DDataPreprocessor.simple_process
+                             "pad_shape": (math.ceil(i.shape[1] / divisor) * divisor,
+                                           math.ceil(i.shape[2] / divisor) * divisor)})
+        samples.append(sample)
     return {"points": [torch.from_numpy(r["points"]) for r in results], "imgs": batch}, samples
 
 

@@ -42,7 +42,7 @@ def build_from_config(models, **overrides):
 
     cfg = Config.fromfile(str(CONFIG))  # runs custom_imports -> the plugin registers itself
     assert models.module_dict.get("MSSFSparseEncoder") is mmdet3d_plugin.MSSFSparseEncoder
-    enc = cfg.model.middle_encoder
+    enc = cfg.model.pts_middle_encoder
     enc.update(SMALL, **overrides)
     models._imported = True  # see the module docstring: mmdet3d.models needs mmcv's compiled ops
     return models.build(enc), cfg
@@ -85,6 +85,7 @@ def test_build_from_config_and_train_one_step(layout, views):
     torch.manual_seed(0)
     encoder, cfg = build_from_config(mmdet3d_models(), layout=layout)
     assert isinstance(encoder, mmdet3d_plugin.MSSFSparseEncoder) and encoder.num_fusion_blocks == 2
+    assert encoder.net.stages[0].fusion.value_proj.out_features == 8  # msdff_value_dim=None: image width
     voxel_features, coors, points, img_feats, metas = make_batch(views)
     batch_size = coors[-1, 0].item() + 1  # VoxelNet.extract_feat
     bev = encoder(voxel_features, coors, batch_size, points=points, img_features=img_feats, batch_input_metas=metas)

@@ -161,7 +161,7 @@ def test_augmented_kitti_batch_projects_like_the_original_points():
     torch.testing.assert_close(depth, ref[:, 2], rtol=0, atol=2e-4)
     torch.testing.assert_close(pix, ref[:, :2], rtol=0, atol=2e-3)  # float32 points, 700 px focal length
     assert inputs.image_size == (120, 400)  # the padded image tensor (padding is bottom/right)
-    assert inputs.points.shape == (400, 4) and inputs.points_batch.tolist() == [0] * 200 + [1] * 200
+    assert inputs.points.shape == (400, 3) and inputs.points_batch.tolist() == [0] * 200 + [1] * 200
 
 
 def test_without_undoing_the_augmentation_the_projection_is_off():

@@ -90,6 +90,9 @@ def test_config_builds_the_openpcdet_contract():
     assert net.num_point_features == 128
     assert net.backbone_channels == {"x_conv1": 16, "x_conv2": 32, "x_conv3": 64, "x_conv4": 64}
     assert net.num_fusion_blocks == 2
+    assert net.net.stages[0].fusion.value_proj.out_features == 8  # the paper's width: the image channels
+    narrow, _ = build_backbone(load_cfg(MSDFF_VALUE_DIM="voxel_channels"))
+    assert narrow.net.stages[0].fusion.value_proj.out_features == 16
     res, _ = build_backbone(load_cfg(NAME="MSSFVoxelResBackBone8x", NUM_FUSION_BLOCKS=0))
     assert res.backbone_channels == {"x_conv1": 16, "x_conv2": 32, "x_conv3": 64, "x_conv4": 128}
 

@@ -8,7 +8,12 @@ voxel_size = [0.05, 0.05, 0.125]
 sparse_shape = [41, 1024, 1024]  # (z + 1, y, x) cells, as SparseEncoder configs give it
 
 model = dict(
-    type="VoxelNet",  # extract_feat must pass the camera inputs on (docs/frameworks.md, one call)
+    # an MVX detector has points, image features and metainfo where it runs the middle encoder;
+    # extract_pts_feat's pts_middle_encoder call passes them on (docs/frameworks.md, one call)
+    type="MVXFasterRCNN",
+    img_backbone=dict(type="mmdet.ResNet", depth=50, num_stages=4, out_indices=(0, 1, 2, 3), frozen_stages=1,
+                      norm_cfg=dict(type="BN", requires_grad=False), norm_eval=True, style="caffe"),
+    img_neck=dict(type="mmdet.FPN", in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4),
     data_preprocessor=dict(
         type="Det3DDataPreprocessor",
         voxel=True,
@@ -16,8 +21,8 @@ model = dict(
                          max_voxels=(16000, 40000)),
         mean=[123.675, 116.28, 103.53], std=[58.395, 57.12, 57.375], bgr_to_rgb=True, pad_size_divisor=32,
     ),
-    voxel_encoder=dict(type="HardSimpleVFE", num_features=7),
-    middle_encoder=dict(
+    pts_voxel_encoder=dict(type="HardSimpleVFE", num_features=7),
+    pts_middle_encoder=dict(
         type="MSSFSparseEncoder",
         in_channels=7,
         sparse_shape=sparse_shape,
@@ -30,6 +35,7 @@ model = dict(
         image_channels=[256, 256, 256, 256],  # the image neck's levels
         msdff_heads=8,
         msdff_points=4,
+        msdff_value_dim=None,  # MSDFF value width: None = the image channels (paper); "voxel_channels"
         seg_hidden=[256, 256],
         image_aug="meta",
     ),

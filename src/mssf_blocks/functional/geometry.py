@@ -17,13 +17,16 @@ import torch
 from torch import Tensor
 
 from .._checks import (
+    autocast_off,
     check_dtype,
     check_finite,
     check_floating,
     check_index_range,
+    check_points,
     check_positive_int,
     check_shape,
     check_triple,
+    check_voxel_coords,
     value_check,
 )
 from .._static import use_static_path
@@ -108,18 +111,17 @@ def _point_keys(
 
 def _check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size,
                            point_range_min, point_range_max):
-    check_shape(points, "points", ("P", None))
-    check_floating(points, "points")
-    if points.shape[1] < 3:
-        raise MSSFError(f"points: expected shape (P, >=3) with x, y, z first, got {tuple(points.shape)}")
+    check_points(points, points_batch)
     check_finite(points[:, :3], "points[:, :3]")
-    check_shape(points_batch, "points_batch", (points.shape[0],))
     check_dtype(points_batch, "points_batch", _INT_DTYPES)
     check_shape(coords, "coords", ("N", 4))
     check_dtype(coords, "coords", _INT_DTYPES)
     spatial_shape = check_triple(spatial_shape, "spatial_shape", int, positive=True)
     batch_size = check_positive_int(batch_size, "batch_size")
     check_index_range(points_batch, "points_batch", batch_size, "batch_size")
+    # A coordinate outside the grid would alias another voxel's key (x == W is the next row's x == 0;
+    # x == -1 collides with the key of out-of-range points).
+    check_voxel_coords(coords, spatial_shape, batch_size)
     stride = check_triple(stride, "stride", int, positive=True)
     voxel_size = check_triple(voxel_size, "voxel_size", float, positive=True)
     point_range_min = check_triple(point_range_min, "point_range_min", float)
@@ -170,15 +172,18 @@ def voxel_centroids(
         point_range_max: optional ``(x, y, z)`` upper corner of the point-cloud range.
 
     Returns:
-        ``centroids (N, 3)`` in the dtype of ``points`` and ``has_points (N,)`` bool (False where the
-        centre was used).
+        ``centroids (N, 3)`` (float64 for float64 ``points``, else float32: half-precision points are
+        read as float32) and ``has_points (N,)`` bool (False where the centre was used).
     """
     spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
         points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
         point_range_max,
     )
     n = coords.shape[0]
-    dtype, device = points.dtype, points.device
+    # float32 at least: in half precision the voxel keys (floor of coordinate / voxel size) and the sums
+    # would be off by voxels and decimetres at 50 m.
+    dtype, device = (torch.float64 if points.dtype == torch.float64 else torch.float32), points.device
+    points = points[:, :3].to(dtype)
     centers = voxel_centers(coords, voxel_size, lo, stride, dtype=dtype)
     if n == 0 or points.shape[0] == 0:
         return centers, torch.zeros(n, dtype=torch.bool, device=device)
@@ -243,14 +248,15 @@ def voxel_centroids_reference(
         if key[1] >= d or key[2] >= h or key[3] >= w:
             continue
         members.setdefault(key, []).append((x, y, z))
-    centers = voxel_centers(coords, voxel_size, lo, stride, dtype=points.dtype)
+    dtype = torch.float64 if points.dtype == torch.float64 else torch.float32
+    centers = voxel_centers(coords, voxel_size, lo, stride, dtype=dtype)
     out = centers.clone()
     has = torch.zeros(coords.shape[0], dtype=torch.bool)
     for i, row in enumerate(coords.tolist()):
         pts_in = members.get(tuple(row))
         if pts_in:
             n = len(pts_in)
-            out[i] = torch.tensor([sum(p[k] for p in pts_in) / n for k in range(3)], dtype=points.dtype)
+            out[i] = torch.tensor([sum(p[k] for p in pts_in) / n for k in range(3)], dtype=dtype)
             has[i] = True
     return out, has.to(points.device)
 
@@ -343,16 +349,13 @@ def project_points(
         eps: depths ``<= eps`` are invalid (behind or on the camera plane).
 
     Returns:
-        :class:`Projection` with ``uv (N, V, 2)``, ``depth (N, V)``, ``valid (N, V)``, ``pixel``.
-        Gradients flow to ``points`` (and the matrices) through valid-depth entries only; nothing is
-        NaN.
+        :class:`Projection` with ``uv (N, V, 2)``, ``depth (N, V)``, ``valid (N, V)``, ``pixel``,
+        float64 for float64 ``points``, else float32; computed in float32 or better (float64 when
+        any input is float64), with autocast disabled. Gradients flow to ``points`` (and the
+        matrices) through valid-depth entries only; nothing is NaN.
     """
-    check_shape(points, "points", ("N", None))
-    check_floating(points, "points")
-    if points.shape[1] < 3:
-        raise MSSFError(f"points: expected shape (N, >=3) with x, y, z first, got {tuple(points.shape)}")
+    check_points(points, points_batch, rows="N")
     check_finite(points[:, :3], "points[:, :3]")
-    check_shape(points_batch, "points_batch", (points.shape[0],))
     check_dtype(points_batch, "points_batch", _INT_DTYPES)
     l2i = normalize_lidar2img(lidar2img)
     batch_size = l2i.shape[0]
@@ -366,22 +369,31 @@ def project_points(
     if not eps >= 0:
         raise MSSFError(f"eps: expected a non-negative float, got {eps!r}")
 
-    dtype = points.dtype
-    b = points_batch.long()
-    xyz = points[:, :3]
-    ones = torch.ones_like(xyz[:, :1])
-    hom = torch.cat([xyz, ones], dim=1)  # (N, 4)
-    if points_to_sensor is not None:
-        p2s = _check_points_to_sensor(points_to_sensor, batch_size).to(dtype)
-        hom = torch.einsum("nij,nj->ni", p2s[b], hom)
-    cam = torch.einsum("nvij,nj->nvi", l2i.to(dtype)[b], hom)  # (N, V, 3)
-    depth = cam[..., 2]
-    ok_depth = depth > eps
-    safe_d = torch.where(ok_depth, depth, torch.ones_like(depth))
-    pixel = cam[..., :2] / safe_d[..., None]
-    pixel = torch.where(ok_depth[..., None], pixel, torch.full_like(pixel, -1.0))
-    size = torch.tensor([w, h], dtype=dtype, device=points.device)
-    uv = (pixel + 0.5) / size
-    uv = torch.where(ok_depth[..., None], uv, torch.full_like(uv, -1.0))
-    valid = ok_depth & (uv >= 0).all(dim=-1) & (uv <= 1).all(dim=-1)
+    # The projection runs in float32 or better whatever the autocast state: autocast would round the
+    # matrix products to bfloat16 (pixels off by up to ~10 px on a 1936-wide VoD frame). It runs in
+    # float64 when any input is float64 (a float64 lidar2img keeps its precision even for float32
+    # points: the product of 1,500-pixel focal lengths and 50 m coordinates loses ~1e-4 px in float32);
+    # results are float64 for float64 points, else float32.
+    out_dtype = torch.float64 if points.dtype == torch.float64 else torch.float32
+    wide = any(t is not None and t.dtype == torch.float64 for t in (points, l2i, points_to_sensor))
+    dtype = torch.float64 if wide else torch.float32
+    with autocast_off(points.device.type):
+        b = points_batch.long()
+        xyz = points[:, :3].to(dtype)
+        ones = torch.ones_like(xyz[:, :1])
+        hom = torch.cat([xyz, ones], dim=1)  # (N, 4)
+        if points_to_sensor is not None:
+            p2s = _check_points_to_sensor(points_to_sensor, batch_size).to(dtype)
+            hom = torch.einsum("nij,nj->ni", p2s[b], hom)
+        cam = torch.einsum("nvij,nj->nvi", l2i.to(dtype)[b], hom)  # (N, V, 3)
+        depth = cam[..., 2]
+        ok_depth = depth > eps
+        safe_d = torch.where(ok_depth, depth, torch.ones_like(depth))
+        pixel = cam[..., :2] / safe_d[..., None]
+        pixel = torch.where(ok_depth[..., None], pixel, torch.full_like(pixel, -1.0))
+        size = torch.tensor([w, h], dtype=dtype, device=points.device)
+        uv = (pixel + 0.5) / size
+        uv = torch.where(ok_depth[..., None], uv, torch.full_like(uv, -1.0))
+        valid = ok_depth & (uv >= 0).all(dim=-1) & (uv <= 1).all(dim=-1)
+        uv, depth, pixel = uv.to(out_dtype), depth.to(out_dtype), pixel.to(out_dtype)
     return Projection(uv=uv, depth=depth, valid=valid, pixel=pixel)

@@ -210,7 +210,7 @@ def _touched_level(
     # Which in-map pixels are read (the plans "project" and "sample" need them; the choice needs
     # their number U), as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
     inner, u = None, n_pix
-    if plan is None or plan in ("project", "sample"):
+    if plan is None or plan in ("project", "sample") or (needs_grad and plan == "dense"):
         mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
         mark.view(-1).index_fill_(0, cells, 1)  # (not True: a bool scalar matches no schema under jit.trace)
         inner = mark[:, 2 : h + 2, 2 : w + 2]
@@ -236,7 +236,12 @@ def _touched_level(
         # read, weight-0 corners included), then grid_sample per head: its fused backward is several
         # times cheaper than embedding_bag's.
         if plan == "dense":
-            parts = _project_rows(value, w_all, b_all, None)
+            # Pixels no corner reads get zero rows: their values never reach the output, and this keeps
+            # them out of the weight gradient too (a NaN / inf there would otherwise turn
+            # value_proj.weight.grad into NaN, 0 * NaN). One select over the level when some pixel is
+            # untouched (measured: a few per cent of this plan's forward + backward), none otherwise.
+            src = value if u == n_pix else torch.where(inner.view(num_images, 1, 1, h, w), value, 0.0)
+            parts = _project_rows(src, w_all, b_all, None)
             projected = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
         else:
             projected = _GatherProject.apply(value, touched, w_all, b_all)
@@ -271,16 +276,23 @@ def _touched_level(
     if plan == "sample":
         # Sample the D raw channels per head and point from the compact table, then project per head
         # (Q * D * E) and add the bias times the in-map weight mass.
-        # No zero row here (appending one would copy the U x D table): out-of-map corners get weight 0
-        # and any valid row.
+        # No zero row here (appending one would copy the U x D table). Out-of-map corners are left out
+        # of their bags when there are any (offsets): weight 0 on some other row would still read it,
+        # and 0 * a NaN / inf pixel that no corner reads would reach outputs and gradients.
         inside = rows.view(m * q, 4 * p) != n_rows
         psw = psw.view(m * q, 4 * p) * inside
         if u == 0:
             table, rows = value.new_zeros(1, dch) + 0.0 * parts[0].sum(), torch.zeros_like(rows)
+            sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw, mode="sum")
         else:
             table = parts[0] if len(parts) == 1 else torch.cat(parts, 0)  # (U, D) contiguous rows
-            rows = rows.clamp(max=n_rows - 1)
-        sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw, mode="sum")  # (M * Q, D)
+            if bool(inside.all()):
+                sampled = F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw, mode="sum")
+            else:
+                counts = inside.sum(1)
+                offsets = torch.cumsum(counts, 0) - counts
+                sampled = F.embedding_bag(rows.view(m * q, 4 * p)[inside], table, offsets=offsets,
+                                          per_sample_weights=psw[inside], mode="sum")  # (M * Q, D)
         if w_all is None:
             return sampled
         out = torch.bmm(sampled.view(m, q, dch), w_all.view(m, d, dch).transpose(1, 2))  # (M, Q, d)

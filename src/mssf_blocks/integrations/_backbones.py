@@ -21,7 +21,7 @@ __all__: list = []
 #: framework layout name -> example backbone class
 LAYOUTS = {"VoxelBackBone8x": "SECONDBackbone", "VoxelResBackBone8x": "CenterPointBackbone"}
 FUSION_KWARGS = ("num_fusion_blocks", "fusion", "fusion_position", "image_channels", "msdff_heads",
-                 "msdff_points", "msdff_value_projection", "seg_hidden", "channels", "out_channels")
+                 "msdff_points", "msdff_value_projection", "msdff_value_dim", "seg_hidden", "channels", "out_channels")
 
 
 def _examples_backbones() -> Any:

@@ -202,7 +202,7 @@ def fusion_inputs_from_mmdet3d(
     eye = torch.eye(4, dtype=torch.float64)
     p2s = None if all(torch.equal(mi, eye) for mi in m) else torch.linalg.inv(m).to(dev, dt)
     size = _image_size(metas) if image_size is None else image_size
-    return FusionInputs(levels, l2i.to(dev, dt), size, flat, batch, p2s)
+    return FusionInputs(levels, l2i.to(dev, dt), size, flat[:, :3], batch, p2s)  # (P, 3): x, y, z only
 
 
 def fusion_inputs_from_data_samples(

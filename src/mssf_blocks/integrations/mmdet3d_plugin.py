@@ -4,8 +4,8 @@ Import it from a config (mmengine runs ``custom_imports`` before building anythi
 
     custom_imports = dict(imports=["mssf_blocks.integrations.mmdet3d_plugin"], allow_failed_imports=False)
     model = dict(
-        type="VoxelNet",  # or MVXFasterRCNN / your detector; see docs/frameworks.md for the one call it changes
-        middle_encoder=dict(
+        type="MVXFasterRCNN",  # an MVX detector; docs/frameworks.md: the one call it changes
+        pts_middle_encoder=dict(
             type="MSSFSparseEncoder", in_channels=7, sparse_shape=[41, 1024, 1024],
             point_cloud_range=[0, -25.6, -3, 51.2, 25.6, 2], voxel_size=[0.05, 0.05, 0.125],
             num_fusion_blocks=2, image_channels=[256, 256, 256, 256]),
@@ -47,7 +47,7 @@ class MSSFSparseEncoder(nn.Module):
         layout: ``"VoxelBackBone8x"`` (SECOND; mmdet3d's default ``SparseEncoder``) or
             ``"VoxelResBackBone8x"`` (CenterPoint's residual layout).
         num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
-        msdff_value_projection, seg_hidden, channels, out_channels: as the example backbones
+        msdff_value_projection, msdff_value_dim, seg_hidden, channels, out_channels: as the example backbones
             (``mssf_examples.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
         image_aug: ``"meta"`` or ``"none"``, see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
         return_middle_feats: also return the stage outputs (as ``SparseEncoder``).
@@ -67,6 +67,7 @@ class MSSFSparseEncoder(nn.Module):
         msdff_heads: int = 8,
         msdff_points: int = 4,
         msdff_value_projection: Optional[str] = None,
+        msdff_value_dim: Union[int, str, None] = None,
         seg_hidden: Optional[Sequence[int]] = None,
         channels: Optional[Sequence[int]] = None,
         out_channels: Optional[int] = None,
@@ -77,7 +78,8 @@ class MSSFSparseEncoder(nn.Module):
         self.net = _backbones.build(
             layout, in_channels, point_cloud_range, voxel_size, num_fusion_blocks=num_fusion_blocks, fusion=fusion,
             fusion_position=fusion_position, image_channels=image_channels, msdff_heads=msdff_heads,
-            msdff_points=msdff_points, msdff_value_projection=msdff_value_projection, seg_hidden=seg_hidden,
+            msdff_points=msdff_points, msdff_value_projection=msdff_value_projection,
+            msdff_value_dim=msdff_value_dim, seg_hidden=seg_hidden,
             channels=channels, out_channels=out_channels,
         )
         if [int(s) for s in sparse_shape] != list(self.net.input_shape):

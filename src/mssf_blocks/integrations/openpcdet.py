@@ -223,7 +223,7 @@ def fusion_inputs_from_batch_dict(
             (padded) image tensor size.
 
     Returns:
-        :class:`FusionInputs` with the raw augmented points, ``lidar2img`` (image augmentation
+        :class:`FusionInputs` with the raw augmented x, y, z, ``lidar2img`` (image augmentation
         folded in) and ``points_to_sensor`` (the inverse point augmentation, ``None`` when none is
         recorded), in the points' dtype and device.
     """
@@ -243,4 +243,5 @@ def fusion_inputs_from_batch_dict(
     m = lidar_aug_matrices(batch_dict, order)
     dev, dt = points.device, points.dtype
     p2s = None if m is None else torch.linalg.inv(m).to(dev, dt)
-    return FusionInputs(levels, l2i.to(dev, dt), size if image_size is None else image_size, points, points_batch, p2s)
+    return FusionInputs(levels, l2i.to(dev, dt), size if image_size is None else image_size, points[:, :3], points_batch,
+                        p2s)

@@ -43,7 +43,8 @@ __all__ = ["MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "OPENPCDET_BACKBONES
 _CFG = {
     "NUM_FUSION_BLOCKS": "num_fusion_blocks", "FUSION": "fusion", "FUSION_POSITION": "fusion_position",
     "IMAGE_CHANNELS": "image_channels", "MSDFF_HEADS": "msdff_heads", "MSDFF_POINTS": "msdff_points",
-    "MSDFF_VALUE_PROJECTION": "msdff_value_projection", "SEG_HIDDEN": "seg_hidden", "CHANNELS": "channels",
+    "MSDFF_VALUE_PROJECTION": "msdff_value_projection", "MSDFF_VALUE_DIM": "msdff_value_dim",
+    "SEG_HIDDEN": "seg_hidden", "CHANNELS": "channels",
     "OUT_CHANNELS": "out_channels",
 }
 _ADAPTER_CFG = ("IMAGE_FEATURES_KEY", "AUG_ORDER")
