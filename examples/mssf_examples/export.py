@@ -82,7 +82,7 @@ class PointPillarsGraph(nn.Module):
         fusion_inputs = None
         if det.num_fusion_blocks:
             feats = det.image_branch(image_input) if det.image_branch is not None else list(image_input)
-            fusion_inputs = FusionInputs(feats, lidar2img, self.image_size, points, points_batch)
+            fusion_inputs = FusionInputs(feats, lidar2img, self.image_size, points[:, :3], points_batch)
         out = bb(points, points_batch, b, fusion_inputs, voxelization=(pillars, lifts))
         return det.head(out.bev)
 

@@ -49,7 +49,12 @@ except ImportError:  # pragma: no cover - depends on the torch version
 
 
 def _has_no_data(x: Any) -> bool:
-    return isinstance(x, Tensor) and _is_fake(x)
+    """A FakeTensor, or a list / tuple (of tuples) holding one (e.g. ``check_index_ranges``' checks)."""
+    if isinstance(x, Tensor):
+        return _is_fake(x)
+    if isinstance(x, (list, tuple)):
+        return any(_has_no_data(item) for item in x[:8])
+    return False
 
 
 def value_check(fn: _F) -> _F:
@@ -61,7 +66,7 @@ def value_check(fn: _F) -> _F:
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        if is_tracing() or (args and _has_no_data(args[0])):
+        if is_tracing() or _has_no_data(args):
             return args[0] if args else None
         return fn(*args, **kwargs)
 
