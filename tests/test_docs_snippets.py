@@ -457,7 +457,7 @@ def fusion_swap_openpcdet(run, tmp_path):
     ns = {"backbone": backbone, "spconv": spconv, "point_cloud_range": ex.POINT_CLOUD_RANGE, "voxel_size": ex.VOXEL_SIZE,
           "fpn_levels": fpn(2, ex.IMAGE_SIZE, cameras=1), "lidar2img": frame.lidar2img, "image_size": ex.IMAGE_SIZE,
           "points": frame.points, "points_batch": frame.points_batch, "x": x}
-    with torch.no_grad():  # spconv 2.3 on CPU has no backward
+    with torch.no_grad():  # forward only (the README drop-in block checks spconv backward on CPU)
         ns = run(ns, insert={"x = stage(x, inputs) if isinstance(stage, FusionBlock) else stage(x)": "stage = backbone.conv2"})
         out = ns["x"]
         assert isinstance(out, spconv.SparseConvTensor) and out.features.shape[1] == 32
