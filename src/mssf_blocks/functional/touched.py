@@ -164,8 +164,13 @@ def _touched_level(
     m: int,
     plan: Optional[str],
     needs_grad: bool = False,
-) -> Tensor:
+    defer_projection: bool = False,
+):
     """One level of the ``"touched"`` method: ``(M * Q, d)`` head-major output.
+
+    With ``defer_projection``, the raw-row plans return ``(sampled (M * Q, D), mass (M, Q, 1))``
+    instead, for the caller to sum over levels and project once (``value_proj`` is shared by the
+    levels: one per-head ``bmm`` instead of one per level, and one saved ``(M * Q, D)`` block).
 
     With ``w_all=None`` (no projection; used by :func:`bilinear_sample`) the plan is ``"sample"`` and
     the raw ``(M * Q, D)`` bilinear samples are returned.
@@ -299,6 +304,8 @@ def _touched_level(
                                           per_sample_weights=psw[inside], mode="sum")  # (M * Q, D)
         if w_all is None:
             return sampled
+        if defer_projection:
+            return sampled, psw.view(m, q, 4 * p).sum(-1, keepdim=True)
         out = torch.bmm(sampled.view(m, q, dch), w_all.view(m, d, dch).transpose(1, 2))  # (M, Q, d)
         if b_all is not None:
             out = out + psw.view(m, q, 4 * p).sum(-1, keepdim=True) * b_all.view(m, 1, d)
@@ -329,9 +336,20 @@ def _ms_deform_sample_touched(
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
     )
-    out = None
+    out = raw = mass = None
     for lvl, val in enumerate(levels):
         part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m, plan,
-                              needs_grad)
-        out = part if out is None else out + part
+                              needs_grad, defer_projection=True)
+        if isinstance(part, tuple):  # raw samples: summed over the levels, projected once below
+            raw = part[0] if raw is None else raw + part[0]
+            mass = part[1] if mass is None else mass + part[1]
+        else:
+            out = part if out is None else out + part
+    if raw is not None:
+        dch = raw.shape[1]
+        proj = torch.bmm(raw.view(m, q, dch), w_all.view(m, d, dch).transpose(1, 2))  # (M, Q, d)
+        if b_all is not None:
+            proj = proj + mass * b_all.view(m, 1, d)
+        proj = proj.view(m * q, d)
+        out = proj if out is None else out + proj
     return out.view(m, q, d).transpose(0, 1)
