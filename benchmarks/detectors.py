@@ -13,14 +13,18 @@ time is the work done and much less sensitive to other processes on a shared mac
 time, so the fusion overhead ratio ``t(n=2) / t(n=0)`` (target: at most 1.30) is given on medians of
 both.
 
+MSDFF runs at the paper's width (``value_proj`` 256 -> 256, ``output_proj`` 256 -> C, the library's
+default); ``--msdff-width narrow`` measures the narrow layout (``value_dim`` = voxel channels) instead.
+
 Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 7] [--threads 1]
-[--detectors second centerpoint voxelnext pointpillars] [--json out.json]``
+[--detectors second centerpoint voxelnext pointpillars] [--msdff-width paper] [--json out.json]``
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+from dataclasses import replace
 import os
 import statistics
 import sys
@@ -73,8 +77,11 @@ def main() -> None:
     ap.add_argument("--detectors", nargs="+", default=["second", "centerpoint", "voxelnext", "pointpillars"])
     ap.add_argument("--channels-last", action="store_true",
                     help="image features in channels-last memory order (what ImageBranch(channels_last=True) returns)")
+    ap.add_argument("--msdff-width", choices=["paper", "narrow"], default="paper",
+                    help="MSDFF value width: paper (value_dim = 256 FPN channels) or narrow (= voxel channels)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    preset = replace(VOD, msdff_value_dim=None if args.msdff_width == "paper" else "voxel_channels")
     torch.set_num_threads(args.threads)
     frame = vod_frame(args.points, channels_last=args.channels_last)
     configs = [("n=0", 0, "msdff"), ("n=2 msdff", 2, "msdff"), ("n=2 sff", 2, "sff")]
@@ -83,7 +90,7 @@ def main() -> None:
         models = {}
         for label, n, fusion in configs:
             torch.manual_seed(0)
-            models[label] = build_detector(name, VOD, num_fusion_blocks=n, fusion=fusion,
+            models[label] = build_detector(name, preset, num_fusion_blocks=n, fusion=fusion,
                                            image_features="precomputed").eval()
         wall = {label: [] for label in models}
         cpu = {label: [] for label in models}
@@ -109,7 +116,8 @@ def main() -> None:
         rows.append(row)
         print(", ".join(f"{k}: {v:.3f}" if isinstance(v, float) else f"{k}: {v}" for k, v in row.items()), flush=True)
     print(f"\n{args.points} points, threads={args.threads}, {args.repeats} interleaved rounds (median), "
-          f"MSDFF value projection {VOD.msdff_value_projection!r}, torch {torch.__version__}\n")
+          f"MSDFF value projection {VOD.msdff_value_projection!r}, MSDFF width {args.msdff_width}, "
+          f"torch {torch.__version__}\n")
     print_table(rows, list(rows[0].keys()))
     if args.json:
         write_json(args.json, {"points": args.points, "threads": args.threads, "rows": rows})

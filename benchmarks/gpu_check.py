@@ -10,9 +10,10 @@ numpy, pytest, spconv for the GPU's CUDA version, tqdm, pillow): missing ones ar
 named in the report. Then, each stage timed and bounded so the whole finishes in under 8 minutes
 on one modern GPU:
 
-1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``; the ``device`` fixture adds
+1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests
+   of ``tests/test_fusion.py`` and ``tests/functional/test_sampling.py``; the ``device`` fixture adds
    ``cuda``), the host-synchronisation count, the pinned-memory test, the distributed/CLI option
-   tests (``-k cuda or sync or pin``) - pass/fail counts and the failures' names;
+   tests (``-k "cuda or sync or pin or runtime or env"``) - pass/fail counts and the failures' names;
 2. the MSDFF benchmark on VoD shapes (one 1216 x 1952 camera, FPN strides 4-64 with 256 channels,
    8 heads, 4 points, 5 levels, E = 64): the reference formulation (``method="reference"``,
    ``value_projection="before_sampling"``: ``value_proj`` on every pixel + ``grid_sample``, Deformable
@@ -135,7 +136,8 @@ def environment(device) -> Dict[str, object]:
 # --------------------------------------------------------------------------------------------------
 def run_tests(smoke: bool) -> Dict[str, object]:
     """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode)."""
-    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/examples/test_distributed.py"])
+    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/functional/test_sampling.py",
+                                                           "tests/examples/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
     cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "src"), str(REPO / "examples"),
@@ -387,6 +389,16 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=None, help="timed repeats (default 5; 2 with --smoke)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
+    try:  # a machine without a GPU is told so at once, before any install
+        import torch
+
+        if torch.device(args.device).type == "cuda" and not torch.cuda.is_available():
+            print(f"gpu_check: --device {args.device}: torch {torch.__version__} sees no CUDA GPU "
+                  f"(torch.version.cuda = {torch.version.cuda}); install a CUDA build of torch, or run --smoke "
+                  f"--device cpu", file=sys.stderr)
+            return 2
+    except ImportError:
+        pass  # reported by ensure_packages
     packages = ensure_packages(install=not args.skip_install)
     missing = {k: v for k, v in packages.items() if str(v).startswith("MISSING")}
     if "torch" in missing or "mssf_blocks" in missing:

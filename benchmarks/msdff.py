@@ -44,7 +44,9 @@ A last table bounds what any exact method can reach with PyTorch's CPU primitive
 (:func:`primitive_floor`): per level the cheaper of a GEMM over the touched pixels and an
 ``embedding_bag`` over the raw corner rows, index work free; ``fwd bound`` = reference / floor.
 
-Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)`` (``--threads``). Peak extra memory:
+Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)`` (``--threads``);
+wall time, or with ``--cpu-time`` the process CPU time (with one thread: the work done, robust to the
+other processes of a shared machine). Peak extra memory:
 rise of the resident-set high-water mark over a call (see ``benchmarks/_common.py``). That method
 makes glibc ``mmap`` every allocation above 64 KiB, so every such allocation pays its page faults in
 every call (expensive in the VM we measure on); ``--default-malloc`` times with glibc's defaults
@@ -58,9 +60,11 @@ Usage: ``python benchmarks/msdff.py [--quick] [--repeats 3] [--threads 2] [--chu
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -69,6 +73,8 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import measure, print_table, reexec_with_mmap_threshold, write_json  # noqa: E402
+
+_measure = measure
 
 from mssf_blocks.functional import ms_deform_sample, ms_deform_sample_project  # noqa: E402
 
@@ -299,6 +305,8 @@ def main() -> None:
                     choices=["uniform", "radar band"], help="where the voxels project (see the docstring)")
     ap.add_argument("--cases", nargs="+", default=None, metavar="N:C",
                     help="voxels N and voxel channels C per case (default 500:32 2500:32 8000:64)")
+    ap.add_argument("--cpu-time", action="store_true",
+                    help="time with the process CPU time instead of the wall time (use with --threads 1)")
     ap.add_argument("--widths", nargs="+", default=["paper", "narrow"], choices=["paper", "narrow"],
                     help="value widths: paper (value_proj 256 -> 256, output_proj 256 -> C) and/or narrow "
                          "(256 -> C, C -> C)")
@@ -310,6 +318,9 @@ def main() -> None:
     if not args.default_malloc:
         reexec_with_mmap_threshold()
     torch.set_num_threads(args.threads)
+    if args.cpu_time:  # every measure() of this run reads the process CPU time
+        global measure
+        measure = functools.partial(_measure, clock=time.process_time)
     if args.quick:
         size, size2x, sizes, repeats = (608, 976), (864, 1376), [(1000, 32), (3000, 64)], 3
     else:
@@ -326,7 +337,7 @@ def main() -> None:
     print(f"image {size[0]} x {size[1]} (2x area: {size2x[0]} x {size2x[1]}), levels "
           f"{[tuple(f.shape[-2:]) for f in feats]}, {IMAGE_CHANNELS} ch, M={HEADS}, P={POINTS}, "
           f"threads={torch.get_num_threads()}, repeats={repeats}, fused chunk={args.chunk_size}, "
-          f"load average before={load[0]:.1f}, MALLOC_MMAP_THRESHOLD_={os.environ.get('MALLOC_MMAP_THRESHOLD_')}")
+          f"clock={'process CPU' if args.cpu_time else 'wall'}, load average before={load[0]:.1f}, MALLOC_MMAP_THRESHOLD_={os.environ.get('MALLOC_MMAP_THRESHOLD_')}")
     rows = [run_case(n, c, dist, feats, feats2x, repeats, args.chunk_size, args.kinds, width=width)
             for n, c, dist, width in cases]
     print(f"load average after={os.getloadavg()[0]:.1f}")

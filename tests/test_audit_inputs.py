@@ -173,11 +173,10 @@ def test_unread_nan_pixel_changes_nothing(plan, pixel):
     bad[0, 0, :, pixel[0], pixel[1]] = float("nan")
     zero[0, 0, :, pixel[0], pixel[1]] = 0.0
     got, ref = run_touched(plan, bad, loc, wt, w, b), run_touched(plan, zero, loc, wt, w, b)
+    # (equal up to summation order: the NaN case may leave out-of-map corners out of their bags)
     for name, a, r in zip(("out", "value", "loc", "wt", "weight", "bias"), got, ref):
-        if name == "value":  # the NaN pixel's own gradient is zero, like every unread pixel's
-            assert torch.equal(a, r), name
-        else:
-            torch.testing.assert_close(a, r, rtol=1e-5, atol=1e-6, msg=name)
+        torch.testing.assert_close(a, r, rtol=1e-5, atol=1e-6, msg=name)
+    assert not got[1][0, 0, :, pixel[0], pixel[1]].any()  # the NaN pixel's own gradient: zero, as any unread
 
 
 def test_msdff_auto_nan_in_unread_pixel_keeps_value_proj_grad_finite():

@@ -197,7 +197,7 @@ def check_index_ranges(checks) -> None:
 def check_index_range(x: Tensor, name: str, upper: int, upper_name: str) -> Tensor:
     """Integer tensor with every entry in ``[0, upper)``."""
     if x.numel():
-        lo, hi = int(x.min()), int(x.max())
+        lo, hi = torch.stack([x.min(), x.max()]).tolist()  # one host synchronisation, not two
         if lo < 0 or hi >= upper:
             raise MSSFError(
                 f"{name}: expected values in [0, {upper}) ({upper_name}={upper}), "

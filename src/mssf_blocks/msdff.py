@@ -52,10 +52,12 @@ class MSDFF(nn.Module):
     ``value_dim``, ``value_dim / M`` channels each) and ``output_proj: value_dim -> embed_dim``; the
     default ``value_dim = value_channels`` is the paper's and the authors' layout (256 -> 256 for an
     FPN, then 256 -> ``C_vox``); ``value_dim = embed_dim`` projects the image down to the voxel width
-    before the attention (the narrow layout of this library's earlier releases). Sampling is linear in the values, so the value projection may be applied
-    to the pixels (all of them, or only those a bilinear corner reads) or after sampling (raw channels
-    sampled per head, projected with that head's rows of ``value_proj.weight``, plus
-    ``value_proj.bias`` times the in-image bilinear weight mass): all are exactly equal, and the
+    before the attention (the narrow layout of this library's earlier releases).
+
+    Sampling is linear in the values, so the value projection may be applied to the pixels (all of
+    them, or only those a bilinear corner reads) or after sampling (raw channels sampled per head,
+    projected with that head's rows of ``value_proj.weight``, plus ``value_proj.bias`` times the
+    in-image bilinear weight mass): all are exactly equal, and the
     default ``method="auto"`` picks the cheapest per level, at a cost that scales with the pixels the
     voxels read, not with the image.
 
@@ -142,7 +144,8 @@ class MSDFF(nn.Module):
         super().__init__()
         if not isinstance(add_query, bool):
             raise MSSFError(f"add_query: expected a bool, got {add_query!r}")
-        if isinstance(output_dropout, bool) or not isinstance(output_dropout, (int, float)) or not 0 <= output_dropout < 1:
+        if (isinstance(output_dropout, bool) or not isinstance(output_dropout, (int, float))
+                or not 0 <= output_dropout < 1):
             raise MSSFError(f"output_dropout: expected a probability in [0, 1), got {output_dropout!r}")
         self.add_query, self.output_dropout = add_query, float(output_dropout)
         self.embed_dim = check_positive_int(embed_dim, "embed_dim")
