@@ -116,6 +116,9 @@ FRAGMENTS: Dict[Tuple[str, str], str] = {
         _SIGNATURES,
     ("docs/pillar.md", "HeightEmbedding(num_z: int, channels: int, device=None, dtype=None)"):
         _SIGNATURES,
+    ("docs/deployment.md", "import torch"):
+        "sketch with a frame's `voxels` / `inputs` and VoD channel widths; tests/test_compile.py and "
+        "tests/test_export.py run the same compile / export / ONNX calls on generated inputs",
     ("docs/real-data.md", "from vod.evaluation import Evaluation"):
         "needs the third-party VoD devkit (`vod`, not a dependency), the full VoD label folder and the "
         "prediction folder of a training run",

@@ -206,3 +206,21 @@ def test_projector_static_path_equals_eager():
         p1 = VoxelCentroidProjector()(vox, pts, pb, l2i, (80, 80))
     for name in ("uv", "valid", "centroid", "has_points"):
         torch.testing.assert_close(getattr(p1, name), getattr(p0, name))
+
+
+def test_auto_plan_per_device_and_grid_method_equals_cpu_planner():
+    from mssf_blocks.functional.plan_costs import bilinear_auto_method, msdff_auto_method
+
+    # CUDA (and any non-CPU device) and graph capture: project first + grid_sample, no cost model
+    assert msdff_auto_method("cuda", False) == "grid" and msdff_auto_method("cpu", True) == "grid"
+    assert msdff_auto_method("cpu", False) == "touched"
+    assert bilinear_auto_method("cuda", False) == "grid" and bilinear_auto_method("cpu", False) == "gather"
+    proj = _projection(50, 2, 2)
+    proj = CentroidProjection(proj.uv.double(), proj.depth, proj.valid, proj.centroid, proj.has_points,
+                              proj.batch_index)
+    feats = _levels(2, 2)
+    query = torch.randn(50, 16, dtype=torch.float64)
+    auto = _perturb(MSDFF(16, 6, num_heads=2, num_levels=2, num_points=3).double()).eval()
+    grid = copy.deepcopy(auto)
+    grid.method = "grid"  # the plan CUDA takes eagerly
+    torch.testing.assert_close(grid(query, feats, proj), auto(query, feats, proj), atol=1e-10, rtol=1e-10)

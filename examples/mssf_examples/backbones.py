@@ -551,26 +551,42 @@ class PointPillarsBackbone(nn.Module):
         occupied = self.lifts[i].to_bev(v.replace(features=v.features.new_ones(v.num_voxels, 1))) > 0
         return torch.where(occupied, summed, bev)
 
-    def forward(self, points: Tensor, points_batch: Tensor, batch_size: int, fusion_inputs=None) -> BackboneOutput:
-        """``points (P, C)``, ``points_batch (P,)`` -> :class:`BackboneOutput` with ``bev (B, C, H', W')``."""
+    def voxelize(self, points: Tensor, points_batch: Tensor, batch_size: int):
+        """The data-dependent part of :meth:`forward`: ``(pillars, lift voxels of every fusion block)``.
+
+        The pillars are a :class:`~mssf_examples.voxelize.Voxelization` of the pillar grid, the lift voxels
+        one :class:`SparseVoxels` per fusion block (at its BEV stride). Everything after this has static
+        shapes under graph capture: ``mssf_examples.export`` runs this eagerly and exports the rest.
+        """
+        pillars = dynamic_voxelize(points, points_batch, batch_size, self.pfn.grid)
+        lifts = []
+        if self.num_fusion_blocks:
+            vox = dynamic_voxelize(points, points_batch, batch_size, self.lift_grid)
+            lift_voxels = self.lift_grid.sparse_voxels(vox.features[:, :1], vox.coords, batch_size)
+            lifts = [self._coarsen(lift_voxels, self.strides[i]) for i in range(self.num_fusion_blocks)]
+        return pillars, lifts
+
+    def forward(self, points: Tensor, points_batch: Tensor, batch_size: int, fusion_inputs=None,
+                voxelization=None) -> BackboneOutput:
+        """``points (P, C)``, ``points_batch (P,)`` -> :class:`BackboneOutput` with ``bev (B, C, H', W')``.
+
+        ``voxelization``: the output of :meth:`voxelize` when computed already (``None``: computed here).
+        """
         if self.num_fusion_blocks and fusion_inputs is None:
             raise MSSFError("fusion_inputs: required when num_fusion_blocks > 0, got None")
         from .voxelize import pillars_to_bev
 
-        x = pillars_to_bev(self.pfn(points, points_batch, batch_size))
+        pillars, lifts = self.voxelize(points, points_batch, batch_size) if voxelization is None else voxelization
+        x = pillars_to_bev(self.pfn(points, points_batch, batch_size, voxelization=pillars))
         out = BackboneOutput(stages=[])
-        lift_voxels = None
-        if self.num_fusion_blocks:
-            vox = dynamic_voxelize(points, points_batch, batch_size, self.lift_grid)
-            lift_voxels = self.lift_grid.sparse_voxels(vox.features[:, :1], vox.coords, batch_size)
         ups = []
         for i in range(len(self.down)):
             x = self.down[i](x)
             if i < self.num_fusion_blocks and self.fusion_position == "before_residual":
-                x = self._fuse(i, x, self._coarsen(lift_voxels, self.strides[i]), fusion_inputs, out)
+                x = self._fuse(i, x, lifts[i], fusion_inputs, out)
             x = self.convs[i](x)
             if i < self.num_fusion_blocks and self.fusion_position == "after_residual":
-                x = self._fuse(i, x, self._coarsen(lift_voxels, self.strides[i]), fusion_inputs, out)
+                x = self._fuse(i, x, lifts[i], fusion_inputs, out)
             ups.append(self.deblocks[i](x))
         size = ups[0].shape[-2:]
         ups = [u[..., : size[0], : size[1]] for u in ups]

@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence, Tuple, Type
+from typing import Optional, Sequence, Tuple, Type
 
 import torch
 from torch import Tensor, nn
@@ -195,18 +195,21 @@ def pillar_feature_net(
     grid: VoxelGrid,
     linear: nn.Linear,
     norm: nn.Module,
+    vox: Optional[Voxelization] = None,
 ) -> Tuple[Tensor, Voxelization]:
     """Pillar features: decorate points, ``Linear - norm - ReLU``, max over each pillar.
 
     ``grid`` must have a single z cell (a pillar spans the whole height). Each point becomes
-    ``[point (C), xyz - pillar mean (3), xyz - pillar centre (3)]``.
+    ``[point (C), xyz - pillar mean (3), xyz - pillar centre (3)]``. ``vox``: the pillars'
+    :func:`dynamic_voxelize` when computed already (``None``: computed here).
 
     Returns:
         ``(N, C_out)`` pillar features and the :class:`Voxelization` of the pillars.
     """
     if grid.grid_size[2] != 1:
         raise MSSFError(f"grid: a pillar grid needs one z cell, got grid_size {grid.grid_size}")
-    vox = dynamic_voxelize(points, points_batch, batch_size, grid)
+    if vox is None:
+        vox = dynamic_voxelize(points, points_batch, batch_size, grid)
     pts = points[vox.keep]
     xyz = pts[:, :3]
     mean = vox.features[vox.point_voxel, :3]
@@ -258,10 +261,12 @@ class PillarFeatureNet(nn.Module):
         self.linear = nn.Linear(in_channels + 6, out_channels, bias=False, device=device, dtype=dtype)
         self.norm = norm_layer(out_channels, device=device, dtype=dtype)
 
-    def forward(self, points: Tensor, points_batch: Tensor, batch_size: int) -> SparseVoxels:
+    def forward(self, points: Tensor, points_batch: Tensor, batch_size: int,
+                voxelization: Optional[Voxelization] = None) -> SparseVoxels:
         if points.dim() == 2 and points.shape[1] != self.in_channels:
             raise MSSFError(f"points: expected {self.in_channels} columns, got shape {tuple(points.shape)}")
-        feats, vox = pillar_feature_net(points, points_batch, batch_size, self.grid, self.linear, self.norm)
+        feats, vox = pillar_feature_net(points, points_batch, batch_size, self.grid, self.linear, self.norm,
+                                        voxelization)
         return self.grid.sparse_voxels(feats, vox.coords, batch_size)
 
     def extra_repr(self) -> str:

@@ -41,6 +41,22 @@ def is_tracing() -> bool:
     return bool(onnx is not None and onnx.is_in_onnx_export())
 
 
+try:  # (private, hence guarded) FakeTensors carry no data: torch.export builds its inputs' dataclasses
+    from torch._subclasses.fake_tensor import is_fake as _is_fake  # from them before is_exporting() is set
+except ImportError:  # pragma: no cover - depends on the torch version
+    def _is_fake(x: Any) -> bool:
+        return False
+
+
+def _has_no_data(x: Any) -> bool:
+    """A FakeTensor, or a list / tuple (of tuples) holding one (e.g. ``check_index_ranges``' checks)."""
+    if isinstance(x, Tensor):
+        return _is_fake(x)
+    if isinstance(x, (list, tuple)):
+        return any(_has_no_data(item) for item in x[:8])
+    return False
+
+
 def value_check(fn: _F) -> _F:
     """Mark a check that reads tensor values: it runs eagerly and is skipped while :func:`is_tracing`.
 
@@ -50,7 +66,7 @@ def value_check(fn: _F) -> _F:
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
-        if is_tracing():
+        if is_tracing() or _has_no_data(args):
             return args[0] if args else None
         return fn(*args, **kwargs)
 
@@ -104,7 +120,7 @@ def check_shape(
     for size, d in zip(x.shape, spec):
         if d is None:
             continue
-        if isinstance(d, int):
+        if isinstance(d, (int, torch.SymInt)):  # (a SymInt: a size read from another tensor under export)
             if size != d:
                 raise MSSFError(
                     f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)}"

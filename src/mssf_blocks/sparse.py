@@ -96,11 +96,12 @@ class SparseVoxels:
     # -- derived ----------------------------------------------------------------------------------
     @property
     def num_voxels(self) -> int:
-        return int(self.coords.shape[0])
+        # (the size itself, not int(): a symbolic size under torch.compile / export stays symbolic)
+        return self.coords.shape[0]
 
     @property
     def num_channels(self) -> int:
-        return int(self.features.shape[1])
+        return self.features.shape[1]
 
     @property
     def batch_index(self) -> Tensor:

@@ -135,11 +135,12 @@ def linear_norm_visible_static(linear: nn.Module, norm: nn.Module, x: Tensor, vi
 def segment_slots(keys: Tensor) -> Tensor:
     """``(K,)`` slot of every key: equal keys share a slot, slots in ``[0, K)`` (static size ``K``).
 
-    The static-shape counterpart of ``torch.unique(keys, return_inverse=True)[1]``: a stable sort, a
-    cumulative count of the key changes, and the inverse permutation (slots are ordered like the keys,
-    but unused slots may remain at the end).
+    The static-shape counterpart of ``torch.unique(keys, return_inverse=True)[1]``: a sort, a cumulative
+    count of the key changes, and the inverse permutation (slots are ordered like the keys, but unused
+    slots may remain at the end). The sort need not be stable (equal keys share a slot whatever their
+    order), and ONNX has no stable sort (``TopK``).
     """
-    sorted_keys, order = torch.sort(keys, stable=True)
+    sorted_keys, order = torch.sort(keys)
     change = torch.cat([torch.ones_like(sorted_keys[:1], dtype=torch.bool), sorted_keys[1:] != sorted_keys[:-1]])
     seg = torch.cumsum(change.to(torch.int64), 0) - 1
     return torch.empty_like(seg).scatter_(0, order, seg)

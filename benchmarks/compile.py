@@ -1,0 +1,153 @@
+"""``torch.compile`` of the fusion blocks: compile time, recompiles across voxel counts, speed vs eager.
+
+For SFF, MSDFF and a FusionBlock (MSDFF + QueryInit, centroids and projection included) on one frame of
+a 384 x 640 image with four 64-channel FPN levels (strides 8-64), forward in eval mode under
+``torch.no_grad`` (deployment) and forward + backward in training mode:
+
+* ``compile_s``: the first call of ``torch.compile(module, fullgraph=True, dynamic=True)`` (inductor
+  unless ``--backend``), i.e. tracing + code generation + the C++ build;
+* ``new_sizes_s``: the median call at four further voxel counts (no recompilation: close to steady);
+* ``compiled_ms`` / ``eager_ms`` / ``static_ms``: the median steady-state call of the compiled module,
+  of the eager module (the default CPU plans) and of the eager static-shape path (``static_path()``,
+  the formulation the compiled graph contains), and the ratio eager / compiled.
+
+Run: ``python benchmarks/compile.py [--threads 1] [--backend inductor] [--cases MSDFF SFF "FusionBlock(MSDFF)"]
+[--json out.json]`` (default: MSDFF only). The machine
+this was written on is shared: the figures in docs/performance.md are a single run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from _common import print_table, write_json  # noqa: E402
+
+from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels, static_path  # noqa: E402
+from mssf_blocks.geometry import CentroidProjection  # noqa: E402
+
+RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)
+GRID = (10, 128, 128)  # (D, H, W) voxels of 0.4 x 0.4 x 0.5 m
+IMAGE = (384, 640)
+C_VOX, C_IMG = 64, 64
+
+
+def _frame(n: int, seed: int):
+    g = torch.Generator().manual_seed(seed)
+    d, h, w = GRID
+    idx = torch.randperm(d * h * w, generator=g)[:n]
+    coords = torch.stack([torch.zeros(n, dtype=torch.long), idx // (h * w), idx // w % h, idx % w], 1).int()
+    vox = SparseVoxels(torch.randn(n, C_VOX, generator=g), coords, GRID, 1, (0.4, 0.4, 0.5), RANGE[:3])
+    pts = torch.rand(4 * n, 3, generator=g) * torch.tensor([51.2, 51.2, 5.0]) + torch.tensor(RANGE[:3])
+    # a forward-looking pinhole camera at the origin (x forward): u = 320 - 320 y / x, v = 192 - 320 z / x
+    l2i = torch.tensor([[[320.0, -320.0, 0.0, 0.0], [192.0, 0.0, -320.0, 0.0], [1.0, 0.0, 0.0, 0.0]]])
+    feats = [torch.randn(1, C_IMG, IMAGE[0] // s, IMAGE[1] // s, generator=g) for s in (8, 16, 32, 64)]
+    inputs = FusionInputs(feats, l2i, IMAGE, pts, torch.zeros(4 * n, dtype=torch.long))
+    uv = torch.rand(n, 1, 2, generator=g)
+    valid = torch.ones(n, 1, dtype=torch.bool)
+    proj = CentroidProjection(uv, valid.float(), valid, torch.zeros(n, 3), valid[:, 0], vox.batch_index)
+    return vox, inputs, proj
+
+
+def _cases():
+    def sff():
+        m = SFF([C_IMG] * 4, C_VOX)
+        return m, lambda mod, vox, inp, proj: mod(inp.image_features, proj)
+
+    def msdff():
+        m = MSDFF(C_VOX, C_IMG, num_heads=8, num_levels=4, num_points=4)
+        return m, lambda mod, vox, inp, proj: mod(vox.features, inp.image_features, proj)
+
+    def block():
+        m = FusionBlock(MSDFF(C_VOX, C_IMG, num_heads=8, num_levels=4, num_points=4),
+                        query_init=QueryInit(C_VOX, C_IMG, C_VOX, RANGE))
+        return m, lambda mod, vox, inp, proj: mod(vox, inp).features
+
+    return {"SFF": sff, "MSDFF": msdff, "FusionBlock(MSDFF)": block}
+
+
+def _median(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    times.sort()
+    return times[len(times) // 2]
+
+
+def _call(run, mod, frame, train: bool):
+    vox, inp, proj = frame
+    if not train:
+        with torch.no_grad():
+            return run(mod, vox, inp, proj)
+    vox = vox.replace(features=vox.features.detach().requires_grad_())
+    out = run(mod, vox, inp, proj)
+    out.sum().backward()
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--backend", default="inductor")
+    ap.add_argument("--voxels", type=int, nargs="+", default=[2000, 2600, 3300, 4100, 5000])
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--cases", nargs="+", default=["MSDFF"],
+                    help="of SFF, MSDFF, 'FusionBlock(MSDFF)' (each costs two inductor compiles, ~5 min each here)")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    frames = [_frame(n, seed=i) for i, n in enumerate(args.voxels)]
+    rows = []
+    for name, build in _cases().items():
+        if args.cases and name not in args.cases:
+            continue
+        for train in (False, True):
+            torch.manual_seed(0)
+            base, run = build()
+            base.train(train)
+            torch._dynamo.reset()
+            compiled = torch.compile(run, fullgraph=True, dynamic=True, backend=args.backend)
+            mod = copy.deepcopy(base)
+            t0 = time.perf_counter()
+            _call(compiled, mod, frames[0], train)
+            compile_s = time.perf_counter() - t0
+            new_sizes = []
+            for f in frames[1:]:
+                t0 = time.perf_counter()
+                _call(compiled, mod, f, train)
+                new_sizes.append(time.perf_counter() - t0)
+            new_sizes.sort()
+            mid = frames[len(frames) // 2]
+            comp = _median(lambda: _call(compiled, mod, mid, train), args.repeats)
+            eager_mod = copy.deepcopy(base)
+            eager = _median(lambda: _call(run, eager_mod, mid, train), args.repeats)
+
+            def static_call():
+                with static_path():
+                    return _call(run, eager_mod, mid, train)
+
+            static = _median(static_call, args.repeats)
+            rows.append({
+                "module": name, "mode": "fwd+bwd train" if train else "fwd eval", "N": mid[0].num_voxels,
+                "compile_s": round(compile_s, 1), "new_sizes_s": round(new_sizes[len(new_sizes) // 2], 3),
+                "compiled_ms": round(1e3 * comp, 1), "eager_ms": round(1e3 * eager, 1),
+                "static_ms": round(1e3 * static, 1), "eager/compiled": round(eager / comp, 2),
+            })
+            print(rows[-1], flush=True)
+    print_table(rows, list(rows[0]) if rows else [])
+    if args.json:
+        write_json(args.json, {"threads": args.threads, "backend": args.backend, "torch": torch.__version__,
+                               "rows": rows})
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""``torch.export`` of the fusion modules (voxel count a dynamic dimension) and ONNX of a fusion block,
+checked on three voxel counts against the eager modules (the default CPU plans: an independent path).
+
+The whole MSSF-PointPillars detector goes through ONNX in tests/examples/test_export_onnx.py.
+"""
+
+import pytest
+import torch
+from torch.export import Dim
+
+from mssf_blocks import (
+    MSDFF,
+    SFF,
+    FusionBlock,
+    FusionInputs,
+    PillarLift,
+    QueryInit,
+    SemanticGuidedHead,
+    SparseVoxels,
+)
+from mssf_blocks.deploy import PYTREE_FIELDS
+from mssf_blocks.geometry import CentroidProjection
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+RANGE = (0.0, -4.0, -1.0, 8.0, 4.0, 1.0)
+L2I = torch.tensor([[[0.0, -8.0, 0.0, 32.0], [0.0, 0.0, -8.0, 16.0], [1.0, 0.0, 0.0, 1.0]]])
+FEATS = [torch.randn(1, 8, 24, 32, generator=torch.Generator().manual_seed(0)),
+         torch.randn(1, 8, 12, 16, generator=torch.Generator().manual_seed(1))]
+BEV = torch.randn(1, 16, 16, 16, generator=torch.Generator().manual_seed(2))
+COUNTS = (30, 12, 77)  # the first one is the example input of the export
+
+
+def _scene(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    idx = torch.randperm(4 * 16 * 16, generator=g)[:n]
+    coords = torch.stack([torch.zeros(n, dtype=torch.long), idx // 256, idx // 16 % 16, idx % 16], 1).int()
+    vox = SparseVoxels(torch.randn(n, 16, generator=g), coords, (4, 16, 16), 1, (0.5, 0.5, 0.5), RANGE[:3])
+    pts = torch.rand(3 * n, 3, generator=g) * torch.tensor([8.5, 8.0, 2.0]) + torch.tensor(RANGE[:3])
+    uv = torch.rand(n, 1, 2, generator=g) * 1.2 - 0.1
+    valid = (uv >= 0).all(-1) & (uv <= 1).all(-1)
+    proj = CentroidProjection(uv, valid.float(), valid, torch.zeros(n, 3), valid[:, 0], vox.batch_index)
+    return vox, FusionInputs(FEATS, L2I, (48, 64), pts, torch.zeros(3 * n, dtype=torch.long)), proj
+
+
+N, P = Dim("N", min=2), Dim("P", min=2)
+VOXELS = [{0: N}, {0: N}]  # SparseVoxels: features, coords (deploy.PYTREE_FIELDS)
+INPUTS = [[None, None], None, {0: P}, {0: P}, None]  # FusionInputs: levels, lidar2img, points, points_batch, p2s
+PROJ = [{0: N}] * 6  # CentroidProjection: uv, depth, valid, centroid, has_points, batch_index
+
+
+def _case(name):
+    torch.manual_seed(0)
+    if name == "SFF":
+        return SFF([8, 8], 16), lambda v, i, p: (FEATS, p), ([None, None], PROJ)
+    if name == "MSDFF":
+        return (MSDFF(16, 8, num_heads=2, num_levels=2, num_points=2), lambda v, i, p: (v.features, FEATS, p),
+                ({0: N}, [None, None], PROJ))
+    if name == "QueryInit":
+        return (QueryInit(16, 8, 16, RANGE), lambda v, i, p: (v.features, v.features[:, :8].clone(), v.voxel_centers()),
+                ({0: N}, {0: N}, {0: N}))
+    if name == "FusionBlock":
+        block = FusionBlock(MSDFF(16, 8, num_heads=2, num_levels=2, num_points=2), query_init=QueryInit(16, 8, 16, RANGE))
+        return block, lambda v, i, p: (v, i), (VOXELS, INPUTS)
+    if name == "SemanticGuidedHead":
+        return SemanticGuidedHead(16, hidden=(8,)), lambda v, i, p: (v,), (VOXELS,)
+    if name == "PillarLift":
+        return PillarLift(16, 4), lambda v, i, p: (BEV, v), (None, VOXELS)
+    raise KeyError(name)
+
+
+def _leaves(out):
+    return [t for t in torch.utils._pytree.tree_leaves(out) if isinstance(t, torch.Tensor)]
+
+
+@pytest.mark.parametrize("name", ["SFF", "MSDFF", "QueryInit", "FusionBlock", "SemanticGuidedHead", "PillarLift"])
+def test_torch_export_with_dynamic_voxel_count(name):
+    mod, make_args, dynamic = _case(name)
+    mod.eval()
+    example = make_args(*_scene(COUNTS[0], 0))
+    ep = torch.export.export(mod, example, dynamic_shapes=dynamic)
+    exported = ep.module()
+    for n in COUNTS:
+        args = make_args(*_scene(n, n))
+        got, want = _leaves(exported(*args)), _leaves(mod(*args))
+        assert len(got) == len(want) and got[0].shape[0] == n
+        for a, e in zip(got, want):
+            torch.testing.assert_close(a, e, atol=1e-5, rtol=1e-5)
+
+
+def test_sparse_voxels_round_trip_through_pytree():
+    vox = _scene(5, 0)[0]
+    leaves, spec = torch.utils._pytree.tree_flatten(vox)
+    assert [id(t) for t in leaves] == [id(vox.features), id(vox.coords)]
+    back = torch.utils._pytree.tree_unflatten(leaves, spec)
+    assert isinstance(back, SparseVoxels) and back.spatial_shape == vox.spatial_shape and back.stride == vox.stride
+    assert PYTREE_FIELDS[SparseVoxels] == ("features", "coords")
+
+
+def test_onnx_export_of_fusion_block_runs_in_onnxruntime(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    block = FusionBlock(SFF([8, 8], 16)).eval()
+    vox, inputs, _ = _scene(COUNTS[0], 0)
+    program = torch.onnx.export(block, (vox, inputs), dynamic_shapes=(VOXELS, INPUTS), dynamo=True,
+                                opset_version=18, verbose=False)
+    path = tmp_path / "block.onnx"
+    program.save(str(path))
+    import onnx
+
+    model = onnx.load(str(path))
+    assert "GridSample" in {node.op_type for node in model.graph.node}  # what TensorRT needs (opset >= 16)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    for n in COUNTS:
+        v, i, _ = _scene(n, n)
+        flat = [v.features, v.coords, *i.image_features, i.lidar2img, i.points, i.points_batch]
+        out = session.run(None, {k: t.numpy() for k, t in zip(names, flat)})
+        want = block(v, i).features.detach()
+        assert out[0].shape == (n, 16)
+        assert float((torch.from_numpy(out[0]) - want).abs().max()) <= 1e-4
