@@ -1,4 +1,4 @@
-"""Tests of the synthetic radar + camera scenes (examples/mssf_examples/scenes.py).
+"""Tests of the synthetic radar + camera scenes (examples/mssf_examples/scenes.py and its scene_*.py parts).
 
 Every geometric check recomputes the quantity independently (hand-built camera matrix, corner loops,
 per-point loops in float64) instead of reusing the generator's helpers.
