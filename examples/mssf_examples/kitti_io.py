@@ -12,45 +12,45 @@ What this module reads (see ``docs/real-data.md`` for the folder layouts):
   about +z, dx along the heading) and back;
 * images: ``image_2/<id>.png|jpg`` as a ``(3, H, W)`` uint8 tensor (pillow).
 
-Box conversion (exact, not the usual ``-ry - pi/2`` shortcut)
--------------------------------------------------------------
-A KITTI label is a box that is upright in the *camera* frame: bottom-face centre ``loc``, size
-``(h, w, l)``, heading ``d_cam = (cos ry, 0, -sin ry)`` (the direction of the length, rotated by
-``ry`` about camera Y, which points down). Let ``T = R0_rect(4x4) @ Tr_velo_to_cam(4x4)`` map the sensor
-frame to the camera frame and ``A`` be its 3 x 3 linear part.
-
-* centre: camera centre ``loc - (0, h/2, 0)``, mapped with ``T^-1``;
-* size: ``dx = l``, ``dy = w``, ``dz = h``;
-* yaw: the heading in the sensor frame is ``A^-1 d_cam = (a, b, c)``; ``yaw = atan2(b, a)``.
-
-When ``A`` is a pure axis permutation (camera x = -y_s, y = -z_s, z = x_s) this is ``yaw = -ry - pi/2``;
-VoD's radar-to-camera extrinsics are rotated by a few degrees, where the shortcut is off by up to a few
-tenths of a degree (and the ``+h/2`` along sensor z misplaces the centre by several centimetres).
-
-The inverse maps a sensor yaw back to the unique camera heading with zero camera-y component whose
-sensor-frame projection onto the ground plane points along ``yaw``: with ``u = A (cos yaw, sin yaw, 0)``
-and ``v = A e_z``, ``d = u - (u_y / v_y) v`` (then ``ry = atan2(-d_z, d_x)``). Both directions are exact
-inverses (round trip to ~1e-15), defined whenever the sensor's z axis is not parallel to the camera's
-image plane horizontal (``v_y != 0``).
-
-A 7-number sensor box is upright in the *sensor* frame. With tilted extrinsics (VoD: ~6 deg) it is not
-the same solid as the camera-upright label box: same centre, size and ground heading, but its corners
-differ by ``~ h/2 * tilt``. :func:`camera_box_corners_in_sensor` gives the label's exact corners in the
-sensor frame when they are needed (e.g. to reproduce the labelled 2D boxes).
+The parts: :mod:`~mssf_examples.kitti_points` (point formats, point and image readers),
+:mod:`~mssf_examples.kitti_calib` (calibration), :mod:`~mssf_examples.kitti_labels` (label files, class
+lists), :mod:`~mssf_examples.kitti_boxes` (exact camera <-> sensor box conversion, corners, 2D boxes);
+this module holds the frames and the dataset reader and re-exports every public name.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional, Sequence, Tuple, Union
+from typing import List, Optional, Sequence, Tuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional.geometry import project_points
+
+from .kitti_boxes import (
+    camera_box_corners,
+    camera_box_corners_in_sensor,
+    camera_boxes_to_sensor,
+    points_in_image,
+    project_boxes_2d,
+    sensor_box_corners,
+    sensor_boxes_to_camera,
+    transform_points,
+)
+from .kitti_calib import Calibration, parse_calibration, read_calibration
+from .kitti_labels import KITTI_CLASSES, TJ4D_CLASSES, VOD_CLASSES, KittiObjects, parse_labels, read_labels
+from .kitti_points import (
+    KITTI_LIDAR,
+    TJ4D_RADAR,
+    VOD_RADAR,
+    PathLike,
+    PointFormat,
+    _image_size,
+    read_image,
+    read_points,
+)
 
 __all__ = [
     "PointFormat",
@@ -82,447 +82,7 @@ __all__ = [
     "frames_to_batch",
 ]
 
-PathLike = Union[str, Path]
 
-
-# --------------------------------------------------------------------------------------------------
-# Point formats
-# --------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class PointFormat:
-    """Channel layout of a ``velodyne/<id>.bin`` file and the input features a detector uses.
-
-    Args:
-        name: a label for messages.
-        channels: names of the ``C`` float32 columns stored in the file, ``x, y, z`` first.
-        features: the columns (by name, in order) that form the network input; ``x, y, z`` first.
-    """
-
-    name: str
-    channels: Tuple[str, ...]
-    features: Tuple[str, ...]
-
-    def __post_init__(self) -> None:
-        if tuple(self.channels[:3]) != ("x", "y", "z"):
-            raise MSSFError(f"channels: expected x, y, z first, got {self.channels}")
-        if tuple(self.features[:3]) != ("x", "y", "z"):
-            raise MSSFError(f"features: expected x, y, z first, got {self.features}")
-        missing = [f for f in self.features if f not in self.channels]
-        if missing:
-            raise MSSFError(f"features: expected names from channels {self.channels}, got unknown {missing}")
-
-    @property
-    def num_channels(self) -> int:
-        return len(self.channels)
-
-    @property
-    def feature_index(self) -> List[int]:
-        return [self.channels.index(f) for f in self.features]
-
-    def select(self, raw: Tensor) -> Tensor:
-        """``(P, C)`` raw columns -> ``(P, F)`` input features."""
-        return raw[:, self.feature_index]
-
-
-#: View-of-Delft radar (``radar``, ``radar_3frames``, ``radar_5frames``): the paper uses all 7 channels.
-VOD_RADAR = PointFormat(
-    "vod_radar",
-    ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"),
-    ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time"),
-)
-#: TJ4DRadSet radar. The paper's input is ``[x, y, z, v_rc, Power]``; the files hold only the raw radial
-#: velocity ``V_r`` and no ego-motion to compensate it, so ``v_r`` stands in for ``v_rc``. Define your
-#: own :class:`PointFormat` with a compensated column when you have one.
-TJ4D_RADAR = PointFormat(
-    "tj4d_radar",
-    ("x", "y", "z", "v_r", "range", "power", "alpha", "beta"),
-    ("x", "y", "z", "v_r", "power"),
-)
-#: KITTI LiDAR (HDL-64): ``x, y, z, reflectance``.
-KITTI_LIDAR = PointFormat("kitti_lidar", ("x", "y", "z", "reflectance"), ("x", "y", "z", "reflectance"))
-
-#: Evaluated classes (0-based labels in this order; any other type gets label -1).
-VOD_CLASSES: Tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
-TJ4D_CLASSES: Tuple[str, ...] = ("Car", "Pedestrian", "Cyclist", "Truck")
-KITTI_CLASSES: Tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
-
-
-def read_points(path: PathLike, point_format: PointFormat) -> Tensor:
-    """Read a float32 little-endian ``N x C`` point file.
-
-    Returns:
-        ``(P, C)`` float32 tensor with the columns of ``point_format.channels``.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"point file not found: {path}")
-    data = np.fromfile(path, dtype="<f4")
-    c = point_format.num_channels
-    if data.size % c:
-        raise MSSFError(
-            f"{path}: expected a multiple of {c} float32 values ({point_format.name}: {point_format.channels}), "
-            f"got {data.size} values ({path.stat().st_size} bytes)"
-        )
-    return torch.from_numpy(data.reshape(-1, c).astype(np.float32))
-
-
-def read_image(path: PathLike) -> Tensor:
-    """Read an image as a ``(3, H, W)`` uint8 RGB tensor (needs pillow)."""
-    try:
-        from PIL import Image
-    except ImportError as exc:  # pragma: no cover - pillow is in the examples extra
-        raise ImportError("reading images needs pillow: pip install 'mssf-blocks[examples]'") from exc
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image not found: {path}")
-    with Image.open(path) as im:
-        arr = np.asarray(im.convert("RGB"), dtype=np.uint8)
-    return torch.from_numpy(arr.copy()).permute(2, 0, 1).contiguous()
-
-
-def _image_size(path: Path) -> Tuple[int, int]:
-    from PIL import Image
-
-    with Image.open(path) as im:
-        w, h = im.size
-    return int(h), int(w)
-
-
-# --------------------------------------------------------------------------------------------------
-# Calibration
-# --------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Calibration:
-    """KITTI calibration of one frame (float64).
-
-    Attributes:
-        P2: ``(3, 4)`` rectified camera projection.
-        R0_rect: ``(3, 3)`` rectifying rotation (identity when the file has none).
-        Tr_velo_to_cam: ``(3, 4)`` sensor (LiDAR or radar) to camera.
-    """
-
-    P2: Tensor
-    R0_rect: Tensor
-    Tr_velo_to_cam: Tensor
-
-    @property
-    def sensor_to_camera(self) -> Tensor:
-        """``(4, 4)`` ``R0_rect(4x4) @ Tr_velo_to_cam(4x4)``: sensor to rectified camera frame."""
-        r0 = torch.eye(4, dtype=torch.float64)
-        r0[:3, :3] = self.R0_rect
-        tr = torch.eye(4, dtype=torch.float64)
-        tr[:3, :] = self.Tr_velo_to_cam
-        return r0 @ tr
-
-    @property
-    def camera_to_sensor(self) -> Tensor:
-        """``(4, 4)`` inverse of :attr:`sensor_to_camera`."""
-        return torch.linalg.inv(self.sensor_to_camera)
-
-    @property
-    def lidar2img(self) -> Tensor:
-        """``(3, 4)`` ``P2 @ R0_rect(4x4) @ Tr_velo_to_cam(4x4)``: sensor points to ``(u*d, v*d, d)``."""
-        return self.P2 @ self.sensor_to_camera
-
-
-_CALIB_KEYS = {
-    "P2": ("P2",),
-    "R0_rect": ("R0_rect", "R_rect", "R0"),
-    "Tr_velo_to_cam": ("Tr_velo_to_cam", "Tr_velo_cam"),
-}
-
-
-def parse_calibration(text: str, source: str = "<calibration text>") -> Calibration:
-    """Parse KITTI calibration text (``key: v1 v2 ...`` lines; keys with no values are ignored).
-
-    ``R0_rect`` may be absent (identity); ``P2`` and ``Tr_velo_to_cam`` are required.
-    """
-    values: Dict[str, List[float]] = {}
-    for lineno, line in enumerate(text.splitlines(), 1):
-        if not line.strip():
-            continue
-        if ":" not in line:
-            raise MSSFError(f"{source}:{lineno}: expected 'key: values', got {line.strip()!r}")
-        key, rest = line.split(":", 1)
-        try:
-            nums = [float(v) for v in rest.split()]
-        except ValueError:
-            raise MSSFError(f"{source}:{lineno}: expected numbers after {key!r}, got {rest.strip()!r}") from None
-        if nums:
-            values[key.strip()] = nums
-
-    def get(name: str, size: int, required: bool) -> Optional[Tensor]:
-        for alias in _CALIB_KEYS[name]:
-            if alias in values:
-                nums = values[alias]
-                if len(nums) != size:
-                    raise MSSFError(f"{source}: expected {size} values for {alias}, got {len(nums)}")
-                return torch.tensor(nums, dtype=torch.float64)
-        if required:
-            raise MSSFError(f"{source}: expected a {name} line (3x4 = 12 values), found keys {sorted(values)}")
-        return None
-
-    p2 = get("P2", 12, True).reshape(3, 4)
-    tr = get("Tr_velo_to_cam", 12, True).reshape(3, 4)
-    r0 = get("R0_rect", 9, False)
-    r0 = torch.eye(3, dtype=torch.float64) if r0 is None else r0.reshape(3, 3)
-    return Calibration(P2=p2, R0_rect=r0, Tr_velo_to_cam=tr)
-
-
-def read_calibration(path: PathLike) -> Calibration:
-    """Read ``calib/<id>.txt``; see :func:`parse_calibration`."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"calibration file not found: {path}")
-    return parse_calibration(path.read_text(), source=str(path))
-
-
-# --------------------------------------------------------------------------------------------------
-# Labels
-# --------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class KittiObjects:
-    """The objects of one ``label_2`` file, in the rectified camera frame (G objects).
-
-    Attributes:
-        names: ``G`` type strings as written (``Car``, ``Cyclist``, ``DontCare``, ``bicycle``...).
-        truncation: ``(G,)`` float64.
-        occlusion: ``(G,)`` int64.
-        alpha: ``(G,)`` float64 observation angle.
-        boxes_2d: ``(G, 4)`` float64 ``(left, top, right, bottom)`` pixels.
-        dimensions: ``(G, 3)`` float64 ``(h, w, l)`` metres (file order).
-        location: ``(G, 3)`` float64 bottom-face centre in the camera frame.
-        rotation_y: ``(G,)`` float64 rotation about camera Y.
-        score: ``(G,)`` float64 16th column when present (VoD writes 1), else ``None``.
-    """
-
-    names: List[str]
-    truncation: Tensor
-    occlusion: Tensor
-    alpha: Tensor
-    boxes_2d: Tensor
-    dimensions: Tensor
-    location: Tensor
-    rotation_y: Tensor
-    score: Optional[Tensor] = None
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-
-def parse_labels(text: str, source: str = "<label text>") -> KittiObjects:
-    """Parse KITTI label lines (15 fields, or 16 with a score)."""
-    rows, names, scores = [], [], []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        f = line.split()
-        if not f:
-            continue
-        if len(f) not in (15, 16):
-            raise MSSFError(f"{source}:{lineno}: expected 15 or 16 fields in a KITTI label line, got {len(f)}")
-        try:
-            nums = [float(v) for v in f[1:15]]
-            if len(f) == 16:
-                scores.append(float(f[15]))
-        except ValueError:
-            raise MSSFError(f"{source}:{lineno}: expected numbers after the type, got {line.strip()!r}") from None
-        names.append(f[0])
-        rows.append(nums)
-    if scores and len(scores) != len(rows):
-        raise MSSFError(f"{source}: expected a score on every line or on none, got {len(scores)} of {len(rows)}")
-    t = torch.tensor(rows, dtype=torch.float64).reshape(-1, 14)
-    return KittiObjects(
-        names=names,
-        truncation=t[:, 0].clone(),
-        occlusion=t[:, 1].round().long(),
-        alpha=t[:, 2].clone(),
-        boxes_2d=t[:, 3:7].clone(),
-        dimensions=t[:, 7:10].clone(),
-        location=t[:, 10:13].clone(),
-        rotation_y=t[:, 13].clone(),
-        score=torch.tensor(scores, dtype=torch.float64) if scores else None,
-    )
-
-
-def read_labels(path: PathLike) -> KittiObjects:
-    """Read ``label_2/<id>.txt``; see :func:`parse_labels`."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"label file not found: {path}")
-    return parse_labels(path.read_text(), source=str(path))
-
-
-# --------------------------------------------------------------------------------------------------
-# Box conversions
-# --------------------------------------------------------------------------------------------------
-def transform_points(points: Tensor, matrix: Tensor) -> Tensor:
-    """Apply a ``(4, 4)`` (or ``(3, 4)``) affine matrix to ``(..., 3)`` points (float64)."""
-    m = matrix.to(torch.float64)
-    p = points.to(torch.float64)
-    return p @ m[:3, :3].T + m[:3, 3]
-
-
-def _vertical_in_camera(calib: Calibration) -> Tensor:
-    """``A e_z``: the sensor's up axis in the camera frame; its y entry must not vanish."""
-    v = calib.sensor_to_camera[:3, 2]
-    if abs(float(v[1])) < 1e-6 * float(v.norm()):
-        raise MSSFError(
-            "calib: expected the sensor z axis to have a component along camera Y (the camera's vertical), "
-            f"got A e_z = {v.tolist()}; camera-Y boxes and sensor-z yaw cannot be converted"
-        )
-    return v
-
-
-def camera_boxes_to_sensor(
-    location: Tensor, dimensions: Tensor, rotation_y: Tensor, calib: Calibration
-) -> Tensor:
-    """KITTI camera-frame boxes -> ``(G, 7)`` float64 sensor boxes ``(x, y, z, dx, dy, dz, yaw)``.
-
-    Args:
-        location: ``(G, 3)`` bottom-face centre in the rectified camera frame.
-        dimensions: ``(G, 3)`` ``(h, w, l)``.
-        rotation_y: ``(G,)`` rotation about camera Y.
-        calib: the frame's :class:`Calibration`.
-
-    Returns:
-        ``(G, 7)``: centre (z = box centre), ``dx = l``, ``dy = w``, ``dz = h``, and ``yaw`` the angle
-        of the heading vector mapped to the sensor frame (exact; see the module docstring).
-    """
-    _vertical_in_camera(calib)
-    loc = location.to(torch.float64).reshape(-1, 3)
-    hwl = dimensions.to(torch.float64).reshape(-1, 3)
-    ry = rotation_y.to(torch.float64).reshape(-1)
-    if not (loc.shape[0] == hwl.shape[0] == ry.shape[0]):
-        raise MSSFError(
-            f"location, dimensions, rotation_y: expected G rows each, got {loc.shape[0]}, {hwl.shape[0]}, {ry.shape[0]}"
-        )
-    h, w, l = hwl.unbind(1)
-    centre_cam = loc - torch.stack([torch.zeros_like(h), h / 2, torch.zeros_like(h)], dim=1)
-    cam2sen = calib.camera_to_sensor
-    centre = transform_points(centre_cam, cam2sen)
-    heading_cam = torch.stack([torch.cos(ry), torch.zeros_like(ry), -torch.sin(ry)], dim=1)
-    heading = heading_cam @ cam2sen[:3, :3].T
-    yaw = torch.atan2(heading[:, 1], heading[:, 0])
-    return torch.cat([centre, torch.stack([l, w, h, yaw], dim=1)], dim=1)
-
-
-def sensor_boxes_to_camera(boxes: Tensor, calib: Calibration) -> Tuple[Tensor, Tensor, Tensor]:
-    """Inverse of :func:`camera_boxes_to_sensor`.
-
-    Args:
-        boxes: ``(G, 7)`` sensor boxes ``(x, y, z, dx, dy, dz, yaw)``.
-        calib: the frame's :class:`Calibration`.
-
-    Returns:
-        ``location (G, 3)`` (bottom-face centre, camera frame), ``dimensions (G, 3)`` ``(h, w, l)`` and
-        ``rotation_y (G,)`` in ``(-pi, pi]``, all float64.
-    """
-    if boxes.dim() != 2 or boxes.shape[1] != 7:
-        raise MSSFError(f"boxes: expected shape (G, 7), got {tuple(boxes.shape)}")
-    v = _vertical_in_camera(calib)
-    b = boxes.to(torch.float64)
-    sen2cam = calib.sensor_to_camera
-    centre_cam = transform_points(b[:, :3], sen2cam)
-    l, w, h, yaw = b[:, 3], b[:, 4], b[:, 5], b[:, 6]
-    loc = centre_cam + torch.stack([torch.zeros_like(h), h / 2, torch.zeros_like(h)], dim=1)
-    ground = torch.stack([torch.cos(yaw), torch.sin(yaw), torch.zeros_like(yaw)], dim=1)
-    u = ground @ sen2cam[:3, :3].T
-    # Move along the sensor's up axis until the camera-y component vanishes: the sensor-frame ground
-    # projection of the result is still (cos yaw, sin yaw), so the forward conversion gives yaw back.
-    d = u - (u[:, 1:2] / v[1]) * v
-    ry = torch.atan2(-d[:, 2], d[:, 0])
-    return loc, torch.stack([h, w, l], dim=1), ry
-
-
-def camera_box_corners(location: Tensor, dimensions: Tensor, rotation_y: Tensor) -> Tensor:
-    """``(G, 8, 3)`` corners of KITTI camera-frame boxes (bottom face first, then top).
-
-    ``x = +-l/2``, ``z = +-w/2``, ``y`` from ``0`` to ``-h``, rotated by ``rotation_y`` about Y and moved
-    to ``location``.
-    """
-    loc = location.to(torch.float64).reshape(-1, 3)
-    h, w, l = dimensions.to(torch.float64).reshape(-1, 3).unbind(1)
-    ry = rotation_y.to(torch.float64).reshape(-1)
-    sx = torch.tensor([1, 1, -1, -1, 1, 1, -1, -1], dtype=torch.float64)
-    sz = torch.tensor([1, -1, -1, 1, 1, -1, -1, 1], dtype=torch.float64)
-    top = torch.tensor([0, 0, 0, 0, 1, 1, 1, 1], dtype=torch.float64)
-    x = sx * l[:, None] / 2
-    z = sz * w[:, None] / 2
-    y = -top * h[:, None]
-    c, s = torch.cos(ry)[:, None], torch.sin(ry)[:, None]
-    # R_y(ry) = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
-    xr = c * x + s * z
-    zr = -s * x + c * z
-    return torch.stack([xr, y, zr], dim=-1) + loc[:, None, :]
-
-
-def sensor_box_corners(boxes: Tensor) -> Tensor:
-    """``(G, 8, 3)`` corners of sensor boxes ``(x, y, z, dx, dy, dz, yaw)`` (bottom face first)."""
-    if boxes.dim() != 2 or boxes.shape[1] < 7:
-        raise MSSFError(f"boxes: expected shape (G, 7), got {tuple(boxes.shape)}")
-    b = boxes.to(torch.float64)
-    sx = torch.tensor([1, 1, -1, -1, 1, 1, -1, -1], dtype=torch.float64)
-    sy = torch.tensor([1, -1, -1, 1, 1, -1, -1, 1], dtype=torch.float64)
-    sz = torch.tensor([-1, -1, -1, -1, 1, 1, 1, 1], dtype=torch.float64)
-    x = sx * b[:, 3:4] / 2
-    y = sy * b[:, 4:5] / 2
-    z = sz * b[:, 5:6] / 2
-    c, s = torch.cos(b[:, 6:7]), torch.sin(b[:, 6:7])
-    return torch.stack([c * x - s * y, s * x + c * y, z], dim=-1) + b[:, None, :3]
-
-
-def camera_box_corners_in_sensor(objects: KittiObjects, calib: Calibration) -> Tensor:
-    """``(G, 8, 3)`` exact corners of the (camera-upright) label boxes in the sensor frame."""
-    corners = camera_box_corners(objects.location, objects.dimensions, objects.rotation_y)
-    return transform_points(corners, calib.camera_to_sensor)
-
-
-def project_boxes_2d(
-    corners: Tensor, lidar2img: Tensor, image_size: Sequence[int], eps: float = 1e-5
-) -> Tuple[Tensor, Tensor]:
-    """Enclosing 2D boxes of projected corners, clipped to the image.
-
-    Clipping follows KITTI/VoD: ``left, right`` to ``[0, W - 1]`` and ``top, bottom`` to ``[0, H - 1]``.
-
-    Args:
-        corners: ``(G, 8, 3)`` sensor-frame corners.
-        lidar2img: ``(3, 4)``.
-        image_size: ``(H, W)``.
-        eps: corners with depth ``<= eps`` are behind the camera.
-
-    Returns:
-        ``boxes (G, 4)`` float64 ``(left, top, right, bottom)`` and ``in_front (G,)`` bool (all 8 corners
-        in front of the camera); rows that are not in front are zeros.
-    """
-    if corners.dim() != 3 or tuple(corners.shape[1:]) != (8, 3):
-        raise MSSFError(f"corners: expected shape (G, 8, 3), got {tuple(corners.shape)}")
-    h, w = (int(s) for s in image_size)
-    g = corners.shape[0]
-    flat = corners.reshape(-1, 3).to(torch.float64)
-    proj = project_points(flat, torch.zeros(flat.shape[0], dtype=torch.long),
-                          lidar2img.to(torch.float64).reshape(1, 3, 4), (h, w), eps=eps)
-    pix = proj.pixel[:, 0].reshape(g, 8, 2)
-    in_front = (proj.depth[:, 0].reshape(g, 8) > eps).all(dim=1)
-    lo, hi = pix.amin(dim=1), pix.amax(dim=1)
-    boxes = torch.cat([lo, hi], dim=1)
-    boxes[:, [0, 2]] = boxes[:, [0, 2]].clamp(0, w - 1)
-    boxes[:, [1, 3]] = boxes[:, [1, 3]].clamp(0, h - 1)
-    boxes = torch.where(in_front[:, None], boxes, torch.zeros_like(boxes))
-    return boxes, in_front
-
-
-def points_in_image(points: Tensor, lidar2img: Tensor, image_size: Sequence[int], eps: float = 1e-5) -> Tensor:
-    """``(P,)`` bool: depth ``> eps`` and the projected pixel within ``[-0.5, W - 0.5] x [-0.5, H - 0.5]``.
-
-    This is the ``valid`` mask of the library's projector (normalised ``uv`` in ``[0, 1]``).
-    """
-    proj = project_points(points[:, :3].to(torch.float64), torch.zeros(points.shape[0], dtype=torch.long),
-                          lidar2img.to(torch.float64).reshape(1, 3, 4), image_size, eps=eps)
-    return proj.valid[:, 0]
-
-
-# --------------------------------------------------------------------------------------------------
-# Frames and datasets
-# --------------------------------------------------------------------------------------------------
 @dataclass
 class Frame:
     """One frame of a KITTI-format dataset.

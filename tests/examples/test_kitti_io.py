@@ -235,7 +235,7 @@ def test_upright_sensor_boxes_exact_without_tilt(realdata_root):
     """With an axis-permutation extrinsic the 7-number sensor boxes reproduce the 2D boxes exactly.
 
     (With VoD's tilted radar extrinsics they cannot: an upright sensor box is not the camera-upright
-    label box; see the module docstring and docs/real-data.md for the measured deviation.)
+    label box; see the mssf_examples.kitti_boxes module docstring and docs/real-data.md for the measured deviation.)
     """
     path = realdata_root / "vod/label_2/01047.txt"
     if not path.is_file():
