@@ -1,61 +1,23 @@
-"""Feature-blurring diagnostics: the paper's Fig. 1 and Fig. 7 as functions.
+"""Feature-blurring classes of projected points: 2D foreground, 3D foreground, 3D blurred.
 
-Feature blurring (paper Sec. I, Fig. 1): a radar point whose projection falls on an object in the
-image samples that object's features even when the point itself is not on the object in 3D (it lies
-in front of, behind or beside it). Definitions, per projected point (voxel centroid):
-
-* **2D foreground** - its projection falls inside a 2D instance mask or 2D ground-truth box
-  (Fig. 1 uses SAM masks, Fig. 7 uses 2D GT boxes);
-* **3D foreground** - 2D foreground *and* inside a 3D ground-truth box (of its own sample);
-* **3D blurred** - 2D foreground but not 3D foreground.
-
-Fig. 7 (Sec. IV-E "Effects of the Feature-Blurring Problem"), with ``n_fore2d`` the number of 2D
-foreground points and the counts taken over every given point (pool frames by concatenating them)::
-
-    blur_ratio(tau)        = #{blurred points with score > tau} / n_fore2d      (lower is better)
-    foreground_recall(tau) = #{3D foreground points with score > tau} / n_fore2d  (higher is better)
-
-where the score is the semantic-guided head's sigmoid score. Both curves fall from
-``n_blurred / n_fore2d`` and ``n_fore3d / n_fore2d`` (which add up to 1) to 0 as ``tau`` grows.
-
-"Mask blur" (the ablation of Table "Effects of the Feature-Blurring Problem") is an oracle experiment:
-the image features sampled by 3D blurred points (found with the ground truth) are masked out
-(:func:`mask_blur_projection`, :func:`mask_blur_valid`, :func:`mask_blurred_features`).
-
-Fig. 1(d) (per-instance ratio ``#3D fore / #2D fore``) is :func:`instance_foreground_counts`.
-
-Image coordinates follow the library convention: ``uv`` is normalised, ``((u + 0.5) / W, (v + 0.5) / H)``
-with OpenCV pixel coordinates ``(u, v)`` (pixel ``i``'s centre at ``i``); 2D boxes are
-``(x1, y1, x2, y2)`` in those pixel coordinates (KITTI ``label_2`` boxes), edges included.
+The definitions (paper Sec. I, Fig. 1) and the image-coordinate conventions are in
+:mod:`mssf_blocks.diagnostics`; import these names from there.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Mapping, Optional, Sequence, Tuple, Union
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
-from ._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
-from .errors import MSSFError
-from .functional.heads import _check_boxes, points_in_boxes
-from .geometry import CentroidProjection
+from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
+from ..errors import MSSFError
+from ..functional.heads import _check_boxes, points_in_boxes
+from ..geometry import CentroidProjection
 
-__all__ = [
-    "BlurClassification",
-    "BlurCurves",
-    "classify_feature_blurring",
-    "classify_projection",
-    "blur_ratio",
-    "foreground_recall",
-    "blur_curves",
-    "mask_blur_valid",
-    "mask_blur_projection",
-    "mask_blurred_features",
-    "instance_foreground_counts",
-    "plot_blur_curves",
-]
+__all__ = ["BlurClassification", "classify_feature_blurring", "classify_projection", "instance_foreground_counts"]
 
 _INT_DTYPES = (torch.int32, torch.int64)
 
@@ -106,18 +68,6 @@ class BlurClassification:
         check_dtype(fore2d, "fore2d", (torch.bool,))
         check_dtype(in_box3d, "in_box3d", (torch.bool,))
         return BlurClassification(fore2d, fore2d & in_box3d, fore2d & ~in_box3d, in_box3d)
-
-
-@dataclass(frozen=True)
-class BlurCurves:
-    """``blur_ratio`` and ``foreground_recall`` sampled at thresholds ``tau`` (all ``(T,)`` float64)."""
-
-    tau: Tensor
-    blur_ratio: Tensor
-    foreground_recall: Tensor
-    n_fore2d: int
-    n_fore3d: int
-    n_blurred: int
 
 
 # -- classification ---------------------------------------------------------------------------------
@@ -373,166 +323,3 @@ def instance_foreground_counts(
         return empty, empty
     return torch.cat(n2).long(), torch.cat(n3).long()
 
-
-# -- curves -----------------------------------------------------------------------------------------
-def _check_scores(scores: Tensor, classes: BlurClassification) -> Tensor:
-    if not isinstance(classes, BlurClassification):
-        raise MSSFError(f"classes: expected a BlurClassification, got {type(classes).__name__}")
-    check_shape(scores, "scores", (classes.fore2d.shape[0],))
-    check_floating(scores, "scores")
-    check_finite(scores, "scores")
-    if classes.n_fore2d == 0:
-        raise MSSFError(
-            "classes: the ratios are undefined without 2D foreground points (n_fore2d = 0); pool more "
-            "frames or check the 2D boxes/masks and projections"
-        )
-    return scores.detach()
-
-
-def _tau_tensor(tau, like: Tensor) -> Tensor:
-    t = torch.as_tensor(tau, dtype=torch.float64, device=like.device)
-    if t.dim() > 1 or not bool(torch.isfinite(t).all()):
-        raise MSSFError(f"tau: expected a finite float or a 1-d tensor of thresholds, got {tau!r}")
-    return t
-
-
-def _count_above(values: Tensor, tau: Tensor) -> Tensor:
-    """``#{values > t}`` for every ``t`` in ``tau`` via one sort and a binary search."""
-    s, _ = torch.sort(values.to(torch.float64))
-    return s.numel() - torch.searchsorted(s, tau.reshape(-1), right=True).reshape(tau.shape)
-
-
-def blur_ratio(scores: Tensor, classes: BlurClassification, tau) -> Tensor:
-    """``#{blurred, score > tau} / n_fore2d`` (float64; scalar for a float ``tau``, ``(T,)`` for ``(T,)``).
-
-    Args:
-        scores: ``(N,)`` segmentation scores in the order of ``classes``.
-        classes: :class:`BlurClassification` of the same points.
-        tau: threshold(s).
-    """
-    s = _check_scores(scores, classes)
-    t = _tau_tensor(tau, s)
-    return _count_above(s[classes.blurred], t).to(torch.float64) / classes.n_fore2d
-
-
-def foreground_recall(scores: Tensor, classes: BlurClassification, tau) -> Tensor:
-    """``#{3D foreground, score > tau} / n_fore2d`` (float64; scalar or ``(T,)`` like ``tau``)."""
-    s = _check_scores(scores, classes)
-    t = _tau_tensor(tau, s)
-    return _count_above(s[classes.fore3d], t).to(torch.float64) / classes.n_fore2d
-
-
-def blur_curves(scores: Tensor, classes: BlurClassification, taus: Optional[Tensor] = None) -> BlurCurves:
-    """Both curves at thresholds ``taus`` (default ``0, 0.01, ..., 1``)."""
-    if taus is None:
-        taus = torch.linspace(0.0, 1.0, 101, dtype=torch.float64)
-    t = _tau_tensor(taus, scores if isinstance(scores, Tensor) else torch.zeros(0))
-    if t.dim() != 1:
-        raise MSSFError(f"taus: expected a 1-d tensor of thresholds, got shape {tuple(t.shape)}")
-    return BlurCurves(
-        tau=t,
-        blur_ratio=blur_ratio(scores, classes, t),
-        foreground_recall=foreground_recall(scores, classes, t),
-        n_fore2d=classes.n_fore2d,
-        n_fore3d=classes.n_fore3d,
-        n_blurred=classes.n_blurred,
-    )
-
-
-# -- mask blur --------------------------------------------------------------------------------------
-def _check_blurred(blurred, n: int) -> Tensor:
-    if isinstance(blurred, BlurClassification):
-        blurred = blurred.blurred
-    check_shape(blurred, "blurred", (n,))
-    check_dtype(blurred, "blurred", (torch.bool,))
-    return blurred
-
-
-def mask_blur_valid(valid: Tensor, blurred: Union[Tensor, BlurClassification]) -> Tensor:
-    """``(N, V)`` ``valid & ~blurred``: the sampling mask of the paper's "Mask Blur" ablation."""
-    check_shape(valid, "valid", ("N", "V"))
-    check_dtype(valid, "valid", (torch.bool,))
-    return valid & ~_check_blurred(blurred, valid.shape[0]).to(valid.device)[:, None]
-
-
-def mask_blur_projection(
-    projection: CentroidProjection, blurred: Union[Tensor, BlurClassification]
-) -> CentroidProjection:
-    """A projection whose blurred rows sample no image feature ("Mask Blur", an oracle ablation).
-
-    Blurred rows get ``valid = False`` and ``uv = -1`` (outside the image, so a sampler with zero
-    padding reads zeros even if it ignores ``valid``). Pass the result to SFF/MSDFF instead of the
-    original projection.
-    """
-    if not isinstance(projection, CentroidProjection):
-        raise MSSFError(f"projection: expected a CentroidProjection, got {type(projection).__name__}")
-    bl = _check_blurred(blurred, projection.uv.shape[0]).to(projection.uv.device)
-    uv = torch.where(bl[:, None, None], torch.full_like(projection.uv, -1.0), projection.uv)
-    return replace(projection, uv=uv, valid=projection.valid & ~bl[:, None])
-
-
-def mask_blurred_features(features: Tensor, blurred: Union[Tensor, BlurClassification]) -> Tensor:
-    """Zero the image features ``(N, C)`` or ``(N, V, C)`` sampled by blurred points (no gradient there)."""
-    if _tensor(features, "features").dim() not in (2, 3):
-        raise MSSFError(f"features: expected shape (N, C) or (N, V, C), got {tuple(features.shape)}")
-    bl = _check_blurred(blurred, features.shape[0]).to(features.device)
-    keep = ~bl.reshape((-1,) + (1,) * (features.dim() - 1))
-    return torch.where(keep, features, torch.zeros_like(features))
-
-
-# -- plot -------------------------------------------------------------------------------------------
-def plot_blur_curves(
-    curves: Union[BlurCurves, Mapping[str, BlurCurves]],
-    axes=None,
-    path: Optional[str] = None,
-    title: Optional[str] = None,
-):
-    """Plot blur ratio and foreground recall against ``tau`` side by side (paper Fig. 7).
-
-    Needs matplotlib (``pip install matplotlib``, or the ``plot`` extra; the ``dev`` extra includes it).
-
-    Args:
-        curves: one :class:`BlurCurves` or ``{label: BlurCurves}`` (one line per model).
-        axes: optional pair of matplotlib axes; a new ``1 x 2`` figure otherwise.
-        path: if given, the figure is saved there (PNG/PDF by extension).
-        title: optional figure title.
-
-    Returns:
-        The matplotlib ``Figure``.
-    """
-    try:
-        import matplotlib.pyplot as plt
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            "plot_blur_curves needs matplotlib: pip install matplotlib (or 'mssf-blocks[plot]')"
-        ) from exc
-    if isinstance(curves, BlurCurves):
-        curves = {"": curves}
-    if not isinstance(curves, Mapping) or not curves or not all(isinstance(c, BlurCurves) for c in curves.values()):
-        raise MSSFError("curves: expected a BlurCurves or a non-empty {label: BlurCurves} mapping")
-    if axes is None:
-        fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
-    else:
-        if len(axes) != 2:
-            raise MSSFError(f"axes: expected 2 matplotlib axes, got {len(axes)}")
-        fig = axes[0].figure
-    ax_b, ax_f = axes
-    for label, c in curves.items():
-        kw = {"label": label} if label else {}
-        ax_b.plot(c.tau.cpu().numpy(), c.blur_ratio.cpu().numpy(), **kw)
-        ax_f.plot(c.tau.cpu().numpy(), c.foreground_recall.cpu().numpy(), **kw)
-    for ax, name, hint in ((ax_b, "blur ratio", "lower is better"), (ax_f, "foreground recall", "higher is better")):
-        ax.set_xlabel(r"segmentation threshold $\tau$")
-        ax.set_ylabel(name)
-        ax.set_title(f"{name} ({hint})")
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1.02)
-        ax.grid(True, alpha=0.3)
-        if any(curves.keys()):
-            ax.legend()
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    if path is not None:
-        fig.savefig(path, dpi=120)
-    return fig
