@@ -42,6 +42,7 @@ __all__ = [
     "match_frame",
     "precision_recall",
     "average_precision",
+    "check_box_dict",
     "check_frames",
     "evaluate_exact",
 ]
@@ -238,30 +239,37 @@ def average_precision(precision: Tensor, recall: Tensor, recall_points: Tensor |
 # ---------------------------------------------------------------------------------------------------
 
 
+def check_box_dict(frame: Mapping, name: str, keys: Sequence[str], optional: Sequence[str] = ()) -> int:
+    """Check one frame's dict of ``boxes (K, 7)`` and per-box ``keys[1:]`` / present ``optional`` ``(K,)``.
+
+    ``keys`` must start with ``"boxes"``; ``name`` names the frame in errors (``predictions[3]``).
+    Returns ``K``.
+    """
+    for key in keys:
+        if key not in frame:
+            raise MSSFError(f"{name}: missing key {key!r} (expected keys {tuple(keys)})")
+    boxes = frame["boxes"]
+    if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
+        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
+        raise MSSFError(f"{name}['boxes']: expected shape (K, 7), got {got}")
+    k = boxes.shape[0]
+    for key in tuple(keys[1:]) + tuple(key for key in optional if key in frame):
+        v = frame[key]
+        if not isinstance(v, Tensor) or tuple(v.shape) != (k,):
+            got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
+            raise MSSFError(f"{name}[{key!r}]: expected shape ({k},) to match boxes, got {got}")
+    return k
+
+
 def check_frames(predictions: Sequence[Mapping], ground_truths: Sequence[Mapping]) -> None:
     """One dict per frame on both sides, with ``boxes (K, 7)`` and matching ``scores`` / ``labels`` / ``ignore``."""
     if len(predictions) != len(ground_truths):
         raise MSSFError(f"predictions, ground_truths: expected one entry per frame in both, got "
                         f"{len(predictions)} and {len(ground_truths)}")
-    for name, frames, keys in (("predictions", predictions, ("boxes", "scores", "labels")),
-                               ("ground_truths", ground_truths, ("boxes", "labels"))):
-        for i, frame in enumerate(frames):
-            for key in keys:
-                if key not in frame:
-                    raise MSSFError(f"{name}[{i}]: missing key {key!r} (expected keys {keys})")
-            boxes = frame["boxes"]
-            if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
-                got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
-                raise MSSFError(f"{name}[{i}]['boxes']: expected shape (K, 7), got {got}")
-            n = boxes.shape[0]
-            extra = ("scores", "labels") if name == "predictions" else ("labels",)
-            if name == "ground_truths" and "ignore" in frame:
-                extra = extra + ("ignore",)
-            for key in extra:
-                v = frame[key]
-                if not isinstance(v, Tensor) or tuple(v.shape) != (n,):
-                    got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
-                    raise MSSFError(f"{name}[{i}][{key!r}]: expected shape ({n},) to match boxes, got {got}")
+    for i, frame in enumerate(predictions):
+        check_box_dict(frame, f"predictions[{i}]", ("boxes", "scores", "labels"))
+    for i, frame in enumerate(ground_truths):
+        check_box_dict(frame, f"ground_truths[{i}]", ("boxes", "labels"), optional=("ignore",))
 
 
 @torch.no_grad()

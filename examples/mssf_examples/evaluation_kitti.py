@@ -27,6 +27,7 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
+from .evaluation_exact import check_box_dict
 from .kitti_export import kitti_objects
 from .kitti_io import Calibration, KittiObjects
 from .ops.iou import box_iou_bev_3d
@@ -93,20 +94,8 @@ def as_objects(entry, other: Optional[Mapping], class_names: Sequence[str], what
     if not isinstance(entry, Mapping):
         raise MSSFError(f"{name}: expected a KittiObjects or a dict of sensor-frame boxes, got {type(entry).__name__}")
     keys = ("boxes", "scores", "labels") if with_scores else ("boxes", "labels")
-    for key in keys:
-        if key not in entry:
-            raise MSSFError(f"{name}: missing key {key!r} (expected keys {keys})")
+    check_box_dict(entry, name, keys, optional=() if with_scores else ("ignore",))
     boxes = entry["boxes"]
-    if not isinstance(boxes, Tensor) or boxes.dim() != 2 or boxes.shape[1] != 7:
-        got = tuple(boxes.shape) if isinstance(boxes, Tensor) else type(boxes).__name__
-        raise MSSFError(f"{name}['boxes']: expected shape (K, 7), got {got}")
-    k = boxes.shape[0]
-    extra = keys[1:] + (("ignore",) if "ignore" in entry and not with_scores else ())
-    for key in extra:
-        v = entry[key]
-        if not isinstance(v, Tensor) or tuple(v.shape) != (k,):
-            got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
-            raise MSSFError(f"{name}[{key!r}]: expected shape ({k},) to match boxes, got {got}")
     calib = entry.get("calib", other.get("calib") if isinstance(other, Mapping) else None)
     size = entry.get("image_size", other.get("image_size") if isinstance(other, Mapping) else None)
     if not isinstance(calib, Calibration) or size is None or len(tuple(size)) != 2:
