@@ -12,7 +12,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
+from .._checks import check_dtype, check_finite, check_floating, check_image_size, check_index_range, check_shape
 from ..errors import MSSFError
 from ..functional.heads import _check_boxes, points_in_boxes
 from ..geometry import CentroidProjection
@@ -109,14 +109,6 @@ def _tensor(x, name: str) -> Tensor:
     return x
 
 
-def _check_image_size(image_size) -> Tuple[int, int]:
-    try:
-        h, w = (int(s) for s in image_size)
-    except (TypeError, ValueError):
-        raise MSSFError(f"image_size: expected (H, W), got {image_size!r}") from None
-    if h <= 0 or w <= 0:
-        raise MSSFError(f"image_size: expected positive (H, W), got {image_size!r}")
-    return h, w
 
 
 def _check_boxes_2d(boxes_2d, batch_size: int, num_cameras: int) -> list:
@@ -245,7 +237,7 @@ def classify_feature_blurring(
     if boxes_2d is not None:
         if image_size is None:
             raise MSSFError("image_size: expected (H, W) to turn uv into pixel coordinates for boxes_2d, got None")
-        h, w = _check_image_size(image_size)
+        h, w = check_image_size(image_size)
         boxes = _check_boxes_2d(boxes_2d, batch_size, uv.shape[1])
         size = torch.tensor([w, h], dtype=uv.dtype, device=uv.device)
         fore2d = _in_boxes_2d(uv * size - 0.5, valid, b, boxes)
@@ -302,7 +294,7 @@ def instance_foreground_counts(
     check_shape(centroids, "centroids", ("N", None))
     check_floating(centroids, "centroids")
     uv, valid = _check_per_centroid(centroids, batch_index, uv, valid, gt_boxes)
-    h, w = _check_image_size(image_size)
+    h, w = check_image_size(image_size)
     boxes2 = _check_boxes_2d(boxes_2d, len(gt_boxes), uv.shape[1])
     pixel = uv.detach() * torch.tensor([w, h], dtype=uv.dtype, device=uv.device) - 0.5
     b = batch_index.long()

@@ -21,6 +21,7 @@ from .._checks import (
     check_dtype,
     check_finite,
     check_floating,
+    check_image_size,
     check_index_range,
     check_points,
     check_positive_int,
@@ -360,12 +361,7 @@ def project_points(
     l2i = normalize_lidar2img(lidar2img)
     batch_size = l2i.shape[0]
     check_index_range(points_batch, "points_batch", batch_size, "lidar2img.shape[0] (batch size)")
-    try:
-        h, w = (int(s) for s in image_size)
-    except (TypeError, ValueError):
-        raise MSSFError(f"image_size: expected (H, W), got {image_size!r}") from None
-    if h <= 0 or w <= 0:
-        raise MSSFError(f"image_size: expected positive (H, W), got {image_size!r}")
+    h, w = check_image_size(image_size)
     if not eps >= 0:
         raise MSSFError(f"eps: expected a non-negative float, got {eps!r}")
 
