@@ -27,7 +27,7 @@ import time
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import print_table, write_json  # noqa: E402
+from _common import measure, print_table, write_json  # noqa: E402
 
 from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels, static_path  # noqa: E402
 from mssf_blocks.geometry import CentroidProjection  # noqa: E402
@@ -73,14 +73,7 @@ def _cases():
 
 
 def _median(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    return times[len(times) // 2]
+    return measure(fn, repeats)[0]  # median wall time after one warm-up call
 
 
 def _call(run, mod, frame, train: bool):

@@ -178,13 +178,9 @@ def _timer(device) -> Callable[[Callable[[], object], int], float]:
         return sorted(times)[len(times) // 2]
 
     def cpu_time(fn, repeats):
-        fn()
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-        return sorted(times)[len(times) // 2]
+        from _common import measure  # benchmarks/ is the script's folder
+
+        return measure(fn, repeats)[0]  # median wall time after one warm-up call
 
     return cuda_time if device.type == "cuda" else cpu_time
 
