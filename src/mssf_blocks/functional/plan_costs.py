@@ -25,6 +25,9 @@ _DIRECT_BAG_COST = 6.0
 # "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
+# The raw-row plans bag their queries in blocks of this many bytes of (M * queries, D) samples
+# (benchmarks/msdff.py; 4 MiB = 512 queries at M = 8, D = 256 float32).
+_RAW_CHUNK_BYTES = 4 << 20
 # With gradients: the backward of embedding_bag over raw rows (per-corner weight gradients: one D-long
 # dot product per corner) costs about _BAG_BACKWARD forward passes (measured on one core: 4-5x the
 # forward for fwd+bwd); "project" also zero-fills a dense (pixels, E) map and its gradient for
