@@ -46,15 +46,17 @@ A last table bounds what any exact method can reach with PyTorch's CPU primitive
 
 Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)`` (``--threads``);
 wall time, or with ``--cpu-time`` the process CPU time (with one thread: the work done, robust to the
-other processes of a shared machine). Peak extra memory:
-rise of the resident-set high-water mark over a call (see ``benchmarks/_common.py``). That method
-makes glibc ``mmap`` every allocation above 64 KiB, so every such allocation pays its page faults in
-every call (expensive in the VM we measure on); ``--default-malloc`` times with glibc's defaults
-instead (memory columns then meaningless).
+other processes of a shared machine). Times are taken in this process, with glibc's default allocator
+settings (what a user's process runs with). Peak extra memory is measured in a second process (the
+script re-runs itself with ``--memory-pass``): the rise of the resident-set high-water mark over a call
+(see ``benchmarks/_common.py``), which needs glibc to ``mmap`` every allocation above 64 KiB, so that
+every such allocation also pays its page faults on every call (expensive in the VM we measure on).
+That pass also records its own times; they are reported as "(mmap) ms" columns, not used for the
+ratios. ``--no-memory`` skips the second pass.
 
 Usage: ``python benchmarks/msdff.py [--quick] [--repeats 3] [--threads 2] [--chunk-size 1024]
 [--kinds fast fused touched] [--distributions uniform "radar band"] [--widths paper narrow]
-[--default-malloc] [--json out.json]``
+[--no-memory] [--json out.json]``
 """
 
 from __future__ import annotations
@@ -62,8 +64,11 @@ from __future__ import annotations
 import argparse
 import functools
 import math
+import json
 import os
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -223,7 +228,9 @@ def voxel_uv(n: int, distribution: str) -> torch.Tensor:
 
 
 def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, chunk_size: int, kinds_wanted,
-             seed: int = 0, width: str = "narrow"):
+             seed: int = 0, width: str = "narrow", memory_pass: bool = False):
+    """One case's row: agreement, times, ratios and the floor; with ``memory_pass`` only the peak
+    memory (and the times taken under the memory measurement's allocator)."""
     torch.manual_seed(seed)
     path = ImagePath(c, value_dim=IMAGE_CHANNELS if width == "paper" else c)
     query = torch.randn(n, c, requires_grad=True)
@@ -250,10 +257,19 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
             return torch.autograd.grad(kinds[kind](query, uv, fs), params, grad_out)
         return f
 
+    row = {"width": width, "N": n, "C": c, "voxels": distribution}
+    if memory_pass:
+        for kind in kinds:
+            for label, fn in (("fwd", fwd(kind, feats)), ("fwd+bwd", fwd_bwd(kind, feats))):
+                t, mib = measure(fn, repeats)
+                row[f"{kind} {label} MiB"], row[f"{kind} {label} (mmap) ms"] = mib, 1e3 * t
+        for kind in ours:
+            for label in ("fwd", "fwd+bwd"):
+                row[f"{kind} {label} mem ratio"] = row[f"reference {label} MiB"] / max(row[f"{kind} {label} MiB"], 1e-3)
+        return row
     # Agreement of outputs and of every gradient with the reference.
     out_r = path.reference(query, uv, feats)
     g_r = torch.autograd.grad(out_r, params, grad_out)
-    row = {"width": width, "N": n, "C": c, "voxels": distribution}
     for kind in ours:
         out_k = kinds[kind](query, uv, feats)
         g_k = torch.autograd.grad(out_k, params, grad_out)
@@ -272,8 +288,6 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     for kind in kinds:
         row[f"{kind} fwd ms"] = 1e3 * res[kind, "fwd"][0]
         row[f"{kind} fwd+bwd ms"] = 1e3 * res[kind, "fwdbwd"][0]
-        row[f"{kind} fwd MiB"] = res[kind, "fwd"][1]
-        row[f"{kind} fwd+bwd MiB"] = res[kind, "fwdbwd"][1]
         row[f"{kind} 2x-area fwd"] = res[kind, "fwd2x"][0] / res[kind, "fwd"][0]
     floor, levels = primitive_floor(path, query, uv, feats, repeats)
     row["floor fwd ms"] = 1e3 * floor
@@ -283,13 +297,23 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     for kind in ours:
         row[f"{kind} fwd speed-up"] = res["reference", "fwd"][0] / res[kind, "fwd"][0]
         row[f"{kind} fwd+bwd speed-up"] = res["reference", "fwdbwd"][0] / res[kind, "fwdbwd"][0]
-        row[f"{kind} fwd mem ratio"] = res["reference", "fwd"][1] / max(res[kind, "fwd"][1], 1e-3)
-        row[f"{kind} fwd+bwd mem ratio"] = res["reference", "fwdbwd"][1] / max(res[kind, "fwdbwd"][1], 1e-3)
     return row
 
 
 KINDS = ("reference", "fast", "fused", "touched")
 RATIO_KEYS = ("fwd speed-up", "fwd+bwd speed-up", "fwd mem ratio", "fwd+bwd mem ratio", "2x-area fwd")
+
+
+def memory_pass(argv):
+    """Re-run this script with ``--memory-pass`` (its own process, glibc's mmap threshold at 64 KiB) and
+    return its rows."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "memory.json")
+        argv = [a for a in argv if a != "--no-memory"]
+        subprocess.run([sys.executable, os.path.abspath(__file__), *argv, "--memory-pass", out], check=True,
+                       stdout=subprocess.DEVNULL)
+        with open(out) as f:
+            return json.load(f)
 
 
 def main() -> None:
@@ -310,12 +334,10 @@ def main() -> None:
     ap.add_argument("--widths", nargs="+", default=["paper", "narrow"], choices=["paper", "narrow"],
                     help="value widths: paper (value_proj 256 -> 256, output_proj 256 -> C) and/or narrow "
                          "(256 -> C, C -> C)")
-    ap.add_argument("--default-malloc", action="store_true",
-                    help="keep glibc's default allocator settings: times without the page fault that the "
-                         "memory measurement's 64 KiB mmap threshold adds to every larger allocation; the "
-                         "memory columns are then not meaningful")
+    ap.add_argument("--no-memory", action="store_true", help="skip the peak-memory pass (a second process)")
+    ap.add_argument("--memory-pass", default=None, metavar="OUT.json", help=argparse.SUPPRESS)
     args = ap.parse_args()
-    if not args.default_malloc:
+    if args.memory_pass:
         reexec_with_mmap_threshold()
     torch.set_num_threads(args.threads)
     if args.cpu_time:  # every measure() of this run reads the process CPU time
@@ -338,20 +360,29 @@ def main() -> None:
           f"{[tuple(f.shape[-2:]) for f in feats]}, {IMAGE_CHANNELS} ch, M={HEADS}, P={POINTS}, "
           f"threads={torch.get_num_threads()}, repeats={repeats}, fused chunk={args.chunk_size}, "
           f"clock={'process CPU' if args.cpu_time else 'wall'}, load average before={load[0]:.1f}, MALLOC_MMAP_THRESHOLD_={os.environ.get('MALLOC_MMAP_THRESHOLD_')}")
+    if args.memory_pass:
+        write_json(args.memory_pass, [run_case(n, c, dist, feats, feats2x, min(repeats, 2), args.chunk_size,
+                                               args.kinds, width=width, memory_pass=True)
+                                      for n, c, dist, width in cases])
+        return
     rows = [run_case(n, c, dist, feats, feats2x, repeats, args.chunk_size, args.kinds, width=width)
             for n, c, dist, width in cases]
+    if not args.no_memory:
+        for row, mem in zip(rows, memory_pass(sys.argv[1:])):
+            row.update(mem)
     print(f"load average after={os.getloadavg()[0]:.1f}")
     kinds = [k for k in KINDS if k == "reference" or k in args.kinds]
     ours = kinds[1:]
     key = ["width", "N", "C", "voxels"]
     agreement = key + [f"{k} {w}" for k in ours for w in ("max|out diff|", "max rel grad diff")]
     times = key + [f"{k} {w}" for w in ("fwd ms", "fwd+bwd ms") for k in kinds]
-    memory = key + [f"{k} {w}" for w in ("fwd MiB", "fwd+bwd MiB") for k in kinds]
+    memory = key + [f"{k} {w}" for w in ("fwd MiB", "fwd+bwd MiB", "fwd (mmap) ms", "fwd+bwd (mmap) ms")
+                    for k in kinds]
     ratios = key + [f"{k} {w}" for k in ours for w in RATIO_KEYS] + ["reference 2x-area fwd"]
     floor = key + ["reference fwd ms", "floor fwd ms", "fwd bound", "floor per level (touched, gemm ms, bag ms)"]
     tables = {}
     for title, cols in (("agreement with the reference", agreement), ("median time (ms)", times),
-                        ("peak extra memory (MiB)", memory), ("ratios", ratios),
+                        ("peak extra memory (MiB; and the times under the memory pass's allocator)", memory), ("ratios", ratios),
                         ("forward floor of PyTorch primitives (fwd bound = reference / floor: the largest "
                          "forward speed-up any exact method built from them can reach)", floor)):
         print(f"\n{title}")
