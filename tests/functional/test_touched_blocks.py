@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from mssf_blocks.functional import raw_blocks
 from mssf_blocks.functional import touched as touched_mod
 from mssf_blocks.functional.sampling import ms_deform_sample
 from mssf_blocks.testing import assert_close
@@ -55,7 +56,7 @@ def test_blocks_equal_reference_forward_and_all_gradients(monkeypatch, plan, lay
     values, image_index, locations, weights, proj_w, proj_b = inputs()
     m, d_raw = proj_w.shape[0], proj_w.shape[2]
     # blocks of block_queries queries: M * block * D float64 samples
-    monkeypatch.setattr(touched_mod, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
+    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
     go = torch.randn(23, m, proj_w.shape[1], dtype=F64, generator=torch.Generator().manual_seed(5))
 
     def ours(vals, ii, loc, wt, pw, pb):
@@ -80,7 +81,7 @@ def test_blocks_keep_a_nan_in_an_unread_last_pixel_out(monkeypatch, block_querie
     values, image_index, locations, weights, proj_w, proj_b = inputs(lo=-0.2, hi=0.8, num_images=1)
     image_index = torch.zeros_like(image_index)
     m, d_raw = proj_w.shape[0], proj_w.shape[2]
-    monkeypatch.setattr(touched_mod, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
+    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
     clean = [v.clone() for v in values]
     poisoned = [v.clone() for v in values]
     poisoned[0][..., -1, -1] = float("nan")  # bottom-right pixel of the 8 x 16 level: no corner at <= 0.8 reads it
@@ -107,7 +108,7 @@ def test_backward_keeps_no_raw_samples(monkeypatch):
                                                                      sizes=((16, 24), (8, 12)), dtype=torch.float32,
                                                                      lo=0.0, hi=1.0)
     block = 100
-    monkeypatch.setattr(touched_mod, "_RAW_CHUNK_BYTES", m * d_raw * 4 * block)
+    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 4 * block)
     values = [channels_last(v) for v in values]
     locations.requires_grad_(True)
     proj_w.requires_grad_(True)

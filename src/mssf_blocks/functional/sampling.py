@@ -36,7 +36,8 @@ from .._static import use_static_path
 from ..errors import MSSFError
 from .plan_costs import bilinear_auto_method
 from .static import grid_sample_static
-from .touched import _pixel_coordinate, _touched_level
+from .raw_blocks import _pixel_coordinate
+from .touched import _touched_level
 
 __all__ = [
     "bilinear_sample",
