@@ -11,9 +11,10 @@ named in the report. Then, each stage timed and bounded so the whole finishes in
 on one modern GPU:
 
 1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests
-   of ``tests/test_fusion.py`` and ``tests/functional/test_sampling.py``; the ``device`` fixture adds
-   ``cuda``), the host-synchronisation count, the pinned-memory test, the distributed/CLI option
-   tests (``-k "cuda or sync or pin or runtime or env"``) - pass/fail counts and the failures' names;
+   of ``tests/test_fusion.py``, ``tests/test_msdff.py`` and ``tests/functional/test_sampling.py``; the
+   ``device`` fixture adds ``cuda``), the host-synchronisation count, the pinned-memory test, the
+   distributed/CLI option tests (``-k "cuda or sync or pin or runtime or env"``) - pass/fail counts and
+   the failures' names;
 2. the MSDFF benchmark on VoD shapes (one 1216 x 1952 camera, FPN strides 4-64 with 256 channels,
    8 heads, 4 points, 5 levels, E = 64): the reference formulation (``method="reference"``,
    ``value_projection="before_sampling"``: ``value_proj`` on every pixel + ``grid_sample``, Deformable
@@ -140,7 +141,8 @@ def environment(device) -> Dict[str, object]:
 # --------------------------------------------------------------------------------------------------
 def run_tests(smoke: bool) -> Dict[str, object]:
     """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode)."""
-    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/functional/test_sampling.py",
+    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/test_msdff.py",
+                                                           "tests/functional/test_sampling.py",
                                                            "tests/examples/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
     cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
