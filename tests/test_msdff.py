@@ -162,7 +162,6 @@ def test_msdff_offsets_are_in_level_pixels():
     assert_close(out[0, 0], (want - bn.running_mean[0]) / torch.sqrt(bn.running_var[0] + bn.eps))
 
 
-
 @pytest.mark.parametrize("width", WIDTHS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("layout", ["nchw", "channels_last"])
