@@ -24,6 +24,9 @@ augmentation (:mod:`mssf_examples.augment`: flip with the image, rotation +-pi/4
 ``--augmentation compare`` keeps the two models un-augmented and trains a third, the fusion model with
 augmentation at the same budget (steps, batch, seed), to show the effect. A rerun with the same arguments gives identical metrics.
 Synthetic scenes say nothing about View-of-Delft numbers; see ``docs/demo.md``.
+
+This script parses the options, runs the stages and writes the report; the stages' building blocks
+are in ``demo_steps.py`` and the figures in ``demo_figures.py`` (beside it; both re-exported here).
 """
 
 from __future__ import annotations
@@ -37,30 +40,27 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Dict, List
 
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from mssf_blocks.diagnostics import blur_curves, classify_projection, plot_blur_curves  # noqa: E402
-from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
+from demo_figures import (  # noqa: E402
+    plot_bev, plot_image_semantics, plot_losses, plot_semantic_blur_curves)
+from demo_steps import (  # noqa: E402
+    demo_preset, ground_truths, lighting_report, predict, scene_collate, semantic_scores, train)
+from mssf_blocks.diagnostics import blur_curves  # noqa: E402
 from mssf_blocks.errors import MSSFError  # noqa: E402
-from mssf_examples.augment import augment_batches  # noqa: E402
 from mssf_examples.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
 from mssf_examples.distributed import AMP_MODES, resolve_amp, resolve_device  # noqa: E402
 from mssf_examples.evaluation import evaluate, format_table  # noqa: E402
 from mssf_examples.image_branch import ImageBranch  # noqa: E402
 from mssf_examples.image_pretrain import (  # noqa: E402
-    SemanticReadout, collate_with_features, precompute_features, pretrain_image_branch, segmentation_metrics,
-    semantic_map)
-from mssf_examples.kitti_io import Calibration  # noqa: E402
-from mssf_examples.presets import VOD, VOD_RECIPE, DetectorPreset, tiny_preset  # noqa: E402
-from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig, SyntheticDataset  # noqa: E402
+    SemanticReadout, precompute_features, pretrain_image_branch, segmentation_metrics)
+from mssf_examples.presets import VOD_RECIPE  # noqa: E402
+from mssf_examples.scenes import CLASS_NAMES, SceneConfig, SyntheticDataset  # noqa: E402
 from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
 from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
-from mssf_examples.training import batch_order, train_detector  # noqa: E402
-from mssf_examples.training import predict as predict_detections  # noqa: E402
 
 try:
     from tqdm import tqdm
@@ -71,210 +71,6 @@ except ImportError:  # pragma: no cover - tqdm is in the examples extra
 MODELS = ("MSSF (n=1)", "Radar only (n=0)")
 #: The fusion model trained with augmentation (``--augmentation compare``).
 AUGMENTED_MODEL = "MSSF (n=1) + augmentation"
-
-
-def demo_preset(scene_cfg: SceneConfig, quick: bool = False) -> DetectorPreset:
-    """A small VoD-like preset over the scenes' range (not from the paper: CPU-sized widths).
-
-    Pillars of 0.32 m (80 x 80 over 25.6 m), a ResNet-18 image branch with 8 base channels and a
-    16-channel FPN (pre-trained on the train scenes by default, see ``--image-branch``).
-    """
-    r = tuple(scene_cfg.point_cloud_range)
-    ps = 0.64 if quick else 0.32
-    return tiny_preset(
-        VOD, name="demo", point_cloud_range=r, pillar_range=r, pillar_size=(ps, ps), voxel_size=(0.2, 0.2, 0.25),
-        image_size=tuple(scene_cfg.image_size), image_base_channels=4 if quick else 8, fpn_channels=16,
-        pfn_channels=16, pillar_filters=(16, 32, 32), pillar_upsample_filters=(16, 16, 16),
-        lift_z_size=0.5, msdff_heads=2, msdff_points=2, seg_hidden=(16,),
-    )
-
-
-def ground_truths(scenes: List[Scene], scene_cfg: SceneConfig) -> List[Dict]:
-    """Per val scene the GT dict of the official VoD protocol: sensor boxes plus the calibration of
-    VoD's full-resolution camera (the scenes render a scaled-down image of it), so that the kit's 40 px
-    image-box rule means what it means on the real 1216-pixel-high images."""
-    fx, fy, cx, cy = scene_cfg.full_intrinsics
-    p2 = torch.tensor([[fx, 0.0, cx, 0.0], [0.0, fy, cy, 0.0], [0.0, 0.0, 1.0, 0.0]], dtype=torch.float64)
-    return [dict(boxes=s.gt_boxes.double(), labels=s.gt_labels, image_size=tuple(scene_cfg.full_image_size),
-                 calib=Calibration(P2=p2, R0_rect=torch.eye(3, dtype=torch.float64),
-                                   Tr_velo_to_cam=s.sensor_to_camera.to(torch.float64)[:3].clone()))
-            for s in scenes]
-
-
-def scene_collate(scenes: List[Scene], features=None):
-    """``collate(indices)`` for ``scenes``: ``Scene.collate``, or with precomputed image features
-    (``features[i]`` of ``scenes[i]``) ``collate_with_features``."""
-    if features is None:
-        return lambda idx: Scene.collate([scenes[i] for i in idx])
-    return lambda idx: collate_with_features([scenes[i] for i in idx], [features[i] for i in idx])
-
-
-def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
-          collate=None, augmentation=None, amp_dtype=None) -> Dict:
-    """Train ``model`` in place (on its device) on a seeded data order; ``collate(indices)`` builds a batch
-    (default: ``Scene.collate``); ``augmentation`` (an :class:`~mssf_examples.augment.AugmentationConfig`)
-    augments every sample, drawn from ``seed``; ``amp_dtype`` the autocast dtype (``None``: float32).
-    The loop is :func:`mssf_examples.training.train_detector`."""
-    collate = collate or scene_collate(scenes)
-    order = batch_order(len(scenes), batch_size, steps, seed)
-    batches = (collate(idx) for idx in order)
-    if augmentation is not None:  # the scenes' 7 columns are VoD's
-        batches = augment_batches(batches, VOD_RECIPE.feature_kinds, augmentation, seed)
-    return train_detector(model, batches, steps, lr, desc=f"train {desc}", amp_dtype=amp_dtype)
-
-
-def predict(model, scenes: List[Scene], batch_size: int, desc: str, collate=None) -> List[Dict[str, torch.Tensor]]:
-    collate = collate or scene_collate(scenes)
-    chunks = [list(range(i, min(i + batch_size, len(scenes)))) for i in range(0, len(scenes), batch_size)]
-    return predict_detections(model, (collate(idx) for idx in chunks), total=len(chunks), desc=f"eval {desc}")
-
-
-@torch.no_grad()
-def semantic_scores(model, scenes: List[Scene], batch_size: int, collate=None):
-    """Per scene: the fused voxels' centroids and sigmoid scores; pooled blur classification + scores."""
-    collate = collate or scene_collate(scenes)
-    model.eval()
-    projector = VoxelCentroidProjector()
-    per_scene, classes, scores = [], [], []
-    for i in range(0, len(scenes), batch_size):
-        chunk = scenes[i:i + batch_size]
-        batch = collate(list(range(i, i + len(chunk))))
-        batch = batch.to(next(model.parameters()).device)
-        _, out, pts, pb = model.extract(batch)
-        v = out.seg_voxels
-        proj = projector(v, pts[:, :3], pb, batch.lidar2img, batch.image_size)
-        s = torch.sigmoid(out.seg_logits.float())
-        classes.append(classify_projection(proj, [c.gt_boxes for c in chunk],
-                                           boxes_2d=[c.gt_boxes_2d for c in chunk], image_size=batch.image_size))
-        scores.append(s)
-        for b in range(len(chunk)):
-            m = proj.batch_index == b
-            per_scene.append((proj.centroid[m].numpy(), s[m].numpy()))
-    from mssf_blocks.diagnostics import BlurClassification
-
-    pooled = BlurClassification.from_masks(torch.cat([c.fore2d for c in classes]),
-                                           torch.cat([c.in_box3d for c in classes]))
-    return per_scene, pooled, torch.cat(scores)
-
-
-def lighting_report(preds, gts, scenes) -> Dict[str, Dict]:
-    out = {}
-    for cond in LIGHTING_CONDITIONS:
-        idx = [i for i, s in enumerate(scenes) if s.lighting == cond]
-        if idx:
-            res = evaluate([preds[i] for i in idx], [gts[i] for i in idx], CLASS_NAMES)
-            out[cond] = dict(num_scenes=len(idx), **res)
-    return out
-
-
-def _draw_boxes(ax, boxes, colour, lw=1.2, ls="-"):
-    if len(boxes) == 0:
-        return
-    for c in _bev_corners(boxes):
-        ax.plot([*c[:, 1], c[0, 1]], [*c[:, 0], c[0, 0]], color=colour, lw=lw, ls=ls)
-
-
-def _bev_corners(boxes):
-    import numpy as np
-
-    b = boxes.double().numpy()
-    cos, sin = np.cos(b[:, 6]), np.sin(b[:, 6])
-    local = np.array([[0.5, 0.5], [0.5, -0.5], [-0.5, -0.5], [-0.5, 0.5]])
-    dx = local[None, :, 0] * b[:, None, 3]
-    dy = local[None, :, 1] * b[:, None, 4]
-    x = b[:, None, 0] + dx * cos[:, None] - dy * sin[:, None]
-    y = b[:, None, 1] + dx * sin[:, None] + dy * cos[:, None]
-    return np.stack([x, y], -1)
-
-
-def plot_bev(path: Path, scenes, preds_by_model, seg, score_threshold: float, rng) -> None:
-    """One row per scene: radar points + GT + predictions of each model, then the fusion model's scores."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    colours = {0: "tab:blue", 1: "tab:red", 2: "tab:green"}
-    n = len(scenes)
-    names = list(preds_by_model)
-    fig, axes = plt.subplots(n, len(names) + 1, figsize=(3.2 * (len(names) + 1), 3.3 * n), squeeze=False)
-    x0, y0, _, x1, y1, _ = rng
-    for r, s in enumerate(scenes):
-        pts = s.points.numpy()
-        for c, name in enumerate(names):
-            ax = axes[r, c]
-            ax.scatter(pts[:, 1], pts[:, 0], s=2, c="0.5")
-            for k, col in colours.items():
-                _draw_boxes(ax, s.gt_boxes[s.gt_labels == k], col, lw=2.0)
-            p = preds_by_model[name][r]
-            keep = p["scores"] >= score_threshold
-            for k, col in colours.items():
-                _draw_boxes(ax, p["boxes"][keep & (p["labels"] == k)], "k", lw=0.9, ls="--")
-            ax.set_title(f"{name}\nscene {r} ({s.lighting})", fontsize=8)
-        ax = axes[r, -1]
-        if seg is not None:
-            cen, sc = seg[r]
-            im = ax.scatter(cen[:, 1], cen[:, 0], s=6, c=sc, cmap="viridis", vmin=0, vmax=1)
-            for k, col in colours.items():
-                _draw_boxes(ax, s.gt_boxes[s.gt_labels == k], col, lw=1.5)
-            fig.colorbar(im, ax=ax, fraction=0.046)
-        ax.set_title("MSSF semantic score per lifted voxel", fontsize=8)
-        for ax in axes[r]:
-            ax.set_xlim(y1, y0)  # y to the left, as seen from above looking forward
-            ax.set_ylim(x0, x1)
-            ax.set_aspect("equal")
-            ax.tick_params(labelsize=6)
-    fig.suptitle(f"BEV (x up, y left). GT thick: car blue, ped. red, cyc. green; predictions dashed "
-                 f"(score >= {score_threshold})", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
-@torch.no_grad()
-def plot_image_semantics(path: Path, scenes, branch, readout) -> None:
-    """Per scene: the camera image, the 2D semantic ground truth and the frozen branch's linear read-out."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.colors import ListedColormap
-
-    cmap = ListedColormap(["0.85", "tab:blue", "tab:red", "tab:green"])
-    fig, axes = plt.subplots(len(scenes), 3, figsize=(9.6, 2.1 * len(scenes)), squeeze=False)
-    for r, s in enumerate(scenes):
-        pred = readout([branch(s.image[None, None])[0][:, 0]], s.image_size)[0].argmax(1)[0]
-        panels = ((s.image.permute(1, 2, 0).clamp(0, 1).numpy(), f"image ({s.lighting})"),
-                  (semantic_map(s, len(CLASS_NAMES)).numpy(), "2D semantics (GT)"),
-                  (pred.numpy(), "frozen branch, linear read-out (P2)"))
-        for ax, (img, title) in zip(axes[r], panels):
-            if img.ndim == 2:
-                ax.imshow(img, cmap=cmap, vmin=0, vmax=3, interpolation="nearest")
-            else:
-                ax.imshow(img)
-            ax.set_title(title, fontsize=8)
-            ax.axis("off")
-    fig.suptitle("Image branch pre-training (grey background/clutter, blue car, red ped., green cyc.)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-
-
-def plot_losses(path: Path, histories: Dict[str, List[Dict[str, float]]]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3))
-    for name, h in histories.items():
-        ax.plot([r["loss"] for r in h], label=name, lw=0.8)
-    ax.set_xlabel("step")
-    ax.set_ylabel("training loss")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def _finite(x):
@@ -478,13 +274,7 @@ def _run(args) -> int:
     curves = None
     if pooled.n_fore2d > 0:
         curves = blur_curves(scores, pooled)
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        plt.close(plot_blur_curves({MODELS[0]: curves}, path=str(args.out / figures["blur_curves"]),
-                                   title="Semantic head on val lifted voxels (paper Fig. 7)"))
+        plot_semantic_blur_curves(args.out / figures["blur_curves"], MODELS[0], curves)
     else:
         figures.pop("blur_curves")
     if histories:

@@ -13,78 +13,28 @@ A block that is in neither (a new block, or an old one whose first line changed)
 ``test_every_python_block_is_classified`` until someone classifies it; a classification whose block is
 gone fails too. Blocks that need spconv skip without it; the real-data block skips without
 ``../shared/realdata``.
+
+Reading and running the blocks: ``doc_blocks.py``; the inputs the blocks assume: ``doc_scenes.py``; the
+signature listings and the mentioned scripts against the code: ``test_docs_references.py``.
 """
 
 from __future__ import annotations
 
-import re
+import sys
 import textwrap
-import types
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, Tuple
 
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parent.parent
-DOC_FILES = [REPO / "README.md"] + sorted((REPO / "docs").glob("*.md"))
+sys.path.insert(0, str(Path(__file__).parent))
+from doc_blocks import ALL_BLOCKS, BLOCKS_BY_KEY, REPO, Block, exec_block  # noqa: E402
+from doc_scenes import (  # noqa: E402
+    VOD_VOXEL, camera_scene, fpn, link_tree, pinhole, radar_points, run_detectors_init, spconv_input, vod_batch)
 
 # Tiny tensors and spconv's CPU kernels: one intra-op thread is faster on the shared 2-core machine.
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-# ---------------------------------------------------------------------------------------------------
-# reading the blocks
-# ---------------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Block:
-    file: str  # relative to the repository, e.g. "docs/fusion.md"
-    index: int  # 0-based among the file's python blocks
-    line: int  # 1-based line of the opening fence
-    code: str
-
-    @property
-    def first_line(self) -> str:
-        return next(l.strip() for l in self.code.splitlines() if l.strip())
-
-    @property
-    def key(self) -> Tuple[str, str]:
-        return (self.file, self.first_line)
-
-    @property
-    def id(self) -> str:
-        return f"{self.file}#{self.index}:{self.first_line[:40]}"
-
-
-_FENCE = re.compile(r"^(\s*)(```+)\s*([\w+-]*)")
-
-
-def python_blocks(path: Path) -> List[Block]:
-    """The fenced ```python blocks of a Markdown file (indented fences included, body dedented)."""
-    blocks, lines = [], path.read_text(encoding="utf-8").splitlines()
-    i = 0
-    while i < len(lines):
-        m = _FENCE.match(lines[i])
-        if not m:
-            i += 1
-            continue
-        fence, lang, start = m.group(2), m.group(3).lower(), i
-        i += 1
-        body = []
-        while i < len(lines) and not lines[i].strip().startswith(fence):
-            body.append(lines[i])
-            i += 1
-        i += 1  # the closing fence
-        if lang in ("python", "py", "python3"):
-            rel = path.relative_to(REPO).as_posix()
-            count = sum(b.file == rel for b in blocks)
-            blocks.append(Block(rel, count, start + 1, textwrap.dedent("\n".join(body)) + "\n"))
-    return blocks
-
-
-ALL_BLOCKS = [b for f in DOC_FILES for b in python_blocks(f)]
-BLOCKS_BY_KEY: Dict[Tuple[str, str], Block] = {b.key: b for b in ALL_BLOCKS}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -137,94 +87,6 @@ def snippet(file: str, first_line: str):
         return fn
 
     return register
-
-
-def exec_block(block: Block, namespace: Dict[str, object], insert: Optional[Dict[str, str]] = None) -> Dict[str, object]:
-    """Run ``block`` in ``namespace`` (modified in place and returned).
-
-    ``insert`` maps a line of the block (stripped) to code run just before it: names the block's own
-    later lines assume but only exist after its earlier lines ran (e.g. the backbone's ``stage``).
-    """
-    code = block.code
-    for marker, extra in (insert or {}).items():
-        lines = code.splitlines()
-        hits = [i for i, l in enumerate(lines) if l.strip() == marker]
-        assert len(hits) == 1, f"{block.id}: expected the line {marker!r} once, found it {len(hits)} times"
-        lines[hits[0]:hits[0]] = [extra]
-        code = "\n".join(lines) + "\n"
-    namespace.setdefault("__name__", "__doc_snippet__")
-    exec(compile(code, f"{block.file} (python block {block.index}, line {block.line})", "exec"), namespace)
-    namespace["__shown_tensors_checked__"] = check_shown_tensors(block, namespace)
-    return namespace
-
-
-_SHOWN_TENSOR = re.compile(r"^(?P<expr>[^#]+?)\s*#\s*(?P<out>tensor\(.*\))\s*$")
-
-
-def check_shown_tensors(block: Block, namespace: Dict[str, object]) -> int:
-    """Lines ``expr  # tensor([...])``: ``expr`` evaluates to the shown tensor, to its printed digits.
-
-    Returns the number of lines checked.
-    """
-    checked = 0
-    for line in block.code.splitlines():
-        m = _SHOWN_TENSOR.match(line.strip())
-        if not m:
-            continue
-        got = eval(m.group("expr"), namespace)
-        shown = eval(m.group("out"), {"tensor": lambda data, **_: torch.tensor(data, dtype=torch.float64)})
-        decimals = [len(d) for d in re.findall(r"\d\.(\d+)", m.group("out"))]
-        atol = 0.5 * 10.0 ** -max(decimals) if decimals else 0.0
-        assert tuple(got.shape) == tuple(shown.shape), f"{block.id}: {line.strip()!r} gives shape {tuple(got.shape)}"
-        torch.testing.assert_close(got.to(torch.float64), shown.to(torch.float64), atol=atol * 1.0001, rtol=0,
-                                   msg=lambda msg: f"{block.id}: {line.strip()!r} shows a different value:\n{msg}")
-        checked += 1
-    return checked
-
-
-# ---------------------------------------------------------------------------------------------------
-# shared scene: one front camera (x forward, y left, z up), VoD-like range and voxels
-# ---------------------------------------------------------------------------------------------------
-VOD_RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)
-VOD_VOXEL = (0.05, 0.05, 0.125)
-
-
-def pinhole(batch_size: int, image_size: Tuple[int, int], f: float) -> torch.Tensor:
-    """``(B, 1, 3, 4)`` lidar2img of a camera at the origin looking along +x, principal point at the centre."""
-    h, w = image_size
-    k = torch.tensor([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
-    sensor_to_cam = torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])  # (right, down, forward)
-    return (k @ sensor_to_cam).expand(batch_size, 1, 3, 4).contiguous()
-
-
-def radar_points(batch_size: int = 2, per_sample: int = 60, seed: int = 0) -> torch.Tensor:
-    """``(P, 1 + 7)`` OpenPCDet-style points ``[b, x, y, z, RCS, v_r, v_rc, t]`` in front of the camera."""
-    g = torch.Generator().manual_seed(seed)
-    rows = []
-    for b in range(batch_size):
-        xyz = torch.rand(per_sample, 3, generator=g) * torch.tensor([25.0, 10.0, 3.0]) + torch.tensor([5.0, -5.0, -2.5])
-        rows.append(torch.cat([torch.full((per_sample, 1), float(b)), xyz, torch.randn(per_sample, 4, generator=g)], 1))
-    return torch.cat(rows)
-
-
-def voxel_coords(points: torch.Tensor, voxel_size, point_range_min) -> torch.Tensor:
-    """Unique ``(b, z, y, x)`` int32 base-grid voxels of ``points`` (``[b, x, y, z, ...]`` rows)."""
-    idx = ((points[:, 1:4] - torch.tensor(point_range_min)) / torch.tensor(voxel_size)).floor().long()
-    return torch.unique(torch.cat([points[:, :1].long(), idx.flip(1)], 1), dim=0).int()
-
-
-def fpn(batch_size: int, image_size, channels: int = 256, strides=(4, 8, 16, 32), cameras: Optional[int] = None, seed: int = 1):
-    g = torch.Generator().manual_seed(seed)
-    h, w = image_size
-    lead = (batch_size,) if cameras is None else (batch_size, cameras)
-    return [torch.randn(*lead, channels, h // s, w // s, generator=g) for s in strides]
-
-
-def spconv_input(points: torch.Tensor, channels: int, spatial_shape, batch_size: int, seed: int = 2):
-    spconv = pytest.importorskip("spconv.pytorch")
-    coords = voxel_coords(points, VOD_VOXEL, VOD_RANGE[:3])
-    feats = torch.randn(coords.shape[0], channels, generator=torch.Generator().manual_seed(seed))
-    return spconv.SparseConvTensor(feats, coords, list(spatial_shape), batch_size)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -309,20 +171,6 @@ def conventions_authors_augmentation(run, tmp_path):
     assert float(after[1] / after[2]) == pytest.approx(float(before[1] / before[2]), abs=1e-9)
 
 
-def vod_batch(batch_size: int = 2):
-    """A RadarCameraBatch for the VOD preset: 7-feature points, boxes, 4 precomputed FPN levels."""
-    from mssf_examples.data import RadarCameraBatch
-
-    image_size = (1216, 1936)
-    pts = radar_points(batch_size, per_sample=80, seed=3)
-    points = [pts[pts[:, 0] == b, 1:] for b in range(batch_size)]
-    boxes = [torch.tensor([[10.0, 0.0, -1.0, 3.9, 1.6, 1.56, 0.3], [15.0, 3.0, -1.0, 0.8, 0.6, 1.73, 0.0]])] * batch_size
-    labels = [torch.tensor([0, 1])] * batch_size
-    return RadarCameraBatch(points=points, lidar2img=pinhole(batch_size, image_size, 1495.5),
-                            image_features=fpn(batch_size, image_size, strides=(16, 32, 64, 128), cameras=1),
-                            image_size=image_size, gt_boxes=boxes, gt_labels=labels)
-
-
 @snippet("docs/detectors.md", "from mssf_examples.detectors import build_detector")
 def detectors_build(run, tmp_path):
     pytest.importorskip("spconv")
@@ -335,27 +183,6 @@ def detectors_build(run, tmp_path):
     for d in dets:
         k = d["boxes"].shape[0]
         assert d["boxes"].shape == (k, 7) and d["scores"].shape == (k,) and d["labels"].shape == (k,)
-
-
-def openpcdet_conv2(spconv, nn):
-    """OpenPCDet VoxelBackBone8x ``conv2``: three post-act blocks, the first a stride-2 SparseConv3d."""
-
-    def block(conv, c):
-        return spconv.SparseSequential(conv, nn.BatchNorm1d(c), nn.ReLU())
-
-    return spconv.SparseSequential(
-        block(spconv.SparseConv3d(16, 32, 3, stride=2, padding=1, bias=False, indice_key="spconv2"), 32),
-        block(spconv.SubMConv3d(32, 32, 3, padding=1, bias=False, indice_key="subm2"), 32),
-        block(spconv.SubMConv3d(32, 32, 3, padding=1, bias=False, indice_key="subm2"), 32),
-    )
-
-
-def run_detectors_init(run_block):
-    spconv = pytest.importorskip("spconv.pytorch")
-    from torch import nn
-
-    ns = {"spconv": spconv, "self": types.SimpleNamespace(conv2=openpcdet_conv2(spconv, nn)), "point_cloud_range": VOD_RANGE}
-    return run_block(ns)
 
 
 @snippet("docs/detectors.md", "from mssf_blocks.blocks import FusionBlock")
@@ -385,36 +212,6 @@ def detectors_openpcdet_forward(run, tmp_path):
     assert list(x_conv2.spatial_shape) == [21, 512, 512]
     assert "spconv2" in x_conv2.indice_dict
     assert scores.shape == (x_conv2.features.shape[0],) and ((scores > 0) & (scores < 1)).all()
-
-
-def camera_scene(channels: int = 8, stride: int = 1):
-    """One sample, one camera (64 x 96 image, f = 40 px); a car box at x = 10 m, points:
-
-    0: inside the box (3D foreground); 1: 10 m behind the box, in its 2D box (3D-blurred);
-    2: beside the box, outside its 2D box (background); 3: inside the box, near point 0.
-    """
-    from mssf_blocks import SparseVoxels, VoxelCentroidProjector
-    from mssf_blocks.heads import points_in_boxes
-
-    image_size = (64, 96)
-    lidar2img = pinhole(1, image_size, 40.0)
-    points = torch.tensor([[10.0, 0.1, 0.1], [20.0, 0.1, 0.1], [10.0, 9.0, 0.1], [10.6, 0.3, 0.4]])
-    points_batch = torch.zeros(4, dtype=torch.long)
-    gt_boxes = [torch.tensor([[10.0, 0.0, 0.0, 4.0, 2.0, 2.0, 0.0]])]
-    # 2D box: the projected corners' bounding box.
-    corners = torch.tensor([[x, y, z] for x in (8, 12) for y in (-1, 1) for z in (-1, 1)], dtype=torch.float32)
-    uvd = torch.cat([corners, torch.ones(8, 1)], 1) @ lidar2img[0, 0].T
-    uv = uvd[:, :2] / uvd[:, 2:]
-    gt_boxes_2d = [torch.cat([uv.min(0).values, uv.max(0).values])[None]]
-    vs = (0.5, 0.5, 0.5)
-    lo = (0.0, -10.0, -2.0)
-    idx = ((points - torch.tensor(lo)) / (torch.tensor(vs) * stride)).floor().int()
-    coords = torch.unique(torch.cat([torch.zeros(4, 1, dtype=torch.int32), idx.flip(1)], 1), dim=0)
-    voxels = SparseVoxels(torch.randn(coords.shape[0], channels, generator=torch.Generator().manual_seed(0)), coords,
-                          (8 // stride, 40 // stride, 60 // stride), 1, vs, lo, stride=(stride,) * 3)
-    assert points_in_boxes(points, gt_boxes[0])[:, 0].tolist() == [True, False, False, True]
-    return dict(projector=VoxelCentroidProjector(), voxels=voxels, points=points, points_batch=points_batch,
-                lidar2img=lidar2img, image_size=image_size, gt_boxes=gt_boxes, gt_boxes_2d=gt_boxes_2d)
 
 
 @snippet("docs/diagnostics.md", "proj = projector(voxels, points, points_batch, lidar2img, image_size)")
@@ -509,13 +306,6 @@ def pillar_lift_fuse(run, tmp_path):
     assert (out.permute(0, 2, 3, 1)[~occupied] == 0).all() and occupied.any()
 
 
-def _link_tree(dst: Path, files: Dict[str, Path]) -> None:
-    for sub, src in files.items():
-        (dst / sub).mkdir(parents=True, exist_ok=True)
-        for f in src.iterdir():
-            (dst / sub / f.name).symlink_to(f)
-
-
 REAL_DATA_FIRST_LINE = (
     "from mssf_examples.kitti_io import KittiFormatDataset, VOD_RADAR, TJ4D_RADAR, TJ4D_CLASSES, frames_to_batch"
 )
@@ -534,10 +324,10 @@ def real_data_api(run, tmp_path, realdata_root=None):
     files = {"velodyne": vod_src / "radar" / "velodyne", "calib": vod_src / "radar" / "calib",
              "image_2": vod_src / "image_2", "label_2": vod_src / "label_2"}
     vod_root, tj4d_root = tmp_path / "view_of_delft", tmp_path / "TJ4DRadSet"
-    _link_tree(vod_root / "radar_5frames" / "training", files)
+    link_tree(vod_root / "radar_5frames" / "training", files)
     (vod_root / "radar_5frames" / "ImageSets").mkdir()
     (vod_root / "radar_5frames" / "ImageSets" / "train.txt").write_text("\n".join(ids) + "\n")
-    _link_tree(tj4d_root / "training", files)
+    link_tree(tj4d_root / "training", files)
     (tj4d_root / "ImageSets").mkdir()
     (tj4d_root / "ImageSets" / "val.txt").write_text(ids[0] + "\n")
     ns = run({}, replace={'"/data/view_of_delft"': repr(str(vod_root)), '"/data/TJ4DRadSet"': repr(str(tj4d_root))})
@@ -603,90 +393,3 @@ def test_doc_block_runs(block, tmp_path, request):
         return exec_block(b, namespace, insert)
 
     fn(run, tmp_path, **kwargs)
-
-
-_SIGNATURE_START = re.compile(r"^([ \t]*)(\.?)(\w+)\(", re.M)
-_SIGNATURE_MODULES = ("mssf_blocks", "mssf_blocks.diagnostics", "mssf_blocks.fusion", "mssf_blocks.heads",
-                      "mssf_blocks.lift", "mssf_blocks.functional.lift", "mssf_blocks.functional.sampling",
-                      "mssf_blocks.functional.deform_project")
-
-
-def _top_level_split(text: str) -> List[str]:
-    depth, cur, out = 0, "", []
-    for ch in text:
-        depth += {"(": 1, "[": 1, "{": 1, ")": -1, "]": -1, "}": -1}.get(ch, 0)
-        if ch == "," and depth == 0:
-            out.append(cur)
-            cur = ""
-        else:
-            cur += ch
-    return [a.strip() for a in out + [cur] if a.strip()]
-
-
-def documented_signatures(code: str):
-    """``(owner, name, [(param, default text or None)])`` per ``name(...)`` of a signature listing.
-
-    A name at column 0 is a module-level function or class; an indented ``name(`` / ``.name(`` (or a
-    column-0 name the modules lack) is a method of the last class listed above it.
-    """
-    import importlib
-
-    modules = [importlib.import_module(m) for m in _SIGNATURE_MODULES]
-    code = re.sub(r"#[^\n]*", "", code)
-    cls, out = None, []
-    for m in _SIGNATURE_START.finditer(code):
-        indent, dot, name = m.groups()
-        j, depth = m.end(), 1
-        while depth:
-            depth += {"(": 1, ")": -1}.get(code[j], 0)
-            j += 1
-        params = []
-        for arg in _top_level_split(code[m.end():j - 1]):
-            head, _, default = arg.partition("=")
-            params.append((re.match(r"\w+", head).group(0), default.strip() or None))
-        top = next((getattr(mod, name) for mod in modules if hasattr(mod, name)), None)
-        if not indent and not dot and top is not None:
-            obj, cls = top, (top if isinstance(top, type) else None)
-        else:
-            assert cls is not None and hasattr(cls, name), f"{name}(...) is neither in {_SIGNATURE_MODULES} nor a method of {cls}"
-            obj = getattr(cls, name)
-        out.append((obj, name, params))
-    return out
-
-
-SIGNATURE_BLOCKS = [b for b in ALL_BLOCKS if FRAGMENTS.get(b.key) == _SIGNATURES]
-
-
-@pytest.mark.parametrize("block", SIGNATURE_BLOCKS, ids=[b.id for b in SIGNATURE_BLOCKS])
-def test_signature_listing_matches_the_code(block):
-    """Listed parameter names (in order) and literal defaults are those of the code."""
-    import ast
-    import inspect
-
-    listed = documented_signatures(block.code)
-    assert listed, f"{block.id}: no signature found"
-    for obj, name, params in listed:
-        real = {k: p for k, p in inspect.signature(obj).parameters.items() if k != "self"}
-        assert [p for p, _ in params] == list(real), f"{block.id}: {name}{tuple(p for p, _ in params)} vs code {tuple(real)}"
-        for param, default in params:
-            if default is None:
-                continue
-            try:
-                value = ast.literal_eval(default)
-            except ValueError:
-                try:
-                    value = eval(default, {"nn": torch.nn})
-                except Exception:  # e.g. '"mean" | "count"': a choice, not a value
-                    continue
-            assert real[param].default == value, f"{block.id}: {name}({param}={default}) but the code has {real[param].default!r}"
-
-
-_SCRIPT = re.compile(r"\bpython3?\s+((?:examples|benchmarks)/[\w./-]+\.py)\b")
-
-
-def test_mentioned_scripts_exist():
-    """Every ``python examples/...py`` / ``python benchmarks/...py`` in README.md and docs/*.md exists."""
-    mentioned = {(f.relative_to(REPO).as_posix(), m) for f in DOC_FILES for m in _SCRIPT.findall(f.read_text(encoding="utf-8"))}
-    assert mentioned, "found no script mention at all: the pattern is broken"
-    missing = sorted((f, m) for f, m in mentioned if not (REPO / m).is_file())
-    assert not missing, f"scripts mentioned in the docs that do not exist: {missing}"
