@@ -24,6 +24,7 @@ from .plan_costs import (
     _GATHER_COST,
     _GRID_SAMPLE_COST,
     _PROJECT_CHUNK,
+    _SORT_BANDS,
 )
 from .raw_blocks import _RawLevel, _bag_raw, _corner_weights, _pixel_coordinate, _project_raw_levels
 
@@ -294,6 +295,15 @@ def _touched_level(
     return F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p), mode="sum")
 
 
+
+def _spatial_order(image_index: Tensor, locations: Tensor) -> Tensor:
+    """``(Q,)`` permutation of the queries by image, then by band of ``_SORT_BANDS`` rows of the image,
+    then along ``u``, of each query's first sampling location (near its reference point)."""
+    ref = locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
+    band = (ref[:, 1] * (_SORT_BANDS - 1)).round().long()
+    return torch.argsort((image_index * _SORT_BANDS + band) * 4096 + (ref[:, 0] * 4095).round().long())
+
+
 def _ms_deform_sample_touched(
     levels: List[Tensor],
     image_index: Tensor,
@@ -314,6 +324,10 @@ def _ms_deform_sample_touched(
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
     )
+    # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
+    # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
+    order = _spatial_order(image_index, locations)
+    locations, weights, image_index = locations[order], weights[order], image_index[order]
     out = None
     raws: List[_RawLevel] = []
     for lvl, val in enumerate(levels):
@@ -326,4 +340,6 @@ def _ms_deform_sample_touched(
     if raws:
         proj = _project_raw_levels(raws, w_all, b_all, m, needs_grad).view(m * q, d)
         out = proj if out is None else out + proj
-    return out.view(m, q, d).transpose(0, 1)
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(q, device=order.device)
+    return out.view(m, q, d).index_select(1, inverse).transpose(0, 1)  # back to the callers' order
