@@ -82,6 +82,8 @@ from _common import measure, print_table, reexec_with_mmap_threshold, write_json
 _measure = measure
 
 from mssf_blocks.functional import ms_deform_sample, ms_deform_sample_project  # noqa: E402
+from mssf_blocks.functional.plan_costs import _RAW_CHUNK_BYTES  # noqa: E402
+from mssf_blocks.functional.touched import _spatial_order  # noqa: E402
 
 STRIDES = (4, 8, 16, 32, 64)
 IMAGE_CHANNELS = 256
@@ -179,7 +181,8 @@ def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
     Per level, an exact method must either project the ``U_l`` pixels that some bilinear corner
     reads (a GEMM over ``U_l`` rows: timed on a contiguous stand-in, no gather counted) or read the
     raw channels of every corner (``embedding_bag`` over the level's channels-last rows at the real
-    corner ids, no weights or per-head projection counted); the floor is the cheaper of the two per
+    corner ids, queries in image order and bagged in blocks like the touched plans, no weights or
+    per-head projection counted); the floor is the cheaper of the two per
     level, plus the locations/weights and ``output_proj`` that every formulation computes. The index
     work (corner weights, cell ids) and the rest of either route are free here, so the bound is
     generous. Returns ``(floor seconds, [(touched fraction, gemm s, bag s) per level])``.
@@ -190,6 +193,9 @@ def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
         heads = torch.zeros(query.shape[0], path.output_proj.in_features)
         shared += measure(lambda: path.output_proj(heads), repeats)[0]
         loc, _ = path.locations_and_weights(query, uv, sizes)
+        # the queries in image order, as the touched plans take them (rows of neighbours in cache)
+        loc = loc[_spatial_order(torch.zeros(loc.shape[0], dtype=torch.long), loc)]
+        block = max(1, _RAW_CHUNK_BYTES // (path.m * IMAGE_CHANNELS * 4)) * path.m  # bags per block
         levels = []
         for lvl, f in enumerate(feats):
             h, w = f.shape[-2:]
@@ -201,7 +207,10 @@ def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
             stand_in = torch.randn(u, IMAGE_CHANNELS)
             t_gemm = measure(lambda: F.linear(stand_in, path.value_proj.weight), repeats)[0]
             psw = torch.rand(rows.shape)
-            t_bag = measure(lambda: F.embedding_bag(rows, table, per_sample_weights=psw, mode="sum"), repeats)[0]
+            # in blocks of queries, as the touched plans bag them (one (M * Q, 256) output would pay its
+            # page faults on every call)
+            t_bag = measure(lambda: [F.embedding_bag(rows[s : s + block], table, per_sample_weights=psw[s : s + block],
+                                                     mode="sum") for s in range(0, rows.shape[0], block)], repeats)[0]
             levels.append((u / (h * w), t_gemm, t_bag))
     return shared + sum(min(g, b) for _, g, b in levels), levels
 
