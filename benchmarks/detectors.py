@@ -5,7 +5,10 @@ view on the VoD preset grid (voxels 0.05 x 0.05 x 0.125 m over x 0-51.2, y -25.6
 0.16 m), one 1216 x 1936 camera. Image features are precomputed (the paper freezes the image branch):
 four FPN levels of 256 channels at strides 4-32, random values. Every detector runs in eval mode
 (``torch.no_grad``, batch of one frame, decoding included) with ``n = 0`` (radar only) and ``n = 2``
-fusion blocks (MSDFF, the paper's default, and SFF), in this process on the same frame. The configurations
+fusion blocks (MSDFF, the paper's default, and SFF), in this process on the same frame. A last
+column bounds what any exact MSDFF could reach: ``cpu ratio msdff floor`` = (radar-only time + the
+floor of the two blocks' image sampling, :func:`msdff_floor`) / radar-only time, every other cost of
+the fusion blocks left out. The configurations
 of one detector are timed in interleaved rounds (one call of each per round, after a warm-up call),
 so a load change on the shared machine hits all of them alike. Both the wall time and the process CPU
 time (``time.process_time``) of every call are recorded; with one intra-op thread (the default) the CPU
@@ -17,7 +20,7 @@ MSDFF runs at the paper's width (``value_proj`` 256 -> 256, ``output_proj`` 256 
 default); ``--msdff-width narrow`` measures the narrow layout (``value_dim`` = voxel channels) instead.
 
 Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 7] [--threads 1]
-[--detectors second centerpoint voxelnext pointpillars] [--msdff-width paper] [--json out.json]``
+[--detectors second centerpoint voxelnext pointpillars] [--msdff-width paper] [--no-floor] [--json out.json]``
 """
 
 from __future__ import annotations
@@ -69,6 +72,63 @@ def vod_frame(num_points: int, seed: int = 0, channels_last: bool = False) -> Ra
     return RadarCameraBatch(points=[points], lidar2img=l2i, image_features=levels, image_size=(IMAGE_H, IMAGE_W))
 
 
+def msdff_floor(model, frame, repeats: int = 3):
+    """Seconds below which no exact method built from PyTorch's CPU primitives can take the image
+    sampling of ``model``'s MSDFF blocks on ``frame`` (``benchmarks/msdff.py``'s ``primitive_floor``
+    per captured call): per block and level the cheaper of a GEMM that projects the pixels some corner
+    reads (``U_l x C -> value_dim``, contiguous stand-in rows: no gather counted) and an
+    ``embedding_bag`` of the raw channels of every corner (channels-last stand-in of the level, queries
+    in image order, blocks of 4 MiB; no weights, projection or index work counted). Returns
+    ``(seconds, [(voxels, seconds) per block])``."""
+    from msdff import corner_rows  # noqa: E402  (this folder)
+    from mssf_blocks import MSDFF
+    from mssf_blocks.functional.plan_costs import _RAW_CHUNK_BYTES
+    from mssf_blocks.functional.touched import _spatial_order
+
+    calls = []
+    hooks = [mod.register_forward_pre_hook(lambda mod, args: calls.append((mod, args)))
+             for mod in model.modules() if isinstance(mod, MSDFF)]
+    try:
+        with torch.no_grad():
+            model(frame)
+    finally:
+        for h in hooks:
+            h.remove()
+    blocks = []
+    with torch.no_grad():
+        for mod, (query, feats, proj) in calls:
+            sizes = [tuple(f.shape[-2:]) for f in feats]
+            seen = proj.valid[:, 0]  # (one camera: the voxels it sees are the queries)
+            loc, _ = mod.sampling_locations_and_weights(query[seen], proj.uv[seen, 0], sizes)
+            loc = loc[_spatial_order(proj.batch_index[seen], loc)]
+            block = max(1, _RAW_CHUNK_BYTES // (mod.num_heads * mod.value_channels * 4)) * mod.num_heads
+            total = 0.0
+            for lvl, f in enumerate(feats):
+                h, w = f.shape[-2:]
+                rows = corner_rows(loc[:, :, lvl], h, w)
+                u = int(torch.zeros(h * w, dtype=torch.bool).index_fill_(0, rows.reshape(-1), True).sum())
+                stand_in = torch.randn(u, mod.value_channels)
+                t_gemm = _median(lambda: torch.nn.functional.linear(stand_in, mod.value_proj.weight), repeats)
+                table = torch.randn(h * w, mod.value_channels)
+                psw = torch.rand(rows.shape)
+                t_bag = _median(lambda: [torch.nn.functional.embedding_bag(
+                    rows[s : s + block], table, per_sample_weights=psw[s : s + block], mode="sum")
+                    for s in range(0, rows.shape[0], block)], repeats)
+                total += min(t_gemm, t_bag)
+            blocks.append((loc.shape[0], total))
+    return sum(t for _, t in blocks), blocks
+
+
+def _median(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return statistics.median(times)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=2500)
@@ -79,6 +139,7 @@ def main() -> None:
                     help="image features in channels-last memory order (what ImageBranch(channels_last=True) returns)")
     ap.add_argument("--msdff-width", choices=["paper", "narrow"], default="paper",
                     help="MSDFF value width: paper (value_dim = 256 FPN channels) or narrow (= voxel channels)")
+    ap.add_argument("--no-floor", action="store_true", help="skip the floor of the MSDFF blocks' image sampling")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     preset = replace(VOD, msdff_value_dim=None if args.msdff_width == "paper" else "voxel_channels")
@@ -113,6 +174,11 @@ def main() -> None:
         row["wall ratio msdff"] = w["n=2 msdff"] / w["n=0"]
         row["wall ratio sff"] = w["n=2 sff"] / w["n=0"]
         row["voxels in fusion blocks"] = "/".join(str(s.num_voxels) for s in out.stages[:2])
+        if not args.no_floor:
+            floor, _ = msdff_floor(models["n=2 msdff"], frame)
+            row["msdff sampling floor (s)"] = floor
+            # the overhead no exact MSDFF sampling can go below, every other cost of fusion left out
+            row["cpu ratio msdff floor"] = (c["n=0"] + floor) / c["n=0"]
         rows.append(row)
         print(", ".join(f"{k}: {v:.3f}" if isinstance(v, float) else f"{k}: {v}" for k, v in row.items()), flush=True)
     print(f"\n{args.points} points, threads={args.threads}, {args.repeats} interleaved rounds (median), "

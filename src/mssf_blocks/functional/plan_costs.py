@@ -19,9 +19,13 @@ Every machine-dependent choice of the planner lives here. The CPU values below w
 _GATHER_COST = 48.0
 _BAG_COST = 5.0
 # "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
-# view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. Random 1 KiB rows of a 10^5-row table
-# miss the cache, hence more than _BAG_COST per element (measured).
-_DIRECT_BAG_COST = 6.0
+# view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. With the queries in image order
+# (_SORT_BANDS below) its rows are read about as fast as a compact table's (it was 6, random 1 KiB
+# rows of a 10^5-row table missing the cache, before the queries were sorted). Measured per level with
+# benchmarks/msdff.py's setting, paper width, 2,500-8,000 radar-band voxels: "direct" 10-55 ms forward
+# against 10-91 ms for "sample" on every level P2-P6, and 149-220 ms against 165-245 ms with
+# gradients. So "sample" (and its (U, D) table: 57 MiB on P2 at 8,000 voxels) is left to NCHW maps.
+_DIRECT_BAG_COST = _BAG_COST
 # "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)

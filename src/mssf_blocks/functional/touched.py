@@ -9,7 +9,7 @@ cost constants of the choice live in :mod:`~mssf_blocks.functional.plan_costs`. 
 
 from __future__ import annotations
 
-from typing import List, Optional
+from typing import Iterator, List, Optional
 
 import torch
 import torch.nn.functional as F
@@ -75,9 +75,10 @@ def _is_row_table(value: Tensor) -> bool:
     return _row_table(value) is not None
 
 
-def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> List[Tensor]:
+def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> Iterator[Tensor]:
     """Raw rows of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``, as contiguous
-    ``(<= chunk, D)`` pieces in order.
+    ``(<= chunk, D)`` pieces in order, gathered one at a time (a consumer that drops each piece keeps
+    one in memory).
 
     Channels-last maps are one ``(I * H * W, D)`` row table; NCHW maps are read through each image's
     transposed ``(H * W, D)`` view. Pieces of ``chunk`` sorted pixels keep the reads of every channel
@@ -88,32 +89,56 @@ def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> List[Tensor]:
     table = _row_table(value)
     if table is not None:
         # (an empty piece when nothing is touched keeps the image in the graph: zero gradient, not None)
-        return [table.index_select(0, touched[s : s + chunk]) for s in range(0, max(touched.numel(), 1), chunk)]
+        for s in range(0, max(touched.numel(), 1), chunk):
+            yield table.index_select(0, touched[s : s + chunk])
+        return
     bounds = torch.searchsorted(
         touched, torch.arange(num_images + 1, device=touched.device, dtype=touched.dtype) * (h * w)
     ).tolist()
-    rows = []
+    if bounds[-1] == 0:
+        yield value[0, 0].reshape(dch, h * w).t().index_select(0, touched)
     for i in range(num_images):
         rows_i = value[i, 0].reshape(dch, h * w).t()  # (H*W, D), stride H*W along D
         for s in range(bounds[i], bounds[i + 1], chunk):
-            rows.append(rows_i.index_select(0, touched[s : min(s + chunk, bounds[i + 1])] - i * h * w))
-    if not rows:
-        rows.append(value[0, 0].reshape(dch, h * w).t().index_select(0, touched))
-    return rows
+            yield rows_i.index_select(0, touched[s : min(s + chunk, bounds[i + 1])] - i * h * w)
 
 
-def _project_rows(
-    value: Tensor, w_all: Tensor, b_all: Optional[Tensor], touched: Optional[Tensor]
-) -> List[Tensor]:
+def _gather_rows(value: Tensor, touched: Tensor) -> Tensor:
+    """``(U, D)`` contiguous table of the raw rows of the sorted pixel ids ``touched`` (``U >= 1``),
+    gathered piece by piece straight into it (no second copy) unless autograd must see the gather."""
+    if value.requires_grad and torch.is_grad_enabled():
+        parts = list(_touched_rows(value, touched, _PROJECT_CHUNK))
+        return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+    table = value.new_empty(touched.numel(), value.shape[2])
+    start = 0
+    for piece in _touched_rows(value, touched, _PROJECT_CHUNK):
+        table[start : start + piece.shape[0]] = piece
+        start += piece.shape[0]
+    return table
+
+
+def _project_rows(value: Tensor, w_all: Tensor, b_all: Optional[Tensor], touched: Optional[Tensor],
+                  out: Optional[Tensor] = None):
     """``(rows, E)`` projection, in pieces, of every pixel of ``value (I, 1, D, H, W)`` (``touched=None``:
     sequential reads, one GEMM per image) or of the sorted pixel ids ``touched`` only (gathered in
-    cache-sized pieces, each projected at once)."""
+    cache-sized pieces, each projected at once and dropped). Returns the list of pieces, or, with
+    ``out`` (no autograd: ``out=`` GEMMs), writes them into its first rows and returns ``out``."""
     if touched is None:
         dch, h, w = value.shape[2:]
-        raws = [value[i, 0].reshape(dch, h * w).t() for i in range(value.shape[0])]  # transposed views for NCHW
+        raws = (value[i, 0].reshape(dch, h * w).t() for i in range(value.shape[0]))  # transposed views for NCHW
     else:
         raws = _touched_rows(value, touched, _PROJECT_CHUNK)
-    return [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in raws]
+    if out is None:
+        return [raw @ w_all.t() if b_all is None else torch.addmm(b_all, raw, w_all.t()) for raw in raws]
+    start = 0
+    for raw in raws:
+        dst = out[start : start + raw.shape[0]]
+        if b_all is None:
+            torch.mm(raw, w_all.t(), out=dst)
+        else:
+            torch.addmm(b_all, raw, w_all.t(), out=dst)
+        start += raw.shape[0]
+    return out
 
 
 class _GatherProject(torch.autograd.Function):
@@ -126,8 +151,7 @@ class _GatherProject(torch.autograd.Function):
     def forward(ctx, value: Tensor, touched: Tensor, weight: Tensor, bias: Optional[Tensor]) -> Tensor:
         ctx.save_for_backward(value, touched, weight)
         ctx.has_bias = bias is not None
-        parts = _project_rows(value, weight, bias, touched)
-        return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+        return _project_rows(value, weight, bias, touched, out=weight.new_empty(touched.numel(), weight.shape[0]))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -259,12 +283,16 @@ def _touched_level(
         remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
     if plan == "direct":
         # Channels-last maps are a free (I * H * W, D) row table: sample it in place, no gather.
-        parts = [_row_table(value)]
+        table = _row_table(value)
         plan = "sample"
     elif plan == "sample":
-        parts = _touched_rows(value, touched, _PROJECT_CHUNK)
+        table = _gather_rows(value, touched)  # (U, D) contiguous rows
     else:
-        parts = _project_rows(value, w_all, b_all, None if plan == "dense" else touched)
+        # (forward only: with gradients these plans returned above) one (rows + 1, E) table whose
+        # last row, the one padding cells read, is zero
+        table = w_all.new_empty(n_rows + 1, e)
+        table[n_rows].zero_()
+        _project_rows(value, w_all, b_all, None if plan == "dense" else touched, out=table[:n_rows])
     if plan != "sample":
         remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
     rows = remap.view(-1).index_select(0, cells).view(m, -1)  # (M, Q * 4 * P); n_rows: the zero row
@@ -273,10 +301,9 @@ def _touched_level(
         # (Q * D * E) and add the bias times the in-map weight mass. No zero row here (appending one
         # would copy the U x D table): out-of-map corners get weight 0 and the last row, or, should
         # that row not be finite, are left out of their bags (_bag_raw).
-        if u == 0:
-            table, rows, clamp = value.new_zeros(1, dch) + 0.0 * parts[0].sum(), torch.zeros_like(rows), 0
+        if n_rows == 0:  # (the empty table keeps the image in the graph: zero gradient, not None)
+            table, rows, clamp = value.new_zeros(1, dch) + 0.0 * table.sum(), torch.zeros_like(rows), 0
         else:
-            table = parts[0] if len(parts) == 1 else torch.cat(parts, 0)  # (U, D) contiguous rows
             clamp = n_rows - 1 if bool(torch.isfinite(table[n_rows - 1]).all()) else None
         raw = _RawLevel(lo, wo, rows.view(m, q, 4 * p), table, h, w, n_rows, clamp)
         if defer_projection and w_all is not None:
@@ -289,8 +316,7 @@ def _touched_level(
             out = out + mass * b_all.view(m, 1, d)
         return out.view(m * q, d)
     psw = _corner_weights(lo, wo, h, w, x, y).view(m, q * 4 * p)
-    parts.append(w_all.new_zeros(1, e))
-    table = torch.cat(parts, 0).view(-1, d)  # ((rows + 1) * M, d): row r * M + head
+    table = table.view(-1, d)  # ((rows + 1) * M, d): row r * M + head
     rows += torch.arange(m, dtype=idt, device=dev).view(m, 1)
     return F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p), mode="sum")
 
@@ -336,10 +362,10 @@ def _ms_deform_sample_touched(
         if isinstance(part, _RawLevel):  # raw-row level: bagged with the others in blocks of queries below
             raws.append(part)
         else:
-            out = part if out is None else out + part
+            out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
     if raws:
         proj = _project_raw_levels(raws, w_all, b_all, m, needs_grad).view(m * q, d)
-        out = proj if out is None else out + proj
+        out = proj if out is None else out.add_(proj)
     inverse = torch.empty_like(order)
     inverse[order] = torch.arange(q, device=order.device)
     return out.view(m, q, d).index_select(1, inverse).transpose(0, 1)  # back to the callers' order
