@@ -44,7 +44,7 @@ A last table bounds what any exact method can reach with PyTorch's CPU primitive
 (:func:`primitive_floor`): per level the cheaper of a GEMM over the touched pixels and an
 ``embedding_bag`` over the raw corner rows, index work free; ``fwd bound`` = reference / floor.
 
-Time: median of ``--repeats`` runs after a warm-up; ``torch.set_num_threads(2)`` (``--threads``);
+Time: median of ``--repeats`` interleaved rounds (one call of every path per round) after a warm-up; ``torch.set_num_threads(2)`` (``--threads``);
 wall time, or with ``--cpu-time`` the process CPU time (with one thread: the work done, robust to the
 other processes of a shared machine). Times are taken in this process, with glibc's default allocator
 settings (what a user's process runs with). Peak extra memory is measured in a second process (the
@@ -66,6 +66,7 @@ import functools
 import math
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -289,11 +290,19 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
         del out_k, g_k
     del out_r, g_r
 
+    # Interleaved rounds (one call of every kind per round, after a warm-up call each), so that a load
+    # change on the shared machine hits the reference and ours alike; the median per kind.
     res = {}
-    for kind in kinds:
-        res[kind, "fwd"] = measure(fwd(kind, feats), repeats)
-        res[kind, "fwdbwd"] = measure(fwd_bwd(kind, feats), repeats)
-        res[kind, "fwd2x"] = measure(fwd(kind, feats2x), repeats)
+    for mode, make, fs in (("fwd", fwd, feats), ("fwdbwd", fwd_bwd, feats), ("fwd2x", fwd, feats2x)):
+        fns = {kind: make(kind, fs) for kind in kinds}
+        for fn in fns.values():
+            fn()
+        times = {kind: [] for kind in kinds}
+        for _ in range(repeats):
+            for kind, fn in fns.items():
+                times[kind].append(measure(fn, 1, warmup=0)[0])
+        for kind in kinds:
+            res[kind, mode] = (statistics.median(times[kind]),)
     for kind in kinds:
         row[f"{kind} fwd ms"] = 1e3 * res[kind, "fwd"][0]
         row[f"{kind} fwd+bwd ms"] = 1e3 * res[kind, "fwdbwd"][0]

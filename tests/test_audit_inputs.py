@@ -367,3 +367,22 @@ def test_projector_geometry_is_float32_or_better(dtype, expected):
     centroid, _ = voxel_centroids(pts.to(dtype), pb, vox.coords, vox.spatial_shape, 1, vox.voxel_size,
                                   vox.point_range_min)
     assert centroid.dtype == expected
+
+
+def test_check_finite_sum_shortcut_is_exact():
+    # finite entries whose sum overflows to inf are still finite (the exact test decides); one NaN or
+    # inf anywhere is refused, named, and counted
+    from mssf_blocks._checks import check_finite
+
+    big = torch.full((4,), 3e38)
+    assert not bool(torch.isfinite(big.sum()))
+    assert check_finite(big, "x") is big
+    for bad, count in ((float("nan"), 1), (float("inf"), 1), (-float("inf"), 1)):
+        x = torch.ones(1000)
+        x[123] = bad
+        with pytest.raises(MSSFError, match=rf"x: expected finite values, got {count} NaN/inf"):
+            check_finite(x, "x")
+    x = torch.ones(10)
+    x[2], x[7] = float("inf"), -float("inf")  # inf + -inf = NaN in the sum
+    with pytest.raises(MSSFError, match="got 2 NaN/inf"):
+        check_finite(x, "x")

@@ -22,7 +22,7 @@ def _pixel_coordinate(loc: Tensor, size: Tensor) -> Tensor:
     # The exact float operations of grid_sample (grid = 2*loc - 1, unnormalise with
     # align_corners=False) so that floor() -- and hence the one-sided gradient at integer pixel
     # coordinates -- agrees bit for bit with the reference path.
-    return ((2.0 * loc - 1.0 + 1.0) * size - 1.0) / 2.0
+    return ((2.0 * loc - 1.0 + 1.0) * size - 1.0) * 0.5  # (* 0.5 is / 2 exactly, and faster)
 
 
 def _corner_weights(lo: Tensor, wo: Tensor, h: int, w: int, x: Optional[Tensor] = None,
