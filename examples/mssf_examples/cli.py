@@ -277,14 +277,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     enable_cpu_backward()  # spconv 2.3 cannot run backward on CPU-only torch without it
     saved_threads = torch.get_num_threads()  # restored, so that calling main() (tests) leaks nothing
     torch.set_num_threads(args.threads)
+    ok = False
     try:
         # errors name the sub-command (its own parser prints the usage)
-        return _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+        code = _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+        ok = True
+        return code
     except Exception as exc:
         distributed.report_failure(exc)  # under torchrun: which rank failed, before torchrun stops the others
         raise
     finally:
-        distributed.shutdown()
+        distributed.shutdown(success=ok)
         torch.set_num_threads(saved_threads)
 
 
