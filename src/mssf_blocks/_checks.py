@@ -284,11 +284,17 @@ def to_module_dtype(x: Any, name: str, dtype: torch.dtype, owner: str) -> Tensor
     float64 is refused: a float64 input means a float64 check, which silent rounding would defeat.
     """
     x = check_floating(check_tensor(x, name), name)
+    return convert_up(x, dtype, name, f"the dtype of {owner}'s parameters")
+
+
+def convert_up(x: Tensor, dtype: torch.dtype, name: str, what: str) -> Tensor:
+    """The dtype rule on a floating ``x``: ``x`` itself if already ``dtype``, refused (naming ``what``
+    ``dtype`` is) if float64 for another ``dtype``, else converted."""
     if x.dtype == dtype:
         return x
     if x.dtype == torch.float64:
         raise MSSFError(
-            f"{name}: expected dtype {dtype} or lower precision (the dtype of {owner}'s parameters), got "
+            f"{name}: expected dtype {dtype} or lower precision ({what}), got "
             f"torch.float64; convert the module with .double() or the tensor with .to({dtype})"
         )
     return x.to(dtype)

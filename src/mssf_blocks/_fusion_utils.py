@@ -7,7 +7,7 @@ from typing import List, Optional, Sequence, Tuple, Type
 import torch
 from torch import Tensor, nn
 
-from ._checks import autocast_off, check_dtype, check_floating, check_index_range, check_shape
+from ._checks import autocast_off, check_dtype, convert_up, check_floating, check_index_range, check_shape
 from ._static import use_static_path
 from .errors import MSSFError
 from .functional.static import linear_norm_visible_static
@@ -139,14 +139,7 @@ def _to_sampling_dtype(x: Tensor, dtype: torch.dtype, name: str, owner: str) -> 
 
     A float64 ``x`` for a float32 sampling is refused rather than rounded: the module is float32.
     """
-    if x.dtype == dtype:
-        return x
-    if x.dtype == torch.float64:
-        raise MSSFError(
-            f"{name}: expected dtype {dtype} or lower precision (the precision {owner} samples in with its "
-            f"parameters), got torch.float64; convert the module with .double() or the tensor with .to({dtype})"
-        )
-    return x.to(dtype)
+    return convert_up(x, dtype, name, f"the precision {owner} samples in with its parameters")
 
 
 _autocast_off = autocast_off  # (the samplers' name for it)
