@@ -26,6 +26,7 @@ Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 7] [--threads
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 from dataclasses import replace
 import os
@@ -38,7 +39,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples"))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from _common import print_table, write_json  # noqa: E402
+from _common import measure, print_table, write_json  # noqa: E402
 from mssf_examples.data import RadarCameraBatch  # noqa: E402
 from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.presets import VOD  # noqa: E402
@@ -80,9 +81,8 @@ def msdff_floor(model, frame, repeats: int = 3):
     ``embedding_bag`` of the raw channels of every corner (channels-last stand-in of the level, queries
     in image order, blocks of 4 MiB; no weights, projection or index work counted). Returns
     ``(seconds, [(voxels, seconds) per block])``."""
-    from msdff import corner_rows  # noqa: E402  (this folder)
+    from msdff import level_floor  # noqa: E402  (this folder)
     from mssf_blocks import MSDFF
-    from mssf_blocks.functional.plan_costs import _RAW_CHUNK_BYTES
     from mssf_blocks.functional.touched import _spatial_order
 
     calls = []
@@ -94,6 +94,7 @@ def msdff_floor(model, frame, repeats: int = 3):
     finally:
         for h in hooks:
             h.remove()
+    timer = functools.partial(measure, clock=time.process_time)
     blocks = []
     with torch.no_grad():
         for mod, (query, feats, proj) in calls:
@@ -101,32 +102,13 @@ def msdff_floor(model, frame, repeats: int = 3):
             seen = proj.valid[:, 0]  # (one camera: the voxels it sees are the queries)
             loc, _ = mod.sampling_locations_and_weights(query[seen], proj.uv[seen, 0], sizes)
             loc = loc[_spatial_order(proj.batch_index[seen], loc)]
-            block = max(1, _RAW_CHUNK_BYTES // (mod.num_heads * mod.value_channels * 4)) * mod.num_heads
             total = 0.0
-            for lvl, f in enumerate(feats):
-                h, w = f.shape[-2:]
-                rows = corner_rows(loc[:, :, lvl], h, w)
-                u = int(torch.zeros(h * w, dtype=torch.bool).index_fill_(0, rows.reshape(-1), True).sum())
-                stand_in = torch.randn(u, mod.value_channels)
-                t_gemm = _median(lambda: torch.nn.functional.linear(stand_in, mod.value_proj.weight), repeats)
-                table = torch.randn(h * w, mod.value_channels)
-                psw = torch.rand(rows.shape)
-                t_bag = _median(lambda: [torch.nn.functional.embedding_bag(
-                    rows[s : s + block], table, per_sample_weights=psw[s : s + block], mode="sum")
-                    for s in range(0, rows.shape[0], block)], repeats)
+            for lvl, (h, w) in enumerate(sizes):
+                table = torch.randn(h * w, mod.value_channels)  # a channels-last stand-in of the level
+                _, t_gemm, t_bag = level_floor(loc[:, :, lvl], h, w, table, mod.value_proj.weight, repeats, timer)
                 total += min(t_gemm, t_bag)
             blocks.append((loc.shape[0], total))
     return sum(t for _, t in blocks), blocks
-
-
-def _median(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.process_time()
-        fn()
-        times.append(time.process_time() - t0)
-    return statistics.median(times)
 
 
 def main() -> None:

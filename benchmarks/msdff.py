@@ -196,24 +196,32 @@ def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
         loc, _ = path.locations_and_weights(query, uv, sizes)
         # the queries in image order, as the touched plans take them (rows of neighbours in cache)
         loc = loc[_spatial_order(torch.zeros(loc.shape[0], dtype=torch.long), loc)]
-        block = max(1, _RAW_CHUNK_BYTES // (path.m * IMAGE_CHANNELS * 4)) * path.m  # bags per block
         levels = []
         for lvl, f in enumerate(feats):
             h, w = f.shape[-2:]
-            rows = corner_rows(loc[:, :, lvl], h, w)
-            touched = torch.zeros(h * w, dtype=torch.bool)
-            touched[rows.reshape(-1)] = True
-            u = int(touched.sum())
             table = f.permute(0, 2, 3, 1).reshape(h * w, IMAGE_CHANNELS)  # free view of channels-last maps
-            stand_in = torch.randn(u, IMAGE_CHANNELS)
-            t_gemm = measure(lambda: F.linear(stand_in, path.value_proj.weight), repeats)[0]
-            psw = torch.rand(rows.shape)
-            # in blocks of queries, as the touched plans bag them (one (M * Q, 256) output would pay its
-            # page faults on every call)
-            t_bag = measure(lambda: [F.embedding_bag(rows[s : s + block], table, per_sample_weights=psw[s : s + block],
-                                                     mode="sum") for s in range(0, rows.shape[0], block)], repeats)[0]
-            levels.append((u / (h * w), t_gemm, t_bag))
+            levels.append(level_floor(loc[:, :, lvl], h, w, table, path.value_proj.weight, repeats, measure))
     return shared + sum(min(g, b) for _, g, b in levels), levels
+
+
+def level_floor(loc, h: int, w: int, table, weight, repeats: int, timer):
+    """``(touched fraction, GEMM s, bag s)`` of one level: the GEMM that projects the pixels some
+    bilinear corner of ``loc (Q, M, P, 2)`` (queries in image order) reads, ``weight (E, C)`` on a
+    contiguous stand-in of those rows, and the ``embedding_bag`` of every corner's row of
+    ``table (h * w, C)``, in blocks of queries as the touched plans bag them (one ``(M * Q, C)``
+    output would pay its page faults on every call). ``timer`` is :func:`_common.measure` or a
+    variant of it."""
+    rows = corner_rows(loc, h, w)
+    touched = torch.zeros(h * w, dtype=torch.bool)
+    touched[rows.reshape(-1)] = True
+    u = int(touched.sum())
+    stand_in = torch.randn(u, table.shape[1])
+    t_gemm = timer(lambda: F.linear(stand_in, weight), repeats)[0]
+    psw = torch.rand(rows.shape)
+    block = max(1, _RAW_CHUNK_BYTES // (loc.shape[1] * table.shape[1] * 4)) * loc.shape[1]  # bags per block
+    t_bag = timer(lambda: [F.embedding_bag(rows[s : s + block], table, per_sample_weights=psw[s : s + block],
+                                           mode="sum") for s in range(0, rows.shape[0], block)], repeats)[0]
+    return u / (h * w), t_gemm, t_bag
 
 
 def make_features(height: int, width: int, seed: int = 0):
