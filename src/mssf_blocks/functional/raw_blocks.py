@@ -76,10 +76,9 @@ def _bag_raw(raw: _RawLevel, start: int, stop: int):
 
 
 def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Tensor,
-                       b_heads: Optional[Tensor], *tensors: Tensor) -> Tensor:
+                       b_heads: Optional[Tensor]) -> Tensor:
     """``(M, n, d)`` per-head projection (bias times mass included) of the raw samples of the queries
-    ``[start, stop)`` summed over the levels ``raws``. ``tensors`` are the levels' tensors again, so
-    that activation checkpointing sees them as inputs."""
+    ``[start, stop)`` summed over the levels ``raws``."""
     acc = mass = None
     for lvl in raws:
         part, part_mass = _bag_raw(lvl, start, stop)
@@ -107,11 +106,10 @@ def _project_raw_levels(raws: List[_RawLevel], w_all: Tensor, b_all: Optional[Te
     w_heads = w_all.view(m, d, dch).transpose(1, 2)
     b_heads = None if b_all is None else b_all.view(m, 1, d)
     step = max(1, _RAW_CHUNK_BYTES // (m * dch * raws[0].table.element_size()))
-    tensors = [t for lvl in raws for t in (lvl.lo, lvl.wo, lvl.rows, lvl.table)]
     outs = []
     for s in range(0, q, step):
-        args = (raws, s, min(s + step, q), w_heads, b_heads, *tensors)
-        if needs_grad:
+        args = (raws, s, min(s + step, q), w_heads, b_heads)
+        if needs_grad:  # (non-reentrant checkpointing recomputes from the same raws: no tensor needs passing)
             outs.append(checkpoint(_project_raw_block, *args, use_reentrant=False, preserve_rng_state=False))
         else:
             outs.append(_project_raw_block(*args))
