@@ -72,17 +72,22 @@ def test_projection_under_autocast_matches_float64_at_vod_ranges(amp, l2i_dtype)
     assert err < 1e-3, err  # bfloat16 autocast used to be off by pixels
 
 
-def read_vod(root: Path, fid: str):
-    pts = np.fromfile(root / "radar/velodyne" / f"{fid}.bin", dtype="<f4").reshape(-1, 7)
+def kitti_lidar2img(calib: Path) -> np.ndarray:
+    """``P2 @ R0_rect @ Tr_velo_to_cam`` (3 x 4, float64) of a KITTI-format calibration file, read here."""
     m = {}
-    for line in (root / "radar/calib" / f"{fid}.txt").read_text().splitlines():
+    for line in calib.read_text().splitlines():
         key, _, vals = line.partition(":")
         if vals.split():
             m[key] = np.array(vals.split(), dtype=np.float64)
     r0, tr = np.eye(4), np.eye(4)
     r0[:3, :3] = m["R0_rect"].reshape(3, 3)
     tr[:3] = m["Tr_velo_to_cam"].reshape(3, 4)
-    return torch.from_numpy(pts[:, :3].copy()), m["P2"].reshape(3, 4) @ r0 @ tr
+    return m["P2"].reshape(3, 4) @ r0 @ tr
+
+
+def read_vod(root: Path, fid: str):
+    pts = np.fromfile(root / "radar/velodyne" / f"{fid}.bin", dtype="<f4").reshape(-1, 7)
+    return torch.from_numpy(pts[:, :3].copy()), kitti_lidar2img(root / "radar/calib" / f"{fid}.txt")
 
 
 @pytest.mark.realdata
@@ -105,15 +110,7 @@ def test_projection_under_autocast_on_the_real_kitti_frame(realdata_root, amp):
     if not root.is_dir():
         pytest.skip(f"KITTI frame not found at {root}")
     pts = np.fromfile(root / "velodyne/000000.bin", dtype="<f4").reshape(-1, 4)
-    m = {}
-    for line in (root / "calib/000000.txt").read_text().splitlines():
-        key, _, vals = line.partition(":")
-        if vals.split():
-            m[key] = np.array(vals.split(), dtype=np.float64)
-    r0, tr = np.eye(4), np.eye(4)
-    r0[:3, :3] = m["R0_rect"].reshape(3, 3)
-    tr[:3] = m["Tr_velo_to_cam"].reshape(3, 4)
-    l2i = m["P2"].reshape(3, 4) @ r0 @ tr
+    l2i = kitti_lidar2img(root / "calib/000000.txt")
     xyz = torch.from_numpy(pts[:, :3].copy())
     for l2i_t in (torch.from_numpy(l2i), torch.from_numpy(l2i).float()):
         err = max_pixel_error(xyz, l2i, l2i_t, amp, image_hw=(375, 1242))
