@@ -321,7 +321,6 @@ def _touched_level(
     return F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p), mode="sum")
 
 
-
 def _spatial_order(image_index: Tensor, locations: Tensor) -> Tensor:
     """``(Q,)`` permutation of the queries by image, then by band of ``_SORT_BANDS`` rows of the image,
     then along ``u``, of each query's first sampling location (near its reference point)."""
