@@ -214,7 +214,8 @@ class MSDFF(nn.Module):
     def sampling_locations_and_weights(
         self, query: Tensor, uv: Tensor, level_sizes: Sequence[Tuple[int, int]]
     ) -> Tuple[Tensor, Tensor]:
-        """Eq. 9 and the softmax: ``(Q, M, L, P, 2)`` locations and ``(Q, M, L, P)`` weights.
+        """Eq. 9 and the softmax: ``(Q, M, L, P, 2)`` locations (a view of ``(Q, L, 2, M, P)`` memory)
+        and ``(Q, M, L, P)`` weights.
 
         Args:
             query: ``(Q, E)`` queries (one row per voxel-camera pair).
@@ -239,8 +240,13 @@ class MSDFF(nn.Module):
             scale = inv.view(1, l, 1, 2).expand(m, l, p, 2).reshape(-1, 1)  # (M * L * P * 2, 1)
             select = torch.eye(2, dtype=dtype, device=query.device).repeat(m * l * p, 1)  # (M * L * P * 2, 2)
             weight = torch.cat([so.weight.to(dtype) * scale, select], 1)
-            locations = torch.addmm(so.bias.to(dtype) * scale[:, 0], torch.cat([query, uv], 1), weight.t())
-        return locations.view(q, m, l, p, 2), weights
+            bias = so.bias.to(dtype) * scale[:, 0]
+            # Output columns in (L, 2, M, P) order, returned as a (Q, M, L, P, 2) view: one level's x (or
+            # y) of all heads and points is then a contiguous run per query, which the samplers copy
+            # as whole rows (functional/raw_blocks.py, _level_location).
+            perm = torch.arange(m * l * p * 2, device=query.device).view(m, l, p, 2).permute(1, 3, 0, 2).reshape(-1)
+            locations = torch.addmm(bias[perm], torch.cat([query, uv], 1), weight[perm].t())
+        return locations.view(q, l, 2, m, p).permute(0, 3, 1, 4, 2), weights
 
     def forward(
         self, query: Tensor, image_features: Sequence[Tensor], projection: CentroidProjection

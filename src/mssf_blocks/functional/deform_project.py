@@ -78,7 +78,7 @@ def ms_deform_sample_project(
         method: ``"chunked"``, ``"touched"`` or ``"auto"``.
 
     Returns:
-        ``(Q, M, d)`` (the ``"touched"`` method returns a transposed view of head-major memory).
+        ``(Q, M, d)``.
 
     Example:
         >>> val = [torch.ones(1, 1, 2, 2, 2)]  # I = Mv = 1, D = 2, a 2x2 map of ones

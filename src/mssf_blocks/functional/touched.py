@@ -26,7 +26,16 @@ from .plan_costs import (
     _PROJECT_CHUNK,
     _SORT_BANDS,
 )
-from .raw_blocks import _RawLevel, _bag_raw, _corner_weights, _pixel_coordinate, _project_raw_levels
+from .raw_blocks import (
+    _bag_raw,
+    _corner_cells,
+    _corner_weights,
+    _level_location,
+    _LevelLoc,
+    _project_raw_levels,
+    _RawLevel,
+    _top_left_cells,
+)
 
 
 def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
@@ -176,33 +185,37 @@ class _GatherProject(torch.autograd.Function):
 def _touched_level(
     value: Tensor,
     image_index: Tensor,
-    loc: Tensor,
-    wt: Tensor,
+    lv: _LevelLoc,
     w_all: Optional[Tensor],
     b_all: Optional[Tensor],
     m: int,
     plan: Optional[str],
     needs_grad: bool = False,
     defer_projection: bool = False,
+    projection_paid: bool = False,
 ):
-    """One level of the ``"touched"`` method: ``(M * Q, d)`` head-major output.
+    """One level of the ``"touched"`` method: ``(Q, M, d)`` output (possibly a strided view).
 
     With ``defer_projection``, the raw-row plans return a :class:`_RawLevel` instead, for the caller to
     bag with the other levels in blocks of queries and project each block once (``value_proj`` is
-    shared by the levels: one per-head ``bmm`` per block instead of one per level).
+    shared by the levels: one per-head ``bmm`` per block instead of one per level);
+    ``projection_paid``: an earlier level already did, so the raw-row plans' cost leaves that
+    projection out.
 
     With ``w_all=None`` (no projection; used by :func:`bilinear_sample`) the plan is ``"sample"`` and
-    the raw ``(M * Q, D)`` bilinear samples are returned.
+    the raw ``(Q * M, D)`` bilinear samples are returned.
 
-    ``value (I, 1, D, H, W)``, ``loc (Q, M, P, 2)``, ``wt (Q, M, P)``, ``w_all (M * d, D)``,
-    ``b_all (M * d,)``. Corners are located on the level padded by 2 pixels on every side, with the
+    ``value (I, 1, D, H, W)``, ``lv`` the level's points (:func:`_level_locations`; ``lv.loc`` and
+    ``lv.wt`` are needed with ``needs_grad``), ``w_all (M * d, D)``, ``b_all (M * d,)``. Corners are
+    located on the level padded by 2 pixels on every side, with the
     top-left corner clamped to ``[-2, W]`` x ``[-2, H]``: every corner then has a cell of the padded
     grid, and a corner is in the map iff its cell is not in the padding (no per-corner masks). The
-    cells read by some corner are marked in a ``(I, H + 4, W + 4)`` array (O(pixels + corners), no
-    sort); the touched in-map pixels are projected with one GEMM (all heads at once) into a
-    ``(U + 1, M * d)`` table whose last row is zero and which padding cells map to (grid_sample's zero
-    padding, bias included); every corner then reads its head's ``d`` channels of its row in one
-    ``embedding_bag`` weighted by ``bilinear weight * attention weight``.
+    top-left cells are marked in a ``(I, H + 4, W + 4)`` array and the pixels read by some corner are
+    those with a marked cell at offset ``(0, 0)``, ``(0, -1)``, ``(-1, 0)`` or ``(-1, -1)``
+    (O(pixels + points), no sort); the touched in-map pixels are projected with one GEMM (all heads at
+    once) into a ``(U + 1, M * d)`` table whose last row is zero and which padding cells map to
+    (grid_sample's zero padding, bias included); every corner then reads its head's ``d`` channels of
+    its row in one ``embedding_bag`` weighted by ``bilinear weight * attention weight``.
 
     With ``needs_grad`` the plan costs include the backward pass, and the projected plans sample with
     ``F.grid_sample`` from a dense projected map instead (touched rows scattered into zeros for
@@ -210,34 +223,27 @@ def _touched_level(
     weight gradients and a sorted table gradient).
     """
     num_images, _, dch, h, w = value.shape
-    q, _, p, _ = loc.shape
+    q, _, p = lv.x.shape
     e = dch * m if w_all is None else w_all.shape[0]
     d = e // m
-    dev = loc.device
+    dev = value.device
     n_pix = num_images * h * w
     if w_all is None:
         plan = "sample" if plan is None else plan
     hp, wp = h + 4, w + 4
-    lo = loc.permute(1, 0, 2, 3)  # (M, Q, P, 2): head-major, the layout of the per-head output
-    x = _pixel_coordinate(lo[..., 0], w)
-    y = _pixel_coordinate(lo[..., 1], h)
-    x0 = x.detach().floor()
-    y0 = y.detach().floor()
-    # Clamping the top-left corner to [-2, W] keeps every in-map decision (x0 = -2 and x0 = W have
-    # both corners outside) and bounds the integers; the padded cell is (y0 + 2, x0 + 2). int64 cells
-    # (index_fill_ wants them); the rows read by embedding_bag are int32 (its fast path).
-    xc = x0.clamp(-2.0, float(w)).long() + 2
-    yc = y0.clamp(-2.0, float(h)).long() + 2
-    c00 = (image_index.view(1, q, 1) * hp + yc) * wp + xc  # (M, Q, P)
-    cells = torch.stack((c00, c00 + 1, c00 + wp, c00 + wp + 1), 2).view(-1)
+    n_cells = num_images * hp * wp
+    c00 = _top_left_cells(lv, image_index, num_images, h, w)  # (Q, M, P)
 
     # Which in-map pixels are read (the plans "project" and "sample" need them; the choice needs
     # their number U), as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
     inner, u = None, n_pix
     if plan is None or plan in ("project", "sample") or (needs_grad and plan == "dense"):
-        mark = torch.zeros(num_images, hp, wp, dtype=torch.bool, device=dev)
-        mark.view(-1).index_fill_(0, cells, 1)  # (not True: a bool scalar matches no schema under jit.trace)
-        inner = mark[:, 2 : h + 2, 2 : w + 2]
+        mark = torch.zeros(n_cells, dtype=torch.bool, device=dev)
+        mark.index_fill_(0, c00.view(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
+        mark = mark.view(num_images, hp, wp)
+        # pixel (y, x) is some point's corner (0, 0), (0, 1), (1, 0) or (1, 1) away from its top-left cell
+        inner = (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
+            mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
         u = int(inner.sum())
     if plan is None:
         corners = m * q * 4 * p
@@ -245,16 +251,18 @@ def _touched_level(
         gemm = 2.0 if needs_grad else 1.0  # the projection (+ its weight gradient)
         # the projected plans' sampling: d channels per head and corner (per input channel: / D)
         read = corners * d / dch * (_GRID_SAMPLE_COST if needs_grad else _BAG_COST)
+        # the raw-row plans' per-head projection, shared by the levels that take one (deferred)
+        raw_projection = 0.0 if projection_paid else q * e * gemm
         costs = {
             "dense": n_pix * e * gemm + read,
             # (with gradients the touched rows are gathered again for the weight gradient)
             "project": u * (e + _GATHER_COST) * gemm + (n_pix * e * _FILL_COST if needs_grad else 0.0) + read,
-            "sample": u * (_GATHER_COST + _COPY_COST) + corners * _BAG_COST * bag + q * e * gemm,
+            "sample": u * (_GATHER_COST + _COPY_COST) + corners * _BAG_COST * bag + raw_projection,
         }
         if _is_row_table(value):
-            costs["direct"] = corners * _DIRECT_BAG_COST * bag + q * e * gemm
+            costs["direct"] = corners * _DIRECT_BAG_COST * bag + raw_projection
         plan = min(costs, key=costs.get)
-    touched = inner.reshape(-1).nonzero().squeeze(1) if plan in ("project", "sample") else None  # (U,) sorted
+    touched = inner.view(-1).nonzero().squeeze(1) if plan in ("project", "sample") else None  # (U,) sorted
     if needs_grad and plan in ("dense", "project"):
         # Project (every pixel, or the touched ones scattered into zeros: untouched pixels are never
         # read, weight-0 corners included), then grid_sample per head: its fused backward is several
@@ -272,8 +280,8 @@ def _touched_level(
         else:
             projected = _GatherProject.apply(value, touched, w_all, b_all)
             projected = projected.new_zeros(n_pix, e).index_copy(0, touched, projected)
-        return _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, loc, wt)
-    wo = wt.transpose(0, 1)
+        heads = _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, lv.loc, lv.wt)
+        return heads.view(m, q, d).transpose(0, 1)
     n_rows = n_pix if plan in ("dense", "direct") else u
     idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
     remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
@@ -281,44 +289,40 @@ def _touched_level(
         remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
     else:  # the touched pixels' rows, in order
         remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
-    if plan == "direct":
-        # Channels-last maps are a free (I * H * W, D) row table: sample it in place, no gather.
-        table = _row_table(value)
-        plan = "sample"
-    elif plan == "sample":
-        table = _gather_rows(value, touched)  # (U, D) contiguous rows
-    else:
-        # (forward only: with gradients these plans returned above) one (rows + 1, E) table whose
-        # last row, the one padding cells read, is zero
-        table = w_all.new_empty(n_rows + 1, e)
-        table[n_rows].zero_()
-        _project_rows(value, w_all, b_all, None if plan == "dense" else touched, out=table[:n_rows])
-    if plan != "sample":
-        remap *= m  # row r of the (rows + 1, M * d) table is rows r * M + head of its ((rows + 1) * M, d) view
-    rows = remap.view(-1).index_select(0, cells).view(m, -1)  # (M, Q * 4 * P); n_rows: the zero row
-    if plan == "sample":
-        # Sample the D raw channels per head and point from the compact table, then project per head
-        # (Q * D * E) and add the bias times the in-map weight mass. No zero row here (appending one
-        # would copy the U x D table): out-of-map corners get weight 0 and the last row, or, should
-        # that row not be finite, are left out of their bags (_bag_raw).
+    if plan in ("sample", "direct"):
+        # Sample the D raw channels per head and point from the level's rows (channels-last maps are a
+        # free (I * H * W, D) row table: sampled in place) or from a compact table of the touched rows,
+        # then project per head (Q * D * E) and add the bias times the in-map weight mass. No zero row
+        # here (appending one would copy the table): out-of-map corners get weight 0 and the last row,
+        # or, should that row not be finite, are left out of their bags (_bag_raw).
+        table = _row_table(value) if plan == "direct" else _gather_rows(value, touched)
+        rows = remap.view(-1).index_select(0, _corner_cells(c00, wp).view(-1)).view(q, m, 4 * p)
         if n_rows == 0:  # (the empty table keeps the image in the graph: zero gradient, not None)
             table, rows, clamp = value.new_zeros(1, dch) + 0.0 * table.sum(), torch.zeros_like(rows), 0
         else:
             clamp = n_rows - 1 if bool(torch.isfinite(table[n_rows - 1]).all()) else None
-        raw = _RawLevel(lo, wo, rows.view(m, q, 4 * p), table, h, w, n_rows, clamp)
+        raw = _RawLevel(lv, rows, table, n_rows, clamp)
         if defer_projection and w_all is not None:
             return raw  # the caller bags it with the other levels, in blocks of queries
-        sampled, mass = _bag_raw(raw, 0, q)  # (M * Q, D), (M, Q, 1)
+        sampled, mass = _bag_raw(raw, 0, q)  # (Q * M, D), (Q, M, 1)
         if w_all is None:
             return sampled
-        out = torch.bmm(sampled.view(m, q, dch), w_all.view(m, d, dch).transpose(1, 2))  # (M, Q, d)
-        if b_all is not None:
-            out = out + mass * b_all.view(m, 1, d)
-        return out.view(m * q, d)
-    psw = _corner_weights(lo, wo, h, w, x, y).view(m, q * 4 * p)
-    table = table.view(-1, d)  # ((rows + 1) * M, d): row r * M + head
-    rows += torch.arange(m, dtype=idt, device=dev).view(m, 1)
-    return F.embedding_bag(rows.view(m * q, 4 * p), table, per_sample_weights=psw.view(m * q, 4 * p), mode="sum")
+        out = torch.bmm(sampled.view(q, m, dch).transpose(0, 1), w_all.view(m, d, dch).transpose(1, 2))
+        out = out.transpose(0, 1)  # (Q, M, d)
+        return out if b_all is None else out + mass * b_all.view(1, m, d)
+    # (forward only: with gradients these plans returned above) one (rows + 1, E) table whose last row,
+    # the one padding cells read, is zero, viewed ((rows + 1) * M, d): row r * M + head. The head is
+    # folded into the cells (one table of cell -> row per head) rather than added to every corner's row.
+    table = w_all.new_empty(n_rows + 1, e)
+    table[n_rows].zero_()
+    _project_rows(value, w_all, b_all, None if plan == "dense" else touched, out=table[:n_rows])
+    heads = torch.arange(m, dtype=idt, device=dev)
+    remap = torch.addcmul(heads.view(m, 1), remap.view(1, -1), heads.new_full((), m))  # (M, cells): r * M + head
+    c00 = c00.add_((heads.long() * n_cells).view(1, m, 1))
+    rows = remap.view(-1).index_select(0, _corner_cells(c00, wp).view(-1))
+    psw = _corner_weights(lv.x, lv.y, lv.x0, lv.y0, lv.wo)
+    return F.embedding_bag(rows.view(q * m, 4 * p), table.view(-1, d), per_sample_weights=psw.view(q * m, 4 * p),
+                           mode="sum").view(q, m, d)
 
 
 def _spatial_order(image_index: Tensor, locations: Tensor) -> Tensor:
@@ -352,19 +356,24 @@ def _ms_deform_sample_touched(
     # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
     # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
     order = _spatial_order(image_index, locations)
-    locations, weights, image_index = locations[order], weights[order], image_index[order]
+    image_index = image_index[order]
+    if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
+        loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
     out = None
     raws: List[_RawLevel] = []
     for lvl, val in enumerate(levels):
-        part = _touched_level(val, image_index, locations[:, :, lvl], weights[:, :, lvl], w_all, b_all, m, plan,
-                              needs_grad, defer_projection=True)
+        lv = _level_location(locations, weights, lvl, val.shape[-2], val.shape[-1], order)
+        if needs_grad:
+            lv = lv._replace(loc=loc_sorted[:, :, lvl], wt=wt_sorted[:, :, lvl])
+        part = _touched_level(val, image_index, lv, w_all, b_all, m, plan, needs_grad, defer_projection=True,
+                              projection_paid=bool(raws))
         if isinstance(part, _RawLevel):  # raw-row level: bagged with the others in blocks of queries below
             raws.append(part)
         else:
             out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
     if raws:
-        proj = _project_raw_levels(raws, w_all, b_all, m, needs_grad).view(m * q, d)
+        proj = _project_raw_levels(raws, w_all, b_all, m, needs_grad)
         out = proj if out is None else out.add_(proj)
     inverse = torch.empty_like(order)
     inverse[order] = torch.arange(q, device=order.device)
-    return out.view(m, q, d).index_select(1, inverse).transpose(0, 1)  # back to the callers' order
+    return out.index_select(0, inverse)  # back to the callers' order
