@@ -85,14 +85,16 @@ def _is_row_table(value: Tensor) -> bool:
 
 
 def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> Iterator[Tensor]:
-    """Raw rows of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``, as contiguous
-    ``(<= chunk, D)`` pieces in order, gathered one at a time (a consumer that drops each piece keeps
-    one in memory).
+    """Raw rows of the sorted flat pixel ids ``touched`` of ``value (I, 1, D, H, W)``, as ``(<= chunk, D)``
+    pieces in order, gathered one at a time (a consumer that drops each piece keeps one in memory).
 
-    Channels-last maps are one ``(I * H * W, D)`` row table; NCHW maps are read through each image's
-    transposed ``(H * W, D)`` view. Pieces of ``chunk`` sorted pixels keep the reads of every channel
-    plane within a narrow band (measured 2x faster than one gather over a whole 10^5-pixel level) and,
-    when consumed right away (e.g. by a GEMM), are still in cache.
+    Channels-last maps are one ``(I * H * W, D)`` row table (contiguous pieces). NCHW maps are read
+    plane by plane: each channel's ``H * W`` plane at the sorted pixel ids (short forward strides)
+    into a ``(D, n)`` block, yielded as its transposed ``(n, D)`` view, which a GEMM reads in place
+    (measured 30 % faster than gathering rows of the transposed ``(H * W, D)`` view, 10^4-10^5 of the
+    147,136 pixels of a 256-channel P2). Pieces of ``chunk`` sorted pixels keep the reads of every
+    channel plane within a narrow band (measured 2x faster than one gather over a whole 10^5-pixel
+    level) and, when consumed right away (e.g. by a GEMM), are still in cache.
     """
     num_images, _, dch, h, w = value.shape
     table = _row_table(value)
@@ -105,11 +107,11 @@ def _touched_rows(value: Tensor, touched: Tensor, chunk: int) -> Iterator[Tensor
         touched, torch.arange(num_images + 1, device=touched.device, dtype=touched.dtype) * (h * w)
     ).tolist()
     if bounds[-1] == 0:
-        yield value[0, 0].reshape(dch, h * w).t().index_select(0, touched)
+        yield value[0, 0].reshape(dch, h * w).index_select(1, touched).t()
     for i in range(num_images):
-        rows_i = value[i, 0].reshape(dch, h * w).t()  # (H*W, D), stride H*W along D
+        planes = value[i, 0].reshape(dch, h * w)  # (D, H*W): one contiguous plane per channel
         for s in range(bounds[i], bounds[i + 1], chunk):
-            yield rows_i.index_select(0, touched[s : min(s + chunk, bounds[i + 1])] - i * h * w)
+            yield planes.index_select(1, touched[s : min(s + chunk, bounds[i + 1])] - i * h * w).t()
 
 
 def _gather_rows(value: Tensor, touched: Tensor) -> Tensor:
@@ -117,7 +119,7 @@ def _gather_rows(value: Tensor, touched: Tensor) -> Tensor:
     gathered piece by piece straight into it (no second copy) unless autograd must see the gather."""
     if value.requires_grad and torch.is_grad_enabled():
         parts = list(_touched_rows(value, touched, _PROJECT_CHUNK))
-        return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+        return parts[0].contiguous() if len(parts) == 1 else torch.cat(parts, 0)
     table = value.new_empty(touched.numel(), value.shape[2])
     start = 0
     for piece in _touched_rows(value, touched, _PROJECT_CHUNK):
