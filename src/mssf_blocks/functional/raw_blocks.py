@@ -84,6 +84,19 @@ def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int,
     return (image_index.view(-1, 1, 1) * hp + yc.long() + 2) * wp + xc.long() + 2
 
 
+def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
+    """``(I, H, W)`` bool: the in-map pixels that some bilinear corner of the points with top-left cells
+    ``c00`` (:func:`_top_left_cells`) reads. The top-left cells are marked in the padded grid (one write
+    per point, not per corner) and a pixel is read iff its cell or the one left, above or above-left of
+    it is marked."""
+    hp, wp = h + 4, w + 4
+    mark = torch.zeros(num_images * hp * wp, dtype=torch.bool, device=c00.device)
+    mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
+    mark = mark.view(num_images, hp, wp)
+    return (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
+        mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
+
+
 def _corner_cells(c00: Tensor, wp: int) -> Tensor:
     """``(Q, M, 4, P)`` cells of the four bilinear corners, offsets ``(0, 1, Wp, Wp + 1)`` from the
     top-left cells ``c00 (Q, M, P)`` (the order of :func:`_corner_weights`)."""

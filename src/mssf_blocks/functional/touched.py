@@ -34,6 +34,7 @@ from .raw_blocks import (
     _LevelLoc,
     _project_raw_levels,
     _RawLevel,
+    _read_pixels,
     _top_left_cells,
 )
 
@@ -240,12 +241,7 @@ def _touched_level(
     # their number U), as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
     inner, u = None, n_pix
     if plan is None or plan in ("project", "sample") or (needs_grad and plan == "dense"):
-        mark = torch.zeros(n_cells, dtype=torch.bool, device=dev)
-        mark.index_fill_(0, c00.view(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
-        mark = mark.view(num_images, hp, wp)
-        # pixel (y, x) is some point's corner (0, 0), (0, 1), (1, 0) or (1, 1) away from its top-left cell
-        inner = (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
-            mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
+        inner = _read_pixels(c00, num_images, h, w)
         u = int(inner.sum())
     if plan is None:
         corners = m * q * 4 * p

@@ -1,0 +1,121 @@
+"""The corner geometry of the ``"touched"`` plans, checked against hand-written loops, and the point
+layouts they accept: MSDFF's ``(Q, L, 2, M, P)`` locations view and a plain ``(Q, M, L, P, 2)`` tensor
+give the same bits.
+
+``_top_left_cells`` computes the padded cell ids in the floating type while they are exact integers
+there and in int64 beyond; ``_read_pixels`` finds the pixels some corner reads by marking only the
+top-left cells and dilating. Both are compared with a per-point Python loop.
+"""
+
+import itertools
+
+import pytest
+import torch
+
+from mssf_blocks import MSDFF
+from mssf_blocks.functional import raw_blocks
+from mssf_blocks.functional import touched as touched_mod
+from mssf_blocks.functional.raw_blocks import _LevelLoc, _read_pixels, _top_left_cells
+
+
+def _points(q, m, p, h, w, dtype, seed=0):
+    """Floors of pixel coordinates well outside the map, on its borders and inside, as a _LevelLoc."""
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.randint(-6, w + 6, (q, m, p), generator=g).to(dtype)
+    y0 = torch.randint(-6, h + 6, (q, m, p), generator=g).to(dtype)
+    x0.view(-1)[:4] = torch.tensor([-2.0, -1.0, w - 1.0, float(w)], dtype=dtype)  # the clamp's edges
+    y0.view(-1)[:4] = torch.tensor([-3.0, float(h), -1.0, h - 1.0], dtype=dtype)
+    return _LevelLoc(x0, y0, x0, y0, torch.ones(q, m, p, dtype=dtype))
+
+
+def _naive_cell(i, y0, x0, h, w):
+    yc = min(max(int(y0), -2), h) + 2
+    xc = min(max(int(x0), -2), w) + 2
+    return (i * (h + 4) + yc) * (w + 4) + xc
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_top_left_cells_float_and_int64_paths_equal_a_loop(dtype):
+    q, m, p, h, w = 7, 3, 2, 5, 9
+    lv = _points(q, m, p, h, w, dtype)
+    image_index = torch.tensor([0, 2, 1, 2, 0, 1, 2])
+    expected = torch.tensor([[[_naive_cell(int(image_index[a]), lv.y0[a, b, c], lv.x0[a, b, c], h, w)
+                               for c in range(p)] for b in range(m)] for a in range(q)])
+    float_path = _top_left_cells(lv, image_index, 3, h, w)
+    # as many images as make the cell ids inexact in float32 / float64: the int64 path
+    many = 2**53 // ((h + 4) * (w + 4)) + 1 if dtype == torch.float64 else 2**24 // ((h + 4) * (w + 4)) + 1
+    int_path = _top_left_cells(lv, image_index, many, h, w)
+    assert float_path.dtype == int_path.dtype == torch.int64
+    assert torch.equal(float_path, expected)
+    assert torch.equal(int_path, expected)
+
+
+def test_top_left_cells_float_path_exact_at_the_largest_cell_id():
+    # the last image of a batch just below the float32 bound: every id still exact
+    h, w = 60, 90
+    per_image = (h + 4) * (w + 4)
+    num_images = (2**24 - 1) // per_image
+    x, y = torch.full((1, 1, 1), float(w)), torch.full((1, 1, 1), float(h))
+    lv = _LevelLoc(x, y, x, y, torch.ones(1, 1, 1))
+    cells = _top_left_cells(lv, torch.tensor([num_images - 1]), num_images, h, w)
+    assert cells.item() == _naive_cell(num_images - 1, h, w, h, w) < 2**24
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_read_pixels_are_the_in_map_corners_of_every_point(seed):
+    q, m, p, h, w, num_images = 11, 2, 3, 6, 8, 2
+    lv = _points(q, m, p, h, w, torch.float32, seed)
+    image_index = torch.randint(0, num_images, (q,), generator=torch.Generator().manual_seed(seed))
+    expected = torch.zeros(num_images, h, w, dtype=torch.bool)
+    for a, b, c in itertools.product(range(q), range(m), range(p)):
+        for dy, dx in itertools.product((0, 1), (0, 1)):
+            y, x = int(lv.y0[a, b, c]) + dy, int(lv.x0[a, b, c]) + dx
+            if 0 <= y < h and 0 <= x < w:
+                expected[image_index[a], y, x] = True
+    got = _read_pixels(_top_left_cells(lv, image_index, num_images, h, w), num_images, h, w)
+    assert torch.equal(got, expected)
+
+
+def test_msdff_locations_are_a_level_major_view_with_the_reference_values():
+    torch.manual_seed(0)
+    e, c, m, lv_, p = 12, 16, 4, 3, 2
+    mod = MSDFF(e, c, num_heads=m, num_levels=lv_, num_points=p).double()
+    with torch.no_grad():
+        mod.sampling_offsets.weight.normal_(0.0, 0.5)
+        mod.attention_weights.weight.normal_(0.0, 0.5)
+    q = 9
+    query, uv = torch.randn(q, e, dtype=torch.float64), torch.rand(q, 2, dtype=torch.float64)
+    sizes = [(20, 30), (10, 15), (5, 8)]
+    loc, wt = mod.sampling_locations_and_weights(query, uv, sizes)
+    off = (query @ mod.sampling_offsets.weight.T + mod.sampling_offsets.bias).view(q, m, lv_, p, 2)
+    norm = torch.tensor([[w, h] for h, w in sizes], dtype=torch.float64).view(1, 1, lv_, 1, 2)
+    torch.testing.assert_close(loc, uv.view(q, 1, 1, 1, 2) + off / norm, rtol=0, atol=1e-12)
+    logits = (query @ mod.attention_weights.weight.T + mod.attention_weights.bias).view(q, m, lv_ * p)
+    torch.testing.assert_close(wt, logits.softmax(-1).view(q, m, lv_, p), rtol=0, atol=1e-12)
+    # one level's x (or y) of all heads and points is one contiguous run per query
+    assert loc.permute(0, 2, 4, 1, 3).is_contiguous()
+
+
+@pytest.mark.parametrize("layout", ["nchw", "channels_last"])
+def test_touched_output_independent_of_the_locations_layout(layout, monkeypatch):
+    torch.manual_seed(1)
+    q, m, p, d, dch = 40, 4, 2, 3, 8
+    sizes = [(12, 17), (6, 9)]
+    values = [torch.randn(2, 1, dch, h, w) for h, w in sizes]
+    if layout == "channels_last":
+        values = [v.squeeze(1).contiguous(memory_format=torch.channels_last).unsqueeze(1) for v in values]
+    image_index = torch.randint(0, 2, (q,))
+    plain = torch.rand(q, m, len(sizes), p, 2) * 1.2 - 0.1
+    as_view = plain.permute(0, 2, 4, 1, 3).contiguous().permute(0, 3, 1, 4, 2)  # MSDFF's memory order
+    assert torch.equal(as_view, plain) and not as_view.is_contiguous()
+    weights = torch.rand(q, m, len(sizes), p)
+    proj_w, proj_b = torch.randn(m, d, dch), torch.randn(m, d)
+    for plan in ["dense", "project", "sample", None] + (["direct"] if layout == "channels_last" else []):
+        a = touched_mod._ms_deform_sample_touched(values, image_index, plain, weights, proj_w, proj_b, plan)
+        b = touched_mod._ms_deform_sample_touched(values, image_index, as_view, weights, proj_w, proj_b, plan)
+        assert torch.equal(a, b), plan
+    # and blocks of 7 queries for the raw-row plans give the same values as one block
+    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * dch * 4 * 7)
+    c = touched_mod._ms_deform_sample_touched(values, image_index, as_view, weights, proj_w, proj_b, "sample")
+    torch.testing.assert_close(c, touched_mod._ms_deform_sample_touched(values, image_index, plain, weights, proj_w,
+                                                                        proj_b, "dense"), rtol=1e-5, atol=1e-5)
