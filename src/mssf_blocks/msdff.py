@@ -243,7 +243,7 @@ class MSDFF(nn.Module):
             bias = so.bias.to(dtype) * scale[:, 0]
             # Output columns in (L, 2, M, P) order, returned as a (Q, M, L, P, 2) view: one level's x (or
             # y) of all heads and points is then a contiguous run per query, which the samplers copy
-            # as whole rows (functional/raw_blocks.py, _level_location).
+            # as whole rows (functional/raw_blocks.py, _sorted_points).
             perm = torch.arange(m * l * p * 2, device=query.device).view(m, l, p, 2).permute(1, 3, 0, 2).reshape(-1)
             locations = torch.addmm(bias[perm], torch.cat([query, uv], 1), weight[perm].t())
         return locations.view(q, l, 2, m, p).permute(0, 3, 1, 4, 2), weights

@@ -1,8 +1,13 @@
 """Bilinear corners of the ``"touched"`` plans, and the raw-row plans' blocks of queries.
 
+The corners: the levels' points in one contiguous ``(Q, L, 2, M, P)`` block (:func:`_sorted_points`),
+their top-left cells on the level padded by 2 pixels (:func:`_top_left_cells`), the pixels they read
+(:func:`_read_pixels`), the four corners' cells and weights (:func:`_corner_cells`,
+:func:`_corner_weights`). Everything is query-major: a query's heads are adjacent.
+
 A raw-row level (plans ``"sample"`` / ``"direct"`` of :mod:`~mssf_blocks.functional.touched`) samples
 the ``D`` raw channels of every head's corners and is projected per head afterwards; the levels are
-bagged together in blocks of queries (:func:`_project_raw_levels`), so that the ``(M * Q, D)`` raw
+bagged together in blocks of queries (:func:`_project_raw_levels`), so that the ``(Q * M, D)`` raw
 samples never exist whole.
 """
 
@@ -41,31 +46,37 @@ class _LevelLoc(NamedTuple):
     wt: Optional[Tensor] = None
 
 
-def _level_location(locations: Tensor, weights: Tensor, lvl: int, h: int, w: int,
-                    order: Optional[Tensor] = None) -> _LevelLoc:
-    """Level ``lvl``'s points of ``locations (Q, M, L, P, 2)``, ``weights (Q, M, L, P)`` (queries taken in
-    ``order``, if given) on an ``h x w`` level, as a :class:`_LevelLoc` (``loc``/``wt`` left ``None``).
+def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int, int]],
+                   order: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
+    """Every level's points of ``locations (Q, M, L, P, 2)``, ``weights (Q, M, L, P)`` (queries taken in
+    ``order``, if given) on levels of ``sizes`` ``(H_l, W_l)``: ``(Q, L, 2, M, P)`` pixel coordinates
+    (``_pixel_coordinate``'s float operations, so the same bits) and ``(Q, L, M, P)`` weights, both
+    contiguous; :func:`_level` takes one level's :class:`_LevelLoc` out of them.
 
-    One copy into an axis-major ``(Q, 2, M, P)`` block (the reorder folded into it), so that the
-    per-point arithmetic runs on runs of ``M * P`` contiguous values: on the interleaved ``x, y`` of the
-    callers' layout each elementwise operation was 3-4x slower (measured on one core at 8,000
-    queries). The copy itself is a gather of contiguous rows when ``locations`` is a view of
-    ``(Q, L, 2, M, P)`` memory, which is what :meth:`MSDFF.sampling_locations_and_weights
-    <mssf_blocks.MSDFF.sampling_locations_and_weights>` returns. One level at a time and in place:
-    temporaries of every level at once (8 MiB each at 8,000 queries) paid their page faults on every
-    call.
+    Per level and axis, the points of all heads of a query are then one contiguous run: the twenty or so
+    elementwise operations a level does before its first row is read each ran 3-4x slower on strided
+    views of the callers' layout (measured on one core at 8,000 queries). Locations that already are a
+    view of ``(Q, L, 2, M, P)`` memory (what :meth:`MSDFF.sampling_locations_and_weights
+    <mssf_blocks.MSDFF.sampling_locations_and_weights>` returns) are taken by whole rows; others are
+    gathered by rows, then transposed in one copy (2x faster than a strided gather per level). The
+    arithmetic runs in place on that private copy.
     """
-    loc = locations[:, :, lvl].permute(0, 3, 1, 2)
-    wt = weights[:, :, lvl]
-    if order is None:
-        loc, wt = loc.contiguous(), wt.contiguous()
+    lp = locations.permute(0, 2, 4, 1, 3)
+    if lp.is_contiguous():
+        lp = lp.index_select(0, order) if order is not None else lp.clone()
     else:
-        loc, wt = loc.index_select(0, order), wt.index_select(0, order)
-    size = torch.tensor([float(w), float(h)], dtype=loc.dtype, device=loc.device).view(2, 1, 1)
-    # _pixel_coordinate's operations, in place (the same float operations, so the same bits)
-    xy = (loc * 2.0).sub_(1.0).add_(1.0).mul_(size).sub_(1.0).mul_(0.5)
-    xy0 = xy.detach().floor()
-    return _LevelLoc(xy[:, 0], xy[:, 1], xy0[:, 0], xy0[:, 1], wt)
+        lp = (locations if order is None else locations.index_select(0, order)).permute(0, 2, 4, 1, 3).contiguous()
+    wts = weights if order is None else weights.index_select(0, order)
+    size = torch.tensor([[float(w), float(h)] for h, w in sizes], dtype=lp.dtype,
+                        device=lp.device).view(1, len(sizes), 2, 1, 1)
+    xy = lp.mul_(2.0).sub_(1.0).add_(1.0).mul_(size).sub_(1.0).mul_(0.5)
+    return xy, wts.permute(0, 2, 1, 3).contiguous()
+
+
+def _level(xy: Tensor, wts: Tensor, lvl: int) -> _LevelLoc:
+    """Level ``lvl`` of :func:`_sorted_points`' output as a :class:`_LevelLoc` (``loc``/``wt`` left ``None``)."""
+    x, y = xy[:, lvl, 0], xy[:, lvl, 1]
+    return _LevelLoc(x, y, x.detach().floor(), y.detach().floor(), wts[:, lvl])
 
 
 def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int, w: int) -> Tensor:
@@ -99,7 +110,7 @@ def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
 
 def _corner_cells(c00: Tensor, wp: int) -> Tensor:
     """``(Q, M, 4, P)`` cells of the four bilinear corners, offsets ``(0, 1, Wp, Wp + 1)`` from the
-    top-left cells ``c00 (Q, M, P)`` (the order of :func:`_corner_weights`)."""
+    top-left cells ``c00 (Q, M, P)`` (the order of :func:`_corner_weights`), in ``c00``'s dtype."""
     out = c00.new_empty(c00.shape[0], c00.shape[1], 4, c00.shape[2])
     out[:, :, 0] = c00
     for k, off in enumerate((1, wp, wp + 1), 1):
@@ -164,7 +175,7 @@ def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Te
     m, dch = w_heads.shape[0], w_heads.shape[1]
     # head m of every query: a strided (n, D) batch of the query-major samples (BLAS reads it in place)
     out = torch.bmm(acc.view(-1, m, dch).transpose(0, 1), w_heads).transpose(0, 1)  # (n, M, d)
-    return out if b_heads is None else out + mass * b_heads
+    return out if b_heads is None else torch.addcmul(out, mass, b_heads)  # (one pass for out + mass * b)
 
 
 def _project_raw_levels(raws: List[_RawLevel], w_all: Tensor, b_all: Optional[Tensor], m: int,

@@ -36,7 +36,7 @@ from .._static import use_static_path
 from ..errors import MSSFError
 from .plan_costs import bilinear_auto_method
 from .static import grid_sample_static
-from .raw_blocks import _level_location, _pixel_coordinate
+from .raw_blocks import _level, _pixel_coordinate, _sorted_points
 from .touched import _is_row_table, _touched_level
 
 __all__ = [
@@ -136,7 +136,7 @@ def bilinear_sample(
     ones = uv.new_ones(n, 1, 1, 1)
     rows = []
     for cam in range(v):
-        lv = _level_location(uv[:, cam].view(n, 1, 1, 1, 2), ones, 0, h, w)
+        lv = _level(*_sorted_points(uv[:, cam].view(n, 1, 1, 1, 2), ones, [(h, w)]), 0)
         # (a channels-last map is its own row table: its rows are bagged in place, no gather)
         plan = "direct" if _is_row_table(image[:, cam : cam + 1]) else "sample"
         rows.append(_touched_level(image[:, cam : cam + 1], batch_index, lv, None, None, 1, plan))
