@@ -29,7 +29,7 @@ _DIRECT_BAG_COST = _BAG_COST
 # "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)
-# The raw-row plans bag their queries in blocks of this many bytes of (M * queries, D) samples
+# The raw-row plans bag their queries in blocks of this many bytes of (queries * M, D) samples
 # (benchmarks/msdff.py; 4 MiB = 512 queries at M = 8, D = 256 float32).
 _RAW_CHUNK_BYTES = 4 << 20
 # The touched plans take the queries in image order (by image, band of rows, then u): neighbouring
