@@ -130,14 +130,14 @@ def bilinear_sample(
         return out + 0 * uv.sum() if uv.requires_grad else out
     # Every camera: the 4 bilinear corners of every point, the distinct in-map corner pixels gathered
     # once (sorted reads along each channel plane), one embedding_bag over that compact table (the
-    # "sample" plan of the touched method; a channels-last map is bagged in place, "direct"). For NCHW maps this reads each needed pixel once instead of
+    # "sample" plan of the touched method). For NCHW maps this reads each needed pixel once instead of
     # 4 scattered channel planes per point (grid_sample): measured 2-6x faster on one core for 10^3-10^4
-    # points on 256-channel NCHW P2/P3 levels, clustered or spread.
+    # points on 256-channel NCHW P2/P3 levels, clustered or spread. A channels-last map is its own row
+    # table: its rows are bagged in place, no gather (the "direct" plan).
     ones = uv.new_ones(n, 1, 1, 1)
     rows = []
     for cam in range(v):
         lv = _level(*_sorted_points(uv[:, cam].view(n, 1, 1, 1, 2), ones, [(h, w)]), 0)
-        # (a channels-last map is its own row table: its rows are bagged in place, no gather)
         plan = "direct" if _is_row_table(image[:, cam : cam + 1]) else "sample"
         rows.append(_touched_level(image[:, cam : cam + 1], batch_index, lv, None, None, 1, plan))
     out = torch.stack(rows, 1)  # (N, V, C)

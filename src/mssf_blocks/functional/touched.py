@@ -206,8 +206,9 @@ def _touched_level(
     ``projection_paid``: an earlier level already did, so the raw-row plans' cost leaves that
     projection out.
 
-    With ``w_all=None`` (no projection; used by :func:`bilinear_sample`) the plan is ``"sample"`` and
-    the raw ``(Q * M, D)`` bilinear samples are returned.
+    With ``w_all=None`` (no projection; used by :func:`bilinear_sample`) the plan is ``"sample"`` (or
+    the given raw-row plan, ``"direct"`` for a channels-last map) and the raw ``(Q * M, D)`` bilinear
+    samples are returned.
 
     ``value (I, 1, D, H, W)``, ``lv`` the level's points (:func:`_level`; ``lv.loc`` and
     ``lv.wt`` are needed with ``needs_grad``), ``w_all (M * d, D)``, ``b_all (M * d,)``. Corners are
