@@ -23,11 +23,14 @@ from torch.utils.checkpoint import checkpoint
 from .plan_costs import _RAW_CHUNK_BYTES
 
 
-def _pixel_coordinate(loc: Tensor, size: Tensor) -> Tensor:
+def _pixel_coordinate(loc: Tensor, size: Tensor, inplace: bool = False) -> Tensor:
+    """Pixel coordinates of normalised locations on a level of ``size`` pixels (broadcast), in place on
+    ``loc`` with ``inplace`` (a private copy; no new tensor per step)."""
     # The exact float operations of grid_sample (grid = 2*loc - 1, unnormalise with
     # align_corners=False) so that floor() -- and hence the one-sided gradient at integer pixel
-    # coordinates -- agrees bit for bit with the reference path.
-    return ((2.0 * loc - 1.0 + 1.0) * size - 1.0) * 0.5  # (* 0.5 is / 2 exactly, and faster)
+    # coordinates -- agrees bit for bit with the reference path. (* 0.5 is / 2 exactly, and faster.)
+    doubled = loc.mul_(2.0) if inplace else loc * 2.0
+    return doubled.sub_(1.0).add_(1.0).mul_(size).sub_(1.0).mul_(0.5)
 
 
 class _LevelLoc(NamedTuple):
@@ -50,7 +53,7 @@ def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int
                    order: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
     """Every level's points of ``locations (Q, M, L, P, 2)``, ``weights (Q, M, L, P)`` (queries taken in
     ``order``, if given) on levels of ``sizes`` ``(H_l, W_l)``: ``(Q, L, 2, M, P)`` pixel coordinates
-    (``_pixel_coordinate``'s float operations, so the same bits) and ``(Q, L, M, P)`` weights, both
+    (:func:`_pixel_coordinate`, in place on the copy) and ``(Q, L, M, P)`` weights, both
     contiguous; :func:`_level` takes one level's :class:`_LevelLoc` out of them.
 
     Per level and axis, the points of all heads of a query are then one contiguous run: the twenty or so
@@ -58,8 +61,7 @@ def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int
     views of the callers' layout (measured on one core at 8,000 queries). Locations that already are a
     view of ``(Q, L, 2, M, P)`` memory (what :meth:`MSDFF.sampling_locations_and_weights
     <mssf_blocks.MSDFF.sampling_locations_and_weights>` returns) are taken by whole rows; others are
-    gathered by rows, then transposed in one copy (2x faster than a strided gather per level). The
-    arithmetic runs in place on that private copy.
+    gathered by rows, then transposed in one copy (2x faster than a strided gather per level).
     """
     lp = locations.permute(0, 2, 4, 1, 3)
     if lp.is_contiguous():
@@ -69,8 +71,7 @@ def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int
     wts = weights if order is None else weights.index_select(0, order)
     size = torch.tensor([[float(w), float(h)] for h, w in sizes], dtype=lp.dtype,
                         device=lp.device).view(1, len(sizes), 2, 1, 1)
-    xy = lp.mul_(2.0).sub_(1.0).add_(1.0).mul_(size).sub_(1.0).mul_(0.5)
-    return xy, wts.permute(0, 2, 1, 3).contiguous()
+    return _pixel_coordinate(lp, size, inplace=True), wts.permute(0, 2, 1, 3).contiguous()
 
 
 def _level(xy: Tensor, wts: Tensor, lvl: int) -> _LevelLoc:
