@@ -299,13 +299,11 @@ def _touched_level(
         # here (appending one would copy the table): out-of-map corners get weight 0 and the last row,
         # or, should that row not be finite, are left out of their bags (_bag_raw).
         table = _row_table(value) if plan == "direct" else _gather_rows(value, touched)
-        cells = _corner_cells(c00.to(cdt), wp)
-        rows = remap.view(-1).index_select(0, cells.view(-1)).view(q, m, 4 * p)
         if n_rows == 0:  # (the empty table keeps the image in the graph: zero gradient, not None)
-            table, rows, clamp = value.new_zeros(1, dch) + 0.0 * table.sum(), torch.zeros_like(rows), 0
+            table, clamp = value.new_zeros(1, dch) + 0.0 * table.sum(), 0  # (every cell maps to its row 0)
         else:
             clamp = n_rows - 1 if bool(torch.isfinite(table[n_rows - 1]).all()) else None
-        raw = _RawLevel(lv, rows, table, n_rows, clamp)
+        raw = _RawLevel(lv, c00.to(cdt), remap.view(-1), wp, table, n_rows, clamp)
         if defer_projection and w_all is not None:
             return raw  # the caller bags it with the other levels, in blocks of queries
         sampled, mass = _bag_raw(raw, 0, q)  # (Q * M, D), (Q, M, 1)
@@ -376,9 +374,8 @@ def _ms_deform_sample_touched(
             raws.append(part)
         else:
             out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
-    if raws:
-        proj = _project_raw_levels(raws, w_all, b_all, m, needs_grad)
-        out = proj if out is None else out.add_(proj)
+    if raws:  # the sum of every level, back in the callers' order
+        return _project_raw_levels(raws, w_all, b_all, m, needs_grad, base=out, order=order)
     inverse = torch.empty_like(order)
     inverse[order] = torch.arange(q, device=order.device)
     return out.index_select(0, inverse)  # back to the callers' order
