@@ -82,6 +82,7 @@ from _common import measure, print_table, reexec_with_mmap_threshold, write_json
 
 _measure = measure
 
+from mssf_blocks import MSDFF  # noqa: E402
 from mssf_blocks.functional import ms_deform_sample, ms_deform_sample_project  # noqa: E402
 from mssf_blocks.functional.plan_costs import _RAW_CHUNK_BYTES  # noqa: E402
 from mssf_blocks.functional.touched import _spatial_order  # noqa: E402
@@ -92,17 +93,25 @@ HEADS, POINTS = 8, 4
 
 
 class ImagePath(nn.Module):
-    """The parameters of MSDFF's image path (Deformable DETR names) and its two formulations."""
+    """The parameters of MSDFF's image path (Deformable DETR names) and its two formulations.
+
+    The parameters are an :class:`~mssf_blocks.MSDFF`'s, and both formulations take their sampling
+    locations and weights from the module's own ``sampling_locations_and_weights`` (what MSDFF's forward
+    runs; one GEMM for the locations, in the level-major memory the samplers read by rows), so that
+    the paths differ only in how they sample and project the image.
+    """
 
     def __init__(self, embed_dim: int, levels: int = len(STRIDES), value_dim: int = None) -> None:
         super().__init__()
         m, l, p = HEADS, levels, POINTS
         value_dim = embed_dim if value_dim is None else value_dim
         self.m, self.l, self.p, self.d = m, l, p, value_dim // m
-        self.sampling_offsets = nn.Linear(embed_dim, m * l * p * 2)
-        self.attention_weights = nn.Linear(embed_dim, m * l * p)
-        self.value_proj = nn.Linear(IMAGE_CHANNELS, value_dim)
-        self.output_proj = nn.Linear(value_dim, embed_dim)
+        self.module = MSDFF(embed_dim, IMAGE_CHANNELS, value_dim=value_dim, num_heads=m, num_levels=l,
+                            num_points=p, norm_layer=None)
+        self.sampling_offsets = self.module.sampling_offsets
+        self.attention_weights = self.module.attention_weights
+        self.value_proj = self.module.value_proj
+        self.output_proj = self.module.output_proj
         # Deformable DETR start (direction grid of 1..P pixels per head) plus small query-dependent
         # offsets and weights, so that points differ between queries as after training.
         g = torch.Generator().manual_seed(1)
@@ -116,11 +125,8 @@ class ImagePath(nn.Module):
             self.attention_weights.weight.normal_(0, 0.1, generator=g)
 
     def locations_and_weights(self, query, uv, sizes):
-        q = query.shape[0]
-        off = self.sampling_offsets(query).view(q, self.m, self.l, self.p, 2)
-        wt = self.attention_weights(query).view(q, self.m, -1).softmax(-1).view(q, self.m, self.l, self.p)
-        norm = torch.tensor([[w, h] for h, w in sizes], dtype=off.dtype)
-        return uv[:, None, None, None, :] + off / norm[None, None, :, None, :], wt
+        """``(Q, M, L, P, 2)`` locations ``uv + offset / (W_l, H_l)`` and ``(Q, M, L, P)`` softmax weights."""
+        return self.module.sampling_locations_and_weights(query, uv, sizes)
 
     def reference(self, query, uv, feats):
         loc, wt = self.locations_and_weights(query, uv, [f.shape[-2:] for f in feats])
