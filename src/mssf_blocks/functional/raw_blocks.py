@@ -191,9 +191,8 @@ def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Te
 def _project_raw_levels(raws: List[_RawLevel], w_all: Tensor, b_all: Optional[Tensor], m: int,
                         needs_grad: bool, base: Optional[Tensor] = None, order: Optional[Tensor] = None) -> Tensor:
     """``(Q, M, d)`` per-head projection of the raw samples of ``raws`` summed over the levels, plus
-    ``base (Q, M, d)`` (the other levels' sum, if any); with ``order`` (the queries' permutation, forward
-    only) row ``order[i]`` of the result is query ``i``'s, each block written straight into place
-    (no concatenation, no separate sum or un-permuting pass).
+    ``base (Q, M, d)`` (the other levels' sum, if any; forward only: summed into in place); with
+    ``order`` (the permutation that sorted the callers' queries) put back in the callers' order.
 
     The bags are query-major (a query's heads one after another, the queries in image order): the
     rows that consecutive bags read then lie in one band of the image, which stays in cache, instead of
@@ -212,13 +211,16 @@ def _project_raw_levels(raws: List[_RawLevel], w_all: Tensor, b_all: Optional[Te
     w_heads = w_all.view(m, d, dch).transpose(1, 2)
     b_heads = None if b_all is None else b_all.view(1, m, d)
     step = max(1, _RAW_CHUNK_BYTES // (m * dch * raws[0].table.element_size()))
-    if order is not None and not needs_grad:
-        out = w_all.new_empty(q, m, d)
+    if not needs_grad:  # each block summed straight into place (no concatenation, no separate sum)
+        out = w_all.new_empty(q, m, d) if base is None else base
         for s in range(0, q, step):
             e = min(s + step, q)
             part = _project_raw_block(raws, s, e, w_heads, b_heads)
-            out.index_copy_(0, order[s:e], part if base is None else part.add_(base[s:e]))
-        return out
+            if base is None:
+                out[s:e] = part
+            else:
+                out[s:e].add_(part)
+        return out if order is None else out.index_select(0, _inverse(order))
     outs = []
     for s in range(0, q, step):
         args = (raws, s, min(s + step, q), w_heads, b_heads)
@@ -228,8 +230,11 @@ def _project_raw_levels(raws: List[_RawLevel], w_all: Tensor, b_all: Optional[Te
             outs.append(_project_raw_block(*args))
     out = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
     out = out if base is None else base.add_(out)  # (no backward here needs the other levels' sum)
-    if order is None:
-        return out
+    return out if order is None else out.index_select(0, _inverse(order))
+
+
+def _inverse(order: Tensor) -> Tensor:
+    """The inverse of the permutation ``order``."""
     inverse = torch.empty_like(order)
-    inverse[order] = torch.arange(q, device=order.device)
-    return out.index_select(0, inverse)
+    inverse[order] = torch.arange(order.numel(), device=order.device)
+    return inverse

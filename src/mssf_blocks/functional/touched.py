@@ -30,6 +30,7 @@ from .raw_blocks import (
     _bag_raw,
     _corner_cells,
     _corner_weights,
+    _inverse,
     _level,
     _LevelLoc,
     _project_raw_levels,
@@ -376,6 +377,4 @@ def _ms_deform_sample_touched(
             out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
     if raws:  # the sum of every level, back in the callers' order
         return _project_raw_levels(raws, w_all, b_all, m, needs_grad, base=out, order=order)
-    inverse = torch.empty_like(order)
-    inverse[order] = torch.arange(q, device=order.device)
-    return out.index_select(0, inverse)  # back to the callers' order
+    return out.index_select(0, _inverse(order))  # back to the callers' order
