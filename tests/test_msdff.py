@@ -4,6 +4,7 @@ loops over voxels / cameras / heads), gradcheck in float64, Deformable DETR's pa
 initialisation, hand-worked offsets. Shared SFF / MSDFF behaviour and bad input: ``test_fusion.py``.
 """
 
+import copy
 import math
 import sys
 from pathlib import Path
@@ -216,5 +217,43 @@ def test_msdff_one_camera_all_seen_matches_reference(method, width):
     query = torch.randn(8, 8, generator=gen, dtype=D64)
     want, _, _ = reference_msdff(mod, query, levels, uv, valid, bidx)
     assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
+    assert gradcheck64(lambda q, l0, u: mod(q, [l0, levels[1]], make_projection(u, valid, bidx)),
+                       (query, levels[0], uv))
+
+
+@pytest.mark.parametrize("width", WIDTHS)
+@pytest.mark.parametrize("method", ["auto", "fast", "reference"])
+def test_msdff_one_camera_some_unseen_matches_reference(method, width):
+    # MSDFF's path for one camera that misses some voxels (queries of the seen voxels only, output
+    # projection on their rows) against the reference, in eval and in train mode (BatchNorm statistics
+    # of the seen voxels only), with gradients
+    gen = torch.Generator().manual_seed(24)
+    levels, uv, valid, bidx = scene(gen, v=1, n=9, chans=(4, 4))
+    valid[:] = True
+    valid[[0, 4, 8]] = False
+    uv[4] = torch.tensor([5.0, -3.0], dtype=D64)  # an unseen voxel's uv is never read
+    uv[2] = torch.tensor([0.01, 0.99], dtype=D64)  # partly outside
+    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64,
+                **width_kw(width, 8)).eval()
+    randomize_msdff(mod, gen)
+    query = torch.randn(9, 8, generator=gen, dtype=D64)
+    want, _, _ = reference_msdff(mod, query, levels, uv, valid, bidx)
+    got = mod(query, levels, make_projection(uv, valid, bidx))
+    assert_close(got, want)
+    assert torch.equal(got[[0, 4, 8]], torch.zeros(3, 8, dtype=D64))
+    seen = valid[:, 0]
+    plain = copy.deepcopy(mod)  # its norm an exact identity in eval: the reference's pre-norm rows
+    with torch.no_grad():
+        plain.norm.running_mean.zero_()
+        plain.norm.running_var.fill_(1.0 - plain.norm.eps)
+        plain.norm.weight.fill_(1.0)
+        plain.norm.bias.zero_()
+    pre = reference_msdff(plain, query, levels, uv, valid, bidx)[0][seen]
+    mod.train()
+    out = mod(query, levels, make_projection(uv, valid, bidx))
+    bn = (pre - pre.mean(0)) / torch.sqrt(pre.var(0, unbiased=False) + mod.norm.eps)
+    assert_close(out[seen], bn * mod.norm.weight + mod.norm.bias)
+    assert torch.equal(out[~seen], torch.zeros(3, 8, dtype=D64))
+    mod.eval()
     assert gradcheck64(lambda q, l0, u: mod(q, [l0, levels[1]], make_projection(u, valid, bidx)),
                        (query, levels[0], uv))

@@ -150,11 +150,15 @@ def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: T
     if static or use_static_path():  # (no row gather: a mask, and masked BatchNorm statistics)
         return linear_norm_visible_static(linear, norm, x, visible)
     rows = visible.nonzero().squeeze(1)
-    if rows.numel() == x.shape[0]:  # every voxel seen (the usual case): no gather / scatter copies
+    if rows.numel() == x.shape[0]:  # every voxel seen: no gather / scatter copies
         return norm(linear(x))
-    y = norm(linear(x[rows]))
-    out = y.new_zeros(x.shape[0], y.shape[1])
-    return out.index_put((rows,), y)
+    return _linear_bn_rows(linear, norm, x[rows], rows, x.shape[0])
+
+
+def _linear_bn_rows(linear: nn.Module, norm: nn.Module, x_rows: Tensor, rows: Tensor, n: int) -> Tensor:
+    """``(n, C)``: ``norm(linear(x_rows))`` at the rows ``rows`` (the visible voxels), exact zeros elsewhere."""
+    y = norm(linear(x_rows))
+    return y.new_zeros(n, y.shape[1]).index_put((rows,), y)
 
 
 def _corner_aligned_uv(uv: Tensor, height: int, width: int) -> Tensor:

@@ -17,6 +17,7 @@ from ._fusion_utils import (
     _autocast_off,
     _check_projection,
     _factory,
+    _linear_bn_rows,
     _linear_bn_visible,
     _norm,
     _sampling_dtype,
@@ -288,9 +289,17 @@ class MSDFF(nn.Module):
                     weights = weights[:, None].expand((n, v) + weights.shape[1:]).flatten(0, 1)
                 image_index = (batch_index[:, None] * v + torch.arange(v, device=uv.device)).reshape(-1)
             elif v == 1 and bool(valid.all()):
-                one_each = True  # one camera that sees every voxel (the usual case): no gathers or scatters
+                one_each = True  # one camera that sees every voxel: no gathers or scatters
                 locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
                 image_index = batch_index
+            elif v == 1:
+                # One camera that misses some voxels (the usual case: the radar sees wider than the
+                # camera): the seen voxels' queries only, their uv in the locations' GEMM as in the case
+                # above, and the output projection on those rows, scattered once at the end.
+                one_each = False
+                n_idx = valid[:, 0].nonzero().squeeze(1)
+                locations, weights = self.sampling_locations_and_weights(query[n_idx], uv[n_idx, 0], sizes)
+                image_index = batch_index[n_idx]
             else:
                 one_each = False
                 n_idx, v_idx = valid.nonzero(as_tuple=True)
@@ -326,15 +335,18 @@ class MSDFF(nn.Module):
                                          b_heads.reshape(e))  # (I, H, W, E)
                     values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
                 heads = ms_deform_sample(values, image_index, locations, weights, method=method)
-            if one_each:
-                attended = heads.reshape(n, e)
+            if one_each or (v == 1 and not static):
+                attended = heads.reshape(-1, e)
             elif static:
                 attended = camera_mean(heads.reshape(n, v, e), valid)
             else:
                 per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
                 attended = camera_mean(per_camera, valid)
         attended = attended.to(self.output_proj.weight.dtype)
-        f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
+        if v == 1 and not static and not one_each:  # (the seen voxels' rows only)
+            f_img = _linear_bn_rows(self.output_proj, self.norm, attended, n_idx, n)
+        else:
+            f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
         if self.output_dropout:
             f_img = F.dropout(f_img, self.output_dropout, self.training)
         return query.to(f_img.dtype) + f_img if self.add_query else f_img
