@@ -96,7 +96,13 @@ def sample_at_projection(image_feature: Tensor, projection: CentroidProjection, 
     if align_corners:
         uv = _corner_aligned_uv(uv, level.shape[-2], level.shape[-1])
     with _autocast_off(level.device.type):
-        return camera_mean(bilinear_sample(level.to(dtype), uv, batch_index, valid), valid)
+        return _mean_of_samples(bilinear_sample(level.to(dtype), uv, batch_index, valid), valid)
+
+
+def _mean_of_samples(sampled: Tensor, valid: Tensor) -> Tensor:
+    """:func:`camera_mean` of :func:`bilinear_sample`'s ``(N, V, C)`` output, whose unseen entries are
+    exact zeros already: with one camera, the samples themselves (no pass over them)."""
+    return sampled[:, 0] if sampled.shape[1] == 1 else camera_mean(sampled, valid)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -225,9 +231,9 @@ class SFF(nn.Module):
         uv = uv.to(dtype)
         with _autocast_off(uv.device.type):
             parts = [
-                camera_mean(bilinear_sample(_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "SFF"),
-                                            _corner_aligned_uv(uv, *lvl.shape[-2:]) if self.align_corners else uv,
-                                            batch_index, valid), valid)
+                _mean_of_samples(bilinear_sample(_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "SFF"),
+                                                 _corner_aligned_uv(uv, *lvl.shape[-2:]) if self.align_corners else uv,
+                                                 batch_index, valid), valid)
                 for i, lvl in enumerate(levels)
             ]
             return torch.cat(parts, dim=1)
