@@ -126,3 +126,33 @@ def test_backward_keeps_no_raw_samples(monkeypatch):
     assert max(saved) < m * block * d_raw, f"a saved tensor of {max(saved)} elements (raw samples kept?)"
     out.sum().backward()
     assert bool(proj_w.grad.abs().sum() > 0) and bool(locations.grad.abs().sum() > 0)
+
+
+@pytest.mark.parametrize("block_queries", [1, 4, 23, 1000])
+@pytest.mark.parametrize("plans", [("dense", "dense", "dense"), ("project", "project", "project"),
+                                   ("direct", "dense", "project"), ("project", "direct", "dense")])
+def test_forward_blocks_of_projected_and_raw_levels_equal_reference(monkeypatch, plans, block_queries):
+    # Without gradients the projected levels ("dense", "project") are sampled block by block with the
+    # raw-row levels: any mix of plans and any block size gives the reference's output.
+    values, image_index, locations, weights, proj_w, proj_b = inputs()
+    m, d_raw = proj_w.shape[0], proj_w.shape[2]
+    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
+    level_plan = {tuple(v.shape[-2:]): plan for v, plan in zip(values, plans)}
+    calls = []
+    original = touched_mod._touched_level
+
+    def per_level_plan(value, *args, **kwargs):  # (plan is the 7th positional argument)
+        args = list(args)
+        args[5] = level_plan[tuple(value.shape[-2:])]
+        part = original(value, *args, **kwargs)
+        calls.append(type(part).__name__)
+        return part
+
+    monkeypatch.setattr(touched_mod, "_touched_level", per_level_plan)
+    want = reference(values, image_index, locations, weights, proj_w, proj_b)
+    vals = [channels_last(v) for v in values]
+    with torch.no_grad():
+        got = touched_mod._ms_deform_sample_touched(vals, image_index, locations, weights, proj_w, proj_b)
+    assert_close(got, want)
+    expected = ["_RawLevel" if plan == "direct" else "_ProjectedLevel" for plan in plans]
+    assert calls == expected  # every level deferred to the blocks

@@ -1,4 +1,4 @@
-"""Bilinear corners of the ``"touched"`` plans, and the raw-row plans' blocks of queries.
+"""Bilinear corners of the ``"touched"`` plans, and the levels' blocks of queries.
 
 The corners: the levels' points in one contiguous ``(Q, L, 2, M, P)`` block (:func:`_sorted_points`),
 their top-left cells on the level padded by 2 pixels (:func:`_top_left_cells`), the pixels they read
@@ -6,9 +6,10 @@ their top-left cells on the level padded by 2 pixels (:func:`_top_left_cells`), 
 :func:`_corner_weights`). Everything is query-major: a query's heads are adjacent.
 
 A raw-row level (plans ``"sample"`` / ``"direct"`` of :mod:`~mssf_blocks.functional.touched`) samples
-the ``D`` raw channels of every head's corners and is projected per head afterwards; the levels are
-bagged together in blocks of queries (:func:`_project_raw_levels`), so that the ``(Q * M, D)`` raw
-samples never exist whole.
+the ``D`` raw channels of every head's corners and is projected per head afterwards; a projected
+level (plans ``"dense"`` / ``"project"``) samples its head's ``d`` channels of a projected table. In
+forward both are bagged together in blocks of queries (:func:`_sum_levels`), so that the
+``(Q * M, D)`` raw samples never exist whole and every block's corner arrays stay in cache.
 """
 
 from __future__ import annotations
@@ -173,6 +174,28 @@ def _bag_raw(raw: _RawLevel, start: int, stop: int):
     return sampled, psw.view(-1, m, k).sum(-1, keepdim=True)
 
 
+class _ProjectedLevel(NamedTuple):
+    """A projected level (plans ``"dense"`` / ``"project"``, forward only), ready to be bagged for any
+    block of queries: ``lv`` its points, ``c00 (Q, M, P)`` their top-left cells with the head folded in
+    (head ``h``'s cells offset by ``h`` times the padded grid's size), ``remap`` the flat (head, cell) ->
+    row map of ``table ((rows + 1) * M, d)`` (row ``r * M + h``: head ``h``'s channels of projected row
+    ``r``; padding cells read the last, zero row), ``wp`` the padded grid's width."""
+
+    lv: _LevelLoc
+    c00: Tensor
+    remap: Tensor
+    wp: int
+    table: Tensor
+
+
+def _bag_projected(lvl: _ProjectedLevel, start: int, stop: int) -> Tensor:
+    """``(n, M, d)`` samples of the queries ``[start, stop)`` of a projected level."""
+    m, k = lvl.c00.shape[1], 4 * lvl.c00.shape[2]
+    rows = lvl.remap.index_select(0, _corner_cells(lvl.c00[start:stop], lvl.wp).view(-1)).view(-1, k)
+    psw = _corner_weights(*(t[start:stop] for t in lvl.lv[:5])).view(-1, k)
+    return F.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, m, lvl.table.shape[1])
+
+
 def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Tensor,
                        b_heads: Optional[Tensor]) -> Tensor:
     """``(n, M, d)`` per-head projection (bias times mass included) of the raw samples of the queries
@@ -188,46 +211,59 @@ def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Te
     return out if b_heads is None else torch.addcmul(out, mass, b_heads)  # (one pass for out + mass * b)
 
 
-def _project_raw_levels(raws: List[_RawLevel], w_all: Tensor, b_all: Optional[Tensor], m: int,
-                        needs_grad: bool, base: Optional[Tensor] = None, order: Optional[Tensor] = None) -> Tensor:
-    """``(Q, M, d)`` per-head projection of the raw samples of ``raws`` summed over the levels, plus
-    ``base (Q, M, d)`` (the other levels' sum, if any; forward only: summed into in place); with
-    ``order`` (the permutation that sorted the callers' queries) put back in the callers' order.
+def _sum_levels(raws: List[_RawLevel], projected: List[_ProjectedLevel], w_all: Tensor, b_all: Optional[Tensor],
+                m: int, needs_grad: bool, base: Optional[Tensor] = None, order: Optional[Tensor] = None) -> Tensor:
+    """``(Q, M, d)`` sum over the levels: the ``projected`` levels' samples (forward only), the per-head
+    projection of the raw samples of ``raws``, and ``base (Q, M, d)`` (levels sampled otherwise, if
+    any; forward only: summed into in place); with ``order`` (the permutation that sorted the callers'
+    queries) put back in the callers' order.
+
+    Every level's corners are handled a block of queries at a time: the block's cells, rows and
+    weights (``(block, M, 4 * P)`` each, a few hundred KiB) are reused from the heap block after
+    block. Taken for all queries at once (as the projected levels were), they are several MiB each at
+    8,000 queries, and under glibc's default allocator settings such temporaries come back as fresh
+    pages on many calls (measured with the reference run between calls, 2,500 uniform queries of
+    benchmarks/msdff.py: 4,300 page faults a call before, none after; 63.4 -> 61.6 ms).
 
     The bags are query-major (a query's heads one after another, the queries in image order): the
     rows that consecutive bags read then lie in one band of the image, which stays in cache, instead of
     every head sweeping the whole band again (measured 25-40 % faster bags on the 150-MiB P2 level at
     2,500-8,000 queries, one core). The queries are taken ``_RAW_CHUNK_BYTES`` of ``(block * M, D)``
-    samples at a time: the whole
-    ``(Q * M, D)`` block (65 MiB at 8,000 queries and 256 channels) would cost its size in memory and,
-    above glibc's mmap threshold, its page faults on every call; a block of a few MiB is reused from
-    the heap and stays in cache for the projection (measured 14-24 % faster forward at 8,000 voxels).
-    With gradients every block is recomputed in backward (activation checkpointing): autograd then
-    keeps the levels' corner rows instead of the raw samples and the corner weights of every block.
+    raw samples at a time: the whole ``(Q * M, D)`` block (65 MiB at 8,000 queries and 256 channels)
+    would cost its size in memory and, above glibc's mmap threshold, its page faults on every call; a
+    block of a few MiB is reused from the heap and stays in cache for the projection (measured 14-24 %
+    faster forward at 8,000 voxels); the projected levels take the same blocks. With gradients every
+    raw block is recomputed in backward (activation checkpointing): autograd then keeps the levels'
+    corner rows instead of the raw samples and the corner weights of every block.
     """
-    q = raws[0].c00.shape[0]
-    dch = raws[0].table.shape[1]
-    d = w_all.shape[0] // m
+    q = (raws or projected)[0].c00.shape[0]
+    d, dch = w_all.shape[0] // m, w_all.shape[1]
     w_heads = w_all.view(m, d, dch).transpose(1, 2)
     b_heads = None if b_all is None else b_all.view(1, m, d)
-    step = max(1, _RAW_CHUNK_BYTES // (m * dch * raws[0].table.element_size()))
+    step = max(1, _RAW_CHUNK_BYTES // (m * dch * w_all.element_size()))
     if not needs_grad:  # each block summed straight into place (no concatenation, no separate sum)
         out = w_all.new_empty(q, m, d) if base is None else base
         for s in range(0, q, step):
             e = min(s + step, q)
-            part = _project_raw_block(raws, s, e, w_heads, b_heads)
+            part = None
+            for lvl in projected:  # (in level order, then the raw levels: the sums of the unblocked code)
+                sampled = _bag_projected(lvl, s, e)
+                part = sampled if part is None else part.add_(sampled)
+            if raws:
+                raw = _project_raw_block(raws, s, e, w_heads, b_heads)
+                part = raw if part is None else part.add_(raw)
             if base is None:
                 out[s:e] = part
             else:
                 out[s:e].add_(part)
         return out if order is None else out.index_select(0, _inverse(order))
+    if projected:
+        raise RuntimeError("projected levels are sampled per block in forward only")  # (internal)
     outs = []
     for s in range(0, q, step):
-        args = (raws, s, min(s + step, q), w_heads, b_heads)
-        if needs_grad:  # (non-reentrant checkpointing recomputes from the same raws: no tensor needs passing)
-            outs.append(checkpoint(_project_raw_block, *args, use_reentrant=False, preserve_rng_state=False))
-        else:
-            outs.append(_project_raw_block(*args))
+        # (non-reentrant checkpointing recomputes from the same raws: no tensor needs passing)
+        outs.append(checkpoint(_project_raw_block, raws, s, min(s + step, q), w_heads, b_heads,
+                               use_reentrant=False, preserve_rng_state=False))
     out = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
     out = out if base is None else base.add_(out)  # (no backward here needs the other levels' sum)
     return out if order is None else out.index_select(0, _inverse(order))

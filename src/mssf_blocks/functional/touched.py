@@ -27,16 +27,18 @@ from .plan_costs import (
     _SORT_BANDS,
 )
 from .raw_blocks import (
+    _bag_projected,
     _bag_raw,
     _corner_cells,
     _corner_weights,
     _inverse,
     _level,
     _LevelLoc,
-    _project_raw_levels,
+    _ProjectedLevel,
     _RawLevel,
     _read_pixels,
     _sorted_points,
+    _sum_levels,
     _top_left_cells,
 )
 
@@ -203,7 +205,9 @@ def _touched_level(
 
     With ``defer_projection``, the raw-row plans return a :class:`_RawLevel` instead, for the caller to
     bag with the other levels in blocks of queries and project each block once (``value_proj`` is
-    shared by the levels: one per-head ``bmm`` per block instead of one per level);
+    shared by the levels: one per-head ``bmm`` per block instead of one per level), and in forward the
+    projected plans return a :class:`_ProjectedLevel` (their table made, their corners left to the
+    caller's blocks);
     ``projection_paid``: an earlier level already did, so the raw-row plans' cost leaves that
     projection out.
 
@@ -322,10 +326,8 @@ def _touched_level(
     heads = torch.arange(m, dtype=idt, device=dev)
     remap = torch.addcmul(heads.view(m, 1), remap.view(1, -1), heads.new_full((), m))  # (M, cells): r * M + head
     c00 = c00.add_((heads.long() * n_cells).view(1, m, 1)).to(cdt)
-    rows = remap.view(-1).index_select(0, _corner_cells(c00, wp).view(-1))
-    psw = _corner_weights(lv.x, lv.y, lv.x0, lv.y0, lv.wo)
-    return F.embedding_bag(rows.view(q * m, 4 * p), table.view(-1, d), per_sample_weights=psw.view(q * m, 4 * p),
-                           mode="sum").view(q, m, d)
+    level = _ProjectedLevel(lv, c00, remap.view(-1), wp, table.view(-1, d))
+    return level if defer_projection else _bag_projected(level, 0, q)
 
 
 def _spatial_order(image_index: Tensor, locations: Tensor) -> Tensor:
@@ -364,6 +366,7 @@ def _ms_deform_sample_touched(
         loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
     out = None
     raws: List[_RawLevel] = []
+    projected: List[_ProjectedLevel] = []
     xy, wts = _sorted_points(locations, weights, [tuple(v.shape[-2:]) for v in levels], order)
     for lvl, val in enumerate(levels):
         lv = _level(xy, wts, lvl)
@@ -371,10 +374,12 @@ def _ms_deform_sample_touched(
             lv = lv._replace(loc=loc_sorted[:, :, lvl], wt=wt_sorted[:, :, lvl])
         part = _touched_level(val, image_index, lv, w_all, b_all, m, plan, needs_grad, defer_projection=True,
                               projection_paid=bool(raws))
-        if isinstance(part, _RawLevel):  # raw-row level: bagged with the others in blocks of queries below
+        if isinstance(part, _RawLevel):  # bagged with the other levels in blocks of queries below
             raws.append(part)
+        elif isinstance(part, _ProjectedLevel):
+            projected.append(part)
         else:
             out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
-    if raws:  # the sum of every level, back in the callers' order
-        return _project_raw_levels(raws, w_all, b_all, m, needs_grad, base=out, order=order)
+    if raws or projected:  # the sum of every level, back in the callers' order
+        return _sum_levels(raws, projected, w_all, b_all, m, needs_grad, base=out, order=order)
     return out.index_select(0, _inverse(order))  # back to the callers' order
