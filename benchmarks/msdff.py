@@ -6,7 +6,8 @@ P2-P6 (strides 4, 8, 16, 32, 64; ``ceil(H / s) x ceil(W / s)``) with 256 channel
 visible (Q = N queries). Two value widths (``--widths``): "paper" (MSDFF's default and the authors':
 ``value_proj`` 256 -> 256, 8 heads of 32 channels, ``output_proj`` 256 -> C) and "narrow" (``value_proj``
 256 -> C, heads of C / 8, ``output_proj`` C -> C: ``MSDFF(value_dim=embed_dim)``). All paths compute the
-same thing from the same inputs and parameters:
+same thing from the same inputs and parameters (an ``MSDFF``'s), and all take their sampling locations
+and weights from ``MSDFF.sampling_locations_and_weights``, as the module does:
 
 * reference (Deformable DETR's pure-PyTorch formulation): ``value_proj`` (Linear 256 -> D_v) over every
   pixel of every level, per-level ``F.grid_sample`` of the per-head values
