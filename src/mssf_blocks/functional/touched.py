@@ -29,8 +29,6 @@ from .plan_costs import (
 from .raw_blocks import (
     _bag_projected,
     _bag_raw,
-    _corner_cells,
-    _corner_weights,
     _inverse,
     _level,
     _LevelLoc,
