@@ -279,7 +279,7 @@ class MSDFF(nn.Module):
             if static:
                 # Static shapes: a query for every (voxel, camera) pair, invalid ones at uv = -1 (finite;
                 # masked out by camera_mean, no gradient), no gather of the valid pairs.
-                one_each = False
+                one_each, seen = False, None
                 uv = torch.where(valid[..., None], uv, uv.new_full((), -1.0))
                 if v == 1:
                     locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
@@ -289,19 +289,18 @@ class MSDFF(nn.Module):
                     weights = weights[:, None].expand((n, v) + weights.shape[1:]).flatten(0, 1)
                 image_index = (batch_index[:, None] * v + torch.arange(v, device=uv.device)).reshape(-1)
             elif v == 1 and bool(valid.all()):
-                one_each = True  # one camera that sees every voxel: no gathers or scatters
+                one_each, seen = True, None  # one camera that sees every voxel: no gathers or scatters
                 locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
                 image_index = batch_index
             elif v == 1:
                 # One camera that misses some voxels (the usual case: the radar sees wider than the
                 # camera): the seen voxels' queries only, their uv in the locations' GEMM as in the case
                 # above, and the output projection on those rows, scattered once at the end.
-                one_each = False
-                n_idx = valid[:, 0].nonzero().squeeze(1)
-                locations, weights = self.sampling_locations_and_weights(query[n_idx], uv[n_idx, 0], sizes)
-                image_index = batch_index[n_idx]
+                one_each, seen = False, valid[:, 0].nonzero().squeeze(1)  # (the rows of the seen voxels)
+                locations, weights = self.sampling_locations_and_weights(query[seen], uv[seen, 0], sizes)
+                image_index = batch_index[seen]
             else:
-                one_each = False
+                one_each, seen = False, None
                 n_idx, v_idx = valid.nonzero(as_tuple=True)
                 locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
                 locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
@@ -335,7 +334,7 @@ class MSDFF(nn.Module):
                                          b_heads.reshape(e))  # (I, H, W, E)
                     values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
                 heads = ms_deform_sample(values, image_index, locations, weights, method=method)
-            if one_each or (v == 1 and not static):
+            if one_each or seen is not None:
                 attended = heads.reshape(-1, e)
             elif static:
                 attended = camera_mean(heads.reshape(n, v, e), valid)
@@ -343,8 +342,8 @@ class MSDFF(nn.Module):
                 per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
                 attended = camera_mean(per_camera, valid)
         attended = attended.to(self.output_proj.weight.dtype)
-        if v == 1 and not static and not one_each:  # (the seen voxels' rows only)
-            f_img = _linear_bn_rows(self.output_proj, self.norm, attended, n_idx, n)
+        if seen is not None:  # (the seen voxels' rows only)
+            f_img = _linear_bn_rows(self.output_proj, self.norm, attended, seen, n)
         else:
             f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
         if self.output_dropout:
