@@ -21,7 +21,6 @@ from .fusion_stage import BackboneOutput, _check_fusion_args, _make_fusion
 __all__ = ["PointPillarsBackbone"]
 
 
-
 def replace_occupied_pillars(bev: Tensor, voxels: SparseVoxels, stride=(1, 1)) -> Tensor:
     """``bev (B, C, H_b, W_b)`` with every pillar that ``voxels`` occupy replaced by the sum of their
     features (``(N, C)``; voxel ``(b, z, y, x)`` in pillar ``(b, y // sy, x // sx)``); the other
@@ -40,6 +39,7 @@ def replace_occupied_pillars(bev: Tensor, voxels: SparseVoxels, stride=(1, 1)) -
     cells.index_put_(pillars, cells.new_zeros(()))
     cells.index_put_(pillars, voxels.features.to(fused.dtype), accumulate=True)
     return fused
+
 
 class PointPillarsBackbone(nn.Module):
     """PointPillars: PFN, three 2D blocks (strides 2, 2, 2), upsampling and concatenation.
