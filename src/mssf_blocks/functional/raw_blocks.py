@@ -156,12 +156,20 @@ class _RawLevel(NamedTuple):
     clamp: Optional[int]
 
 
+def _block_corners(level, start: int, stop: int) -> Tuple[Tensor, Tensor]:
+    """``(n * M, 4 * P)`` table rows and bilinear x attention weights of the corners of the queries
+    ``[start, stop)`` of a :class:`_RawLevel` or :class:`_ProjectedLevel` (the order of
+    :func:`_corner_cells` / :func:`_corner_weights`); padding cells map to ``remap``'s padding row."""
+    k = 4 * level.c00.shape[2]
+    rows = level.remap.index_select(0, _corner_cells(level.c00[start:stop], level.wp).view(-1)).view(-1, k)
+    return rows, _corner_weights(*(t[start:stop] for t in level.lv[:5])).view(-1, k)
+
+
 def _bag_raw(raw: _RawLevel, start: int, stop: int):
     """``(n * M, D)`` raw samples (query-major) and ``(n, M, 1)`` in-map weight mass of the queries
     ``[start, stop)``."""
     m, k = raw.c00.shape[1], 4 * raw.c00.shape[2]
-    psw = _corner_weights(*(t[start:stop] for t in raw.lv[:5])).view(-1, k)
-    rows = raw.remap.index_select(0, _corner_cells(raw.c00[start:stop], raw.wp).view(-1)).view(-1, k)
+    rows, psw = _block_corners(raw, start, stop)
     inside = rows != raw.n_rows
     psw = psw * inside
     if raw.clamp is not None:
@@ -190,10 +198,9 @@ class _ProjectedLevel(NamedTuple):
 
 def _bag_projected(lvl: _ProjectedLevel, start: int, stop: int) -> Tensor:
     """``(n, M, d)`` samples of the queries ``[start, stop)`` of a projected level."""
-    m, k = lvl.c00.shape[1], 4 * lvl.c00.shape[2]
-    rows = lvl.remap.index_select(0, _corner_cells(lvl.c00[start:stop], lvl.wp).view(-1)).view(-1, k)
-    psw = _corner_weights(*(t[start:stop] for t in lvl.lv[:5])).view(-1, k)
-    return F.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, m, lvl.table.shape[1])
+    rows, psw = _block_corners(lvl, start, stop)
+    return F.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, lvl.c00.shape[1],
+                                                                                     lvl.table.shape[1])
 
 
 def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Tensor,
