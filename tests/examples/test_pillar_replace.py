@@ -8,23 +8,27 @@ from mssf_blocks.lift import PillarLift
 from mssf_examples.backbones.pillars import replace_occupied_pillars
 
 
-def _voxels(stride, seed=0, n=40, c=3, dtype=torch.float64):
+def _voxels(stride, seed=0, n=40, c=3, dtype=torch.float64, batch=2):
     g = torch.Generator().manual_seed(seed)
     sy, sx = stride
     h, w = 4 * sy, 5 * sx  # voxel grid x/y cells: a 4 x 5 BEV map at this stride
-    coords = torch.stack([torch.randint(0, 2, (n,), generator=g), torch.randint(0, 3, (n,), generator=g),
+    coords = torch.stack([torch.randint(0, batch, (n,), generator=g), torch.randint(0, 3, (n,), generator=g),
                           torch.randint(0, h, (n,), generator=g), torch.randint(0, w, (n,), generator=g)], 1)
     coords = torch.cat([coords, coords[:5]]).int()  # duplicate voxels are summed like any others
     feats = torch.randn(coords.shape[0], c, generator=g, dtype=dtype)
-    v = SparseVoxels(features=feats, coords=coords, spatial_shape=(3, h, w), batch_size=2,
+    v = SparseVoxels(features=feats, coords=coords, spatial_shape=(3, h, w), batch_size=batch,
                      voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
-    bev = torch.randn(2, c, 4, 5, generator=g, dtype=dtype)
+    bev = torch.randn(batch, c, 4, 5, generator=g, dtype=dtype)
     return v, bev
 
 
+@pytest.mark.parametrize("batch", [1, 2])  # (one image: the per-pixel index_add path; several: index_put)
+@pytest.mark.parametrize("channels_last", [False, True])
 @pytest.mark.parametrize("stride", [(1, 1), (2, 2), (2, 3)])
-def test_replace_occupied_pillars_matches_loop(stride):
-    v, bev = _voxels(stride)
+def test_replace_occupied_pillars_matches_loop(stride, channels_last, batch):
+    v, bev = _voxels(stride, batch=batch)
+    if channels_last:
+        bev = bev.contiguous(memory_format=torch.channels_last)
     got = replace_occupied_pillars(bev, v, stride)
     ref = bev.clone()
     seen = set()
@@ -35,14 +39,15 @@ def test_replace_occupied_pillars_matches_loop(stride):
             seen.add(cell)
         ref[b, :, cell[1], cell[2]] += f
     assert torch.equal(got, ref)
-    assert 0 < len(seen) < 2 * 4 * 5  # (some pillars occupied, some kept)
-    assert torch.equal(bev, _voxels(stride)[1])  # the input map is left as it was
+    assert 0 < len(seen) < batch * 4 * 5  # (some pillars occupied, some kept)
+    assert torch.equal(bev, _voxels(stride, batch=batch)[1])  # the input map is left as it was
 
 
+@pytest.mark.parametrize("batch", [1, 2])
 @pytest.mark.parametrize("stride", [(1, 1), (2, 3)])
-def test_replace_occupied_pillars_equals_dense_where_with_gradients(stride):
+def test_replace_occupied_pillars_equals_dense_where_with_gradients(stride, batch):
     """The formulation it replaced: two dense to_bev maps (sums, occupancy) and a torch.where."""
-    v, bev = _voxels(stride, seed=1)
+    v, bev = _voxels(stride, seed=1, batch=batch)
     lift = PillarLift(3, 3, stride=stride)
     feats = v.features.clone().requires_grad_(True)
     bev_a = bev.clone().requires_grad_(True)

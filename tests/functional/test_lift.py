@@ -26,21 +26,38 @@ def random_coords(n, b, d, h, w, seed=0):
                        dim=1).int()
 
 
+def _layout(bev, layout):
+    """``bev`` in another memory layout with the same values."""
+    if layout == "channels_last":
+        return bev.contiguous(memory_format=torch.channels_last)
+    if layout == "strided":  # no free pixel view: every other column of a twice-as-wide map
+        wide = torch.zeros(*bev.shape[:3], 2 * bev.shape[3], dtype=bev.dtype)
+        wide[..., ::2] = bev
+        return wide[..., ::2]
+    return bev
+
+
+# one image (index_select on a pixel view, or advanced indexing without one) and two (advanced indexing)
+@pytest.mark.parametrize("batch", [1, 2])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last", "strided"])
+@pytest.mark.parametrize("channels", [4, 1])
 @pytest.mark.parametrize("stride", [1, 2, (2, 1)])
-def test_pillar_lift_matches_loop(stride):
+def test_pillar_lift_matches_loop(stride, channels, layout, batch):
     sy, sx = (stride, stride) if isinstance(stride, int) else stride
     d, h, w = 3, 5, 7  # odd sizes: the last BEV row/column covers a partial cell
     hb, wb = bev_shape_for((h, w), stride)
     assert (hb, wb) == (math.ceil(h / sy), math.ceil(w / sx))
     g = torch.Generator().manual_seed(1)
-    bev = torch.randn(2, 4, hb, wb, generator=g, dtype=torch.float64)
-    emb = torch.randn(d, 4, generator=g, dtype=torch.float64)
-    coords = random_coords(30, 2, d, h, w)
-    got = pillar_lift(bev, coords, emb, stride)
+    bev = torch.randn(batch, channels, hb, wb, generator=g, dtype=torch.float64)
+    emb = torch.randn(d, channels, generator=g, dtype=torch.float64)
+    coords = random_coords(30, batch, d, h, w)
+    src = _layout(bev, layout)
+    got = pillar_lift(src, coords, emb, stride)
     exp = torch.stack([bev[b, :, y // sy, x // sx] + emb[z] for b, z, y, x in coords.tolist()])
-    assert_close(got, exp)
-    assert_close(pillar_lift(bev, coords, None, stride),
-                 torch.stack([bev[b, :, y // sy, x // sx] for b, z, y, x in coords.tolist()]))
+    assert torch.equal(got, exp) and got.is_contiguous()
+    plain = pillar_lift(src, coords, None, stride)
+    assert torch.equal(plain, torch.stack([bev[b, :, y // sy, x // sx] for b, z, y, x in coords.tolist()]))
+    assert plain.is_contiguous()
 
 
 @pytest.mark.parametrize("stride", [1, 2])
@@ -79,6 +96,12 @@ def test_gradcheck_lift_and_sum():
     bev = torch.randn(2, 2, 2, 2, dtype=torch.float64)
     emb = torch.randn(2, 2, dtype=torch.float64)
     assert gradcheck64(lambda b, e: pillar_lift(b, coords, e, 2), [bev, emb])
+    one = coords.clone()
+    one[:, 0] = 0  # one image: the pixel-view path, pillars shared by several voxels
+    for layout in ("nchw", "channels_last"):
+        b1 = _layout(torch.randn(1, 2, 2, 2, dtype=torch.float64), layout)
+        assert gradcheck64(lambda b, e: pillar_lift(b, one, e, 2), [b1, emb])
+        assert gradcheck64(lambda b: pillar_lift(b, one, None, 2), [b1])
     feats = torch.randn(4, 2, dtype=torch.float64)
     assert gradcheck64(lambda f: voxels_to_bev(f, coords, 2, (2, 2), 2), [feats])
     assert gradcheck64(lambda f: voxels_to_bev_sparse(f, coords, 2, (2, 2), 2)[0], [feats])

@@ -29,15 +29,27 @@ def replace_occupied_pillars(bev: Tensor, voxels: SparseVoxels, stride=(1, 1)) -
     The occupied cells of a copy of the map are zeroed and the voxels added into them in voxel order
     (the sums of ``PillarLift.to_bev``, bit for bit). Static shapes, so it exports; one pass over the
     map instead of the five of two dense ``to_bev`` maps (sums and occupancy), a comparison and a
-    ``torch.where`` (measured 6 ms a VoD frame on one core).
+    ``torch.where`` (measured 6 ms a VoD frame on one core). One image: ``index_fill_`` / ``index_add_``
+    along the pixels of its ``(C, H_b * W_b)`` view (NCHW or channels-last memory), 30-40 % cheaper
+    than ``index_put_`` with ``(b, y, x)`` index tuples, which batches of several images keep
+    (measured on the PointPillars maps of benchmarks/detectors.py, one core).
     """
     sy, sx = stride
     c = voxels.coords.long()
-    pillars = (c[:, 0], torch.div(c[:, 2], sy, rounding_mode="floor"), torch.div(c[:, 3], sx, rounding_mode="floor"))
+    y, x = torch.div(c[:, 2], sy, rounding_mode="floor"), torch.div(c[:, 3], sx, rounding_mode="floor")
     fused = bev.to(torch.promote_types(bev.dtype, voxels.features.dtype), copy=True)
-    cells = fused.permute(0, 2, 3, 1)  # (B, H_b, W_b, C) view: a pillar's C values
-    cells.index_put_(pillars, cells.new_zeros(()))
-    cells.index_put_(pillars, voxels.features.to(fused.dtype), accumulate=True)
+    feats = voxels.features.to(fused.dtype)
+    b, ch, hb, wb = fused.shape
+    if b == 1:
+        planes = fused[0].view(ch, hb * wb)  # (a view for NCHW and channels-last memory alike)
+        cells = y * wb + x
+        planes.index_fill_(1, cells, 0.0)
+        planes.index_add_(1, cells, feats.t())
+    else:  # (no per-image selection: its sizes would depend on the data)
+        pillars = (c[:, 0], y, x)
+        cells = fused.permute(0, 2, 3, 1)  # (B, H_b, W_b, C) view: a pillar's C values
+        cells.index_put_(pillars, cells.new_zeros(()))
+        cells.index_put_(pillars, feats, accumulate=True)
     return fused
 
 
