@@ -98,14 +98,15 @@ def test_state_dict_round_trip_and_torchvision_names():
 
 
 def test_channels_last_branch_same_values_row_layout_and_msdff_reads_rows():
-    # channels_last=True: the same features (float64, same weights), each level with contiguous
-    # per-pixel channel rows, which MSDFF's sampler reads as a free (pixels, C) table.
+    # channels_last=True (the default): the same features as the NCHW branch (float64, same weights),
+    # each level with contiguous per-pixel channel rows, which MSDFF's sampler reads as a free
+    # (pixels, C) table.
     from mssf_blocks.functional.touched import _row_table
 
     torch.manual_seed(5)
-    a = ImageBranch(depth=18, base_channels=4, fpn_channels=8).double().eval()
+    a = ImageBranch(depth=18, base_channels=4, fpn_channels=8, channels_last=False).double().eval()
     _randomise_bn(a)
-    b = ImageBranch(depth=18, base_channels=4, fpn_channels=8, channels_last=True).double().eval()
+    b = ImageBranch(depth=18, base_channels=4, fpn_channels=8).double().eval()
     b.load_state_dict(a.state_dict())
     x = torch.randn(2, 2, 3, 64, 96, dtype=torch.float64)
     for u, w in zip(a(x), b(x)):
