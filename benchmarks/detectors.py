@@ -3,7 +3,8 @@
 A VoD-sized frame: 2,500 radar points from 5 scans (time index t in 0..4) inside the camera's field of
 view on the VoD preset grid (voxels 0.05 x 0.05 x 0.125 m over x 0-51.2, y -25.6-25.6, z -3-2; pillars
 0.16 m), one 1216 x 1936 camera. Image features are precomputed (the paper freezes the image branch):
-four FPN levels of 256 channels at strides 4-32, random values. Every detector runs in eval mode
+four FPN levels of 256 channels at strides 4-32, random values, in channels-last memory (what the
+examples' ``ImageBranch`` returns by default; ``--nchw`` for NCHW). Every detector runs in eval mode
 (``torch.no_grad``, batch of one frame, decoding included) with ``n = 0`` (radar only) and ``n = 2``
 fusion blocks (MSDFF, the paper's default, and SFF), in this process on the same frame. A last
 column bounds what any exact MSDFF could reach: ``cpu ratio msdff floor`` = (radar-only time + the
@@ -19,7 +20,7 @@ both.
 MSDFF runs at the paper's width (``value_proj`` 256 -> 256, ``output_proj`` 256 -> C, the library's
 default); ``--msdff-width narrow`` measures the narrow layout (``value_dim`` = voxel channels) instead.
 
-Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 7] [--threads 1]
+Usage: ``python benchmarks/detectors.py [--points 2500] [--repeats 7] [--threads 1] [--nchw]
 [--detectors second centerpoint voxelnext pointpillars] [--msdff-width paper] [--no-floor] [--json out.json]``
 """
 
@@ -117,8 +118,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--detectors", nargs="+", default=["second", "centerpoint", "voxelnext", "pointpillars"])
-    ap.add_argument("--channels-last", action="store_true",
-                    help="image features in channels-last memory order (what ImageBranch(channels_last=True) returns)")
+    ap.add_argument("--nchw", action="store_true",
+                    help="image features in NCHW memory order (ImageBranch(channels_last=False)); default: "
+                         "channels-last, what ImageBranch returns by default")
     ap.add_argument("--msdff-width", choices=["paper", "narrow"], default="paper",
                     help="MSDFF value width: paper (value_dim = 256 FPN channels) or narrow (= voxel channels)")
     ap.add_argument("--no-floor", action="store_true", help="skip the floor of the MSDFF blocks' image sampling")
@@ -126,7 +128,7 @@ def main() -> None:
     args = ap.parse_args()
     preset = replace(VOD, msdff_value_dim=None if args.msdff_width == "paper" else "voxel_channels")
     torch.set_num_threads(args.threads)
-    frame = vod_frame(args.points, channels_last=args.channels_last)
+    frame = vod_frame(args.points, channels_last=not args.nchw)
     configs = [("n=0", 0, "msdff"), ("n=2 msdff", 2, "msdff"), ("n=2 sff", 2, "sff")]
     rows = []
     for name in args.detectors:
@@ -165,6 +167,7 @@ def main() -> None:
         print(", ".join(f"{k}: {v:.3f}" if isinstance(v, float) else f"{k}: {v}" for k, v in row.items()), flush=True)
     print(f"\n{args.points} points, threads={args.threads}, {args.repeats} interleaved rounds (median), "
           f"MSDFF value projection {VOD.msdff_value_projection!r}, MSDFF width {args.msdff_width}, "
+          f"image features {'NCHW' if args.nchw else 'channels-last'}, "
           f"torch {torch.__version__}\n")
     print_table(rows, list(rows[0].keys()))
     if args.json:
