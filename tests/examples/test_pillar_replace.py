@@ -22,13 +22,17 @@ def _voxels(stride, seed=0, n=40, c=3, dtype=torch.float64, batch=2):
     return v, bev
 
 
-@pytest.mark.parametrize("batch", [1, 2])  # (one image: the per-pixel index_add path; several: index_put)
-@pytest.mark.parametrize("channels_last", [False, True])
+# one image: index_add along its pixels (NCHW and channels-last: a free (C, H * W) view; a transposed
+# dense map has none and takes index_put, as several images do)
+@pytest.mark.parametrize("batch", [1, 2])
+@pytest.mark.parametrize("layout", ["nchw", "channels_last", "transposed"])
 @pytest.mark.parametrize("stride", [(1, 1), (2, 2), (2, 3)])
-def test_replace_occupied_pillars_matches_loop(stride, channels_last, batch):
+def test_replace_occupied_pillars_matches_loop(stride, layout, batch):
     v, bev = _voxels(stride, batch=batch)
-    if channels_last:
+    if layout == "channels_last":
         bev = bev.contiguous(memory_format=torch.channels_last)
+    elif layout == "transposed":  # dense, W-major memory
+        bev = bev.transpose(2, 3).contiguous().transpose(2, 3)
     got = replace_occupied_pillars(bev, v, stride)
     ref = bev.clone()
     seen = set()

@@ -40,12 +40,17 @@ def replace_occupied_pillars(bev: Tensor, voxels: SparseVoxels, stride=(1, 1)) -
     fused = bev.to(torch.promote_types(bev.dtype, voxels.features.dtype), copy=True)
     feats = voxels.features.to(fused.dtype)
     b, ch, hb, wb = fused.shape
+    planes = None
     if b == 1:
-        planes = fused[0].view(ch, hb * wb)  # (a view for NCHW and channels-last memory alike)
+        try:  # (a view for NCHW and channels-last memory alike; the copy keeps the map's layout)
+            planes = fused[0].view(ch, hb * wb)
+        except RuntimeError:  # (another dense layout: no such view)
+            planes = None
+    if planes is not None:
         cells = y * wb + x
         planes.index_fill_(1, cells, 0.0)
         planes.index_add_(1, cells, feats.t())
-    else:  # (no per-image selection: its sizes would depend on the data)
+    else:  # (no per-image selection for a batch: its sizes would depend on the data)
         pillars = (c[:, 0], y, x)
         cells = fused.permute(0, 2, 3, 1)  # (B, H_b, W_b, C) view: a pillar's C values
         cells.index_put_(pillars, cells.new_zeros(()))
