@@ -132,8 +132,15 @@ def _corner_weights(x: Tensor, y: Tensor, x0: Tensor, y0: Tensor, wo: Tensor) ->
     fy = y - y0
     ay0, ay1 = (1.0 - fy) * wo, fy * wo
     ax0 = 1.0 - fx
-    # Stacks of contiguous products: several times faster than one broadcasting product on the CPU.
-    return torch.stack((ay0 * ax0, ay0 * fx, ay1 * ax0, ay1 * fx), 2)
+    # Contiguous products: several times faster than one broadcasting product on the CPU. Without
+    # autograd they are written straight into the output's slices (no four temporaries and no stack
+    # copy: 2 % of the whole forward at 2,500 queries, benchmarks/msdff.py); out= takes no gradients.
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (fx, fy, wo)):
+        return torch.stack((ay0 * ax0, ay0 * fx, ay1 * ax0, ay1 * fx), 2)
+    out = fx.new_empty(fx.shape[0], fx.shape[1], 4, fx.shape[2])
+    for k, (a, b) in enumerate(((ay0, ax0), (ay0, fx), (ay1, ax0), (ay1, fx))):
+        torch.mul(a, b, out=out[:, :, k])
+    return out
 
 
 class _RawLevel(NamedTuple):
@@ -171,9 +178,9 @@ def _bag_raw(raw: _RawLevel, start: int, stop: int):
     m, k = raw.c00.shape[1], 4 * raw.c00.shape[2]
     rows, psw = _block_corners(raw, start, stop)
     inside = rows != raw.n_rows
-    psw = psw * inside
+    psw = psw.mul_(inside)  # (fresh arrays of this block: in place)
     if raw.clamp is not None:
-        sampled = F.embedding_bag(rows.clamp(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
+        sampled = F.embedding_bag(rows.clamp_(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
     else:
         counts = inside.sum(1)
         offsets = torch.cumsum(counts, 0) - counts
