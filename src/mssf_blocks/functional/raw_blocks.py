@@ -134,7 +134,7 @@ def _corner_weights(x: Tensor, y: Tensor, x0: Tensor, y0: Tensor, wo: Tensor) ->
     ax0 = 1.0 - fx
     # Contiguous products: several times faster than one broadcasting product on the CPU. Without
     # autograd they are written straight into the output's slices (no four temporaries and no stack
-    # copy: 2 % of the whole forward at 2,500 queries, benchmarks/msdff.py); out= takes no gradients.
+    # copy: 1-2 % of the whole forward at 2,500 queries, benchmarks/msdff.py); out= takes no gradients.
     if torch.is_grad_enabled() and any(t.requires_grad for t in (fx, fy, wo)):
         return torch.stack((ay0 * ax0, ay0 * fx, ay1 * ax0, ay1 * fx), 2)
     out = fx.new_empty(fx.shape[0], fx.shape[1], 4, fx.shape[2])
