@@ -22,8 +22,8 @@ def _voxels(stride, seed=0, n=40, c=3, dtype=torch.float64, batch=2):
     return v, bev
 
 
-# one image: index_add along its pixels (NCHW and channels-last: a free (C, H * W) view; a transposed
-# dense map has none and takes index_put, as several images do)
+# one image: index_add along its pixels, several: index_put; NCHW and channels-last maps are written in
+# their own layout, a transposed dense map (no (C, H * W) view) through an NCHW copy
 @pytest.mark.parametrize("batch", [1, 2])
 @pytest.mark.parametrize("layout", ["nchw", "channels_last", "transposed"])
 @pytest.mark.parametrize("stride", [(1, 1), (2, 2), (2, 3)])

@@ -158,16 +158,36 @@ def voxels_to_bev(
         ``(B, C, H_b, W_b)``; cells without voxels are 0.
     """
     batch_size, hb, wb, idx = _bev_pillar_index(features, coords, batch_size, bev_shape, stride)
-    c = features.shape[1]
     b = coords[:, 0].long()
-    cell = idx - b * (hb * wb)
-    # Accumulate in place into a (B, H_b*W_b, C) view of the (B, C, H_b, W_b) result: no final
-    # channels-first copy of the whole map (an out-of-place index_put copied the map, and the reshape of
-    # its transposed result copied it again: 22 -> 2 ms for 2,600 pillars of 64 channels on a 320 x 320
-    # map, one core).
-    out = features.new_zeros(batch_size, c, hb * wb)
-    out.transpose(1, 2).index_put_((b, cell), features, accumulate=True)
-    return out.view(batch_size, c, hb, wb)
+    out = features.new_zeros(batch_size, features.shape[1], hb, wb)
+    return _add_into_pillars(out, b, idx - b * (hb * wb), features)
+
+
+def _add_into_pillars(bev: Tensor, b: Tensor, cell: Tensor, features: Tensor, clear: bool = False) -> Tensor:
+    """In place on ``bev (B, C, H_b, W_b)`` (NCHW or channels-last memory) and returned: ``features (N, C)``
+    added, in row order, into the pillars ``(b, cell = y * W_b + x)``, whose values are zeroed first
+    with ``clear``.
+
+    Straight into a view of the map: no channels-first copy of a ``(B * H_b * W_b, C)`` table (an
+    out-of-place index_put on the transposed view copied the map, and the reshape of its result copied
+    it again: 22 -> 2 ms for 2,600 pillars of 64 channels on a 320 x 320 map, one core). One image:
+    ``index_fill_`` / ``index_add_`` along the pixels of its ``(C, H_b * W_b)`` planes, 30-40 % less
+    time than ``index_put_`` on the ``(B, H_b * W_b, C)`` view, which several images take (measured on
+    the PointPillars maps of benchmarks/detectors.py, one core). Both sum in row order from the map's
+    values: the same bits.
+    """
+    bsz, c, hb, wb = bev.shape
+    flat = bev.view(bsz, c, hb * wb)  # (a view for NCHW and channels-last memory alike)
+    if bsz == 1:
+        if clear:
+            flat[0].index_fill_(1, cell, 0.0)
+        flat[0].index_add_(1, cell, features.t())
+    else:
+        rows = flat.transpose(1, 2)
+        if clear:
+            rows.index_put_((b, cell), rows.new_zeros(()))
+        rows.index_put_((b, cell), features, accumulate=True)
+    return bev
 
 
 def _bev_pillar_index(features: Tensor, coords: Tensor, batch_size, bev_shape, stride) -> Tuple[int, int, int, Tensor]:
