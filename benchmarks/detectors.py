@@ -15,7 +15,8 @@ so a load change on the shared machine hits all of them alike. Both the wall tim
 time (``time.process_time``) of every call are recorded; with one intra-op thread (the default) the CPU
 time is the work done and much less sensitive to other processes on a shared machine than the wall
 time, so the fusion overhead ratio ``t(n=2) / t(n=0)`` (target: at most 1.30) is given on medians of
-both.
+both; ``cpu ratio msdff rounds`` gives the lowest and highest of the rounds' own CPU-time ratios (the
+spread a single median hides on a shared machine).
 
 MSDFF runs at the paper's width (``value_proj`` 256 -> 256, ``output_proj`` 256 -> C, the library's
 default); ``--msdff-width narrow`` measures the narrow layout (``value_dim`` = voxel channels) instead.
@@ -157,6 +158,9 @@ def main() -> None:
         row["cpu ratio sff"] = c["n=2 sff"] / c["n=0"]
         row["wall ratio msdff"] = w["n=2 msdff"] / w["n=0"]
         row["wall ratio sff"] = w["n=2 sff"] / w["n=0"]
+        # the spread behind the median ratio: each round's own ratio (its calls ran back to back)
+        per_round = [a / b for a, b in zip(cpu["n=2 msdff"], cpu["n=0"])]
+        row["cpu ratio msdff rounds"] = f"{min(per_round):.2f}-{max(per_round):.2f}"
         row["voxels in fusion blocks"] = "/".join(str(s.num_voxels) for s in out.stages[:2])
         if not args.no_floor:
             floor, _ = msdff_floor(models["n=2 msdff"], frame)

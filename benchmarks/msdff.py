@@ -48,7 +48,9 @@ A last table bounds what any exact method can reach with PyTorch's CPU primitive
 Time: median of ``--repeats`` interleaved rounds (one call of every path per round) after a warm-up; ``torch.set_num_threads(2)`` (``--threads``);
 wall time, or with ``--cpu-time`` the process CPU time (with one thread: the work done, robust to the
 other processes of a shared machine). Times are taken in this process, with glibc's default allocator
-settings (what a user's process runs with). Peak extra memory is measured in a second process (the
+settings (what a user's process runs with). The ratios are ratios of the medians; a second table
+gives, for each ratio, the lowest and highest of its per-round values (the reference and ours timed
+back to back in that round), the spread a single figure hides on a shared machine. Peak extra memory is measured in a second process (the
 script re-runs itself with ``--memory-pass``): the rise of the resident-set high-water mark over a call
 (see ``benchmarks/_common.py``), which needs glibc to ``mmap`` every allocation above 64 KiB, so that
 every such allocation also pays its page faults on every call (expensive in the VM we measure on).
@@ -308,7 +310,7 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     # Interleaved rounds (one call of every kind per round, after a warm-up call each), so that a load
     # change on the shared machine hits the reference and ours alike; the median per kind.
     # The 1x and 2x image forwards share their rounds (their ratio is a target too).
-    res = {}
+    res, rounds = {}, {}
     for group in ((("fwd", fwd, feats), ("fwd2x", fwd, feats2x)), (("fwdbwd", fwd_bwd, feats),)):
         fns = {(kind, mode): make(kind, fs) for mode, make, fs in group for kind in kinds}
         for fn in fns.values():
@@ -319,6 +321,7 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
                 times[key].append(measure(fn, 1, warmup=0)[0])
         for key in fns:
             res[key] = statistics.median(times[key])  # seconds
+        rounds.update(times)
     for kind in kinds:
         row[f"{kind} fwd ms"] = 1e3 * res[kind, "fwd"]
         row[f"{kind} fwd+bwd ms"] = 1e3 * res[kind, "fwdbwd"]
@@ -331,6 +334,12 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     for kind in ours:
         row[f"{kind} fwd speed-up"] = res["reference", "fwd"] / res[kind, "fwd"]
         row[f"{kind} fwd+bwd speed-up"] = res["reference", "fwdbwd"] / res[kind, "fwdbwd"]
+    # The spread of the ratios within this run: each round's own ratio (its calls ran back to back).
+    for kind, label, num, den in [(k, f"{k} {w}", ("reference", m), (k, m)) for k in ours
+                                  for w, m in (("fwd speed-up", "fwd"), ("fwd+bwd speed-up", "fwdbwd"))] + [
+            (k, f"{k} 2x-area fwd", (k, "fwd2x"), (k, "fwd")) for k in kinds]:
+        per_round = [a / b for a, b in zip(rounds[num], rounds[den])]
+        row[f"{label} rounds"] = f"{min(per_round):.2f}-{max(per_round):.2f}"
     return row
 
 
@@ -413,10 +422,14 @@ def main() -> None:
     memory = key + [f"{k} {w}" for w in ("fwd MiB", "fwd+bwd MiB", "fwd (mmap) ms", "fwd+bwd (mmap) ms")
                     for k in kinds]
     ratios = key + [f"{k} {w}" for k in ours for w in RATIO_KEYS] + ["reference 2x-area fwd"]
+    spread = key + [f"{k} {w} rounds" for k in ours for w in RATIO_KEYS if "mem" not in w] + [
+        "reference 2x-area fwd rounds"]
     floor = key + ["reference fwd ms", "floor fwd ms", "fwd bound", "floor per level (touched, gemm ms, bag ms)"]
     tables = {}
     for title, cols in (("agreement with the reference", agreement), ("median time (ms)", times),
                         ("peak extra memory (MiB; and the times under the memory pass's allocator)", memory), ("ratios", ratios),
+                        ("per-round ratios, lowest-highest (the spread behind the medians above: each round's "
+                         "calls ran back to back)", spread),
                         ("forward floor of PyTorch primitives (fwd bound = reference / floor: the largest "
                          "forward speed-up any exact method built from them can reach)", floor)):
         print(f"\n{title}")
