@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Callable, Dict, List, Sequence, Tuple
 
-__all__ = ["reexec_with_mmap_threshold", "measure", "print_table", "write_json"]
+__all__ = ["reexec_with_mmap_threshold", "measure", "print_table", "round_spread", "write_json"]
 
 _ENV = "MALLOC_MMAP_THRESHOLD_"
 
@@ -65,6 +65,13 @@ def measure(fn: Callable[[], object], repeats: int = 5, warmup: int = 1,
         peaks.append((_proc_kb("VmHWM") - before) / 1024.0)
         del out
     return statistics.median(times), max(peaks)
+
+
+def round_spread(numerators: Sequence[float], denominators: Sequence[float]) -> str:
+    """``"lo-hi"``: the lowest and highest per-round ratio of two timings taken in the same interleaved
+    rounds (round ``i``'s two calls ran back to back), the spread that the ratio of their medians hides."""
+    per_round = [a / b for a, b in zip(numerators, denominators, strict=True)]
+    return f"{min(per_round):.2f}-{max(per_round):.2f}"
 
 
 def print_table(rows: Sequence[Dict[str, object]], columns: Sequence[str]) -> str:

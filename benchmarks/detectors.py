@@ -41,7 +41,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples"))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from _common import measure, print_table, write_json  # noqa: E402
+from _common import measure, print_table, round_spread, write_json  # noqa: E402
 from mssf_examples.data import RadarCameraBatch  # noqa: E402
 from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.presets import VOD  # noqa: E402
@@ -158,9 +158,7 @@ def main() -> None:
         row["cpu ratio sff"] = c["n=2 sff"] / c["n=0"]
         row["wall ratio msdff"] = w["n=2 msdff"] / w["n=0"]
         row["wall ratio sff"] = w["n=2 sff"] / w["n=0"]
-        # the spread behind the median ratio: each round's own ratio (its calls ran back to back)
-        per_round = [a / b for a, b in zip(cpu["n=2 msdff"], cpu["n=0"])]
-        row["cpu ratio msdff rounds"] = f"{min(per_round):.2f}-{max(per_round):.2f}"
+        row["cpu ratio msdff rounds"] = round_spread(cpu["n=2 msdff"], cpu["n=0"])
         row["voxels in fusion blocks"] = "/".join(str(s.num_voxels) for s in out.stages[:2])
         if not args.no_floor:
             floor, _ = msdff_floor(models["n=2 msdff"], frame)

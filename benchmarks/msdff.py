@@ -50,10 +50,11 @@ wall time, or with ``--cpu-time`` the process CPU time (with one thread: the wor
 other processes of a shared machine). Times are taken in this process, with glibc's default allocator
 settings (what a user's process runs with). The ratios are ratios of the medians; a second table
 gives, for each ratio, the lowest and highest of its per-round values (the reference and ours timed
-back to back in that round), the spread a single figure hides on a shared machine. Peak extra memory is measured in a second process (the
-script re-runs itself with ``--memory-pass``): the rise of the resident-set high-water mark over a call
-(see ``benchmarks/_common.py``), which needs glibc to ``mmap`` every allocation above 64 KiB, so that
-every such allocation also pays its page faults on every call (expensive in the VM we measure on).
+back to back in that round), the spread a single figure hides on a shared machine. Peak extra memory
+is measured in a second process (the script re-runs itself with ``--memory-pass``): the rise of the
+resident-set high-water mark over a call (see ``benchmarks/_common.py``), which needs glibc to ``mmap``
+every allocation above 64 KiB, so that every such allocation also pays its page faults on every call
+(expensive in the VM we measure on).
 That pass also records its own times; they are reported as "(mmap) ms" columns, not used for the
 ratios. ``--no-memory`` skips the second pass.
 
@@ -81,7 +82,7 @@ import torch.nn.functional as F
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import measure, print_table, reexec_with_mmap_threshold, write_json  # noqa: E402
+from _common import measure, print_table, reexec_with_mmap_threshold, round_spread, write_json  # noqa: E402
 
 _measure = measure
 
@@ -334,12 +335,10 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     for kind in ours:
         row[f"{kind} fwd speed-up"] = res["reference", "fwd"] / res[kind, "fwd"]
         row[f"{kind} fwd+bwd speed-up"] = res["reference", "fwdbwd"] / res[kind, "fwdbwd"]
-    # The spread of the ratios within this run: each round's own ratio (its calls ran back to back).
-    for kind, label, num, den in [(k, f"{k} {w}", ("reference", m), (k, m)) for k in ours
-                                  for w, m in (("fwd speed-up", "fwd"), ("fwd+bwd speed-up", "fwdbwd"))] + [
-            (k, f"{k} 2x-area fwd", (k, "fwd2x"), (k, "fwd")) for k in kinds]:
-        per_round = [a / b for a, b in zip(rounds[num], rounds[den])]
-        row[f"{label} rounds"] = f"{min(per_round):.2f}-{max(per_round):.2f}"
+        row[f"{kind} fwd speed-up rounds"] = round_spread(rounds["reference", "fwd"], rounds[kind, "fwd"])
+        row[f"{kind} fwd+bwd speed-up rounds"] = round_spread(rounds["reference", "fwdbwd"], rounds[kind, "fwdbwd"])
+    for kind in kinds:
+        row[f"{kind} 2x-area fwd rounds"] = round_spread(rounds[kind, "fwd2x"], rounds[kind, "fwd"])
     return row
 
 
