@@ -311,18 +311,16 @@ def run_case(n: int, c: int, distribution: str, feats, feats2x, repeats: int, ch
     # Interleaved rounds (one call of every kind per round, after a warm-up call each), so that a load
     # change on the shared machine hits the reference and ours alike; the median per kind.
     # The 1x and 2x image forwards share their rounds (their ratio is a target too).
-    res, rounds = {}, {}
+    rounds = {}  # (kind, mode) -> the seconds of every round
     for group in ((("fwd", fwd, feats), ("fwd2x", fwd, feats2x)), (("fwdbwd", fwd_bwd, feats),)):
         fns = {(kind, mode): make(kind, fs) for mode, make, fs in group for kind in kinds}
         for fn in fns.values():
             fn()
-        times = {key: [] for key in fns}
+        rounds.update({key: [] for key in fns})
         for _ in range(repeats):
             for key, fn in fns.items():
-                times[key].append(measure(fn, 1, warmup=0)[0])
-        for key in fns:
-            res[key] = statistics.median(times[key])  # seconds
-        rounds.update(times)
+                rounds[key].append(measure(fn, 1, warmup=0)[0])
+    res = {key: statistics.median(t) for key, t in rounds.items()}  # seconds
     for kind in kinds:
         row[f"{kind} fwd ms"] = 1e3 * res[kind, "fwd"]
         row[f"{kind} fwd+bwd ms"] = 1e3 * res[kind, "fwdbwd"]
