@@ -119,3 +119,47 @@ def test_touched_output_independent_of_the_locations_layout(layout, monkeypatch)
     c = touched_mod._ms_deform_sample_touched(values, image_index, as_view, weights, proj_w, proj_b, "sample")
     torch.testing.assert_close(c, touched_mod._ms_deform_sample_touched(values, image_index, plain, weights, proj_w,
                                                                         proj_b, "dense"), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("dtype,p,width", [(torch.float32, 4, torch.complex128), (torch.float32, 2, torch.int64),
+                                           (torch.float32, 3, torch.float32), (torch.float64, 4, torch.complex128),
+                                           (torch.float64, 1, torch.float64), (torch.int32, 2, torch.int64)])
+def test_wide_views_whole_runs_and_moves_the_same_bits(dtype, p, width):
+    t = (torch.randn(5, 3, 2, p) * 100).to(dtype)
+    wide = raw_blocks._wide(t)
+    assert wide.dtype == width  # the widest of 16 / 8 / 4 bytes dividing p elements, else t itself
+    if wide is not t:
+        assert wide.data_ptr() == t.data_ptr()  # a view, no copy
+    # a permuted copy through the view equals the plain permuted copy bit for bit (NaNs included)
+    t.view(-1)[::7] = float("nan") if dtype.is_floating_point else -1
+    moved = raw_blocks._wide(t).permute(0, 2, 1, 3).contiguous().view(dtype).view(5, 2, 3, p)
+    expected = t.permute(0, 2, 1, 3).contiguous()
+    assert torch.equal(moved.view(torch.uint8) if dtype.is_floating_point else moved,
+                       expected.view(torch.uint8) if dtype.is_floating_point else expected)
+
+
+def test_wide_leaves_what_it_cannot_view_and_what_autograd_records():
+    odd = torch.randn(4, 3)  # 12 bytes a row: no wider element divides them
+    assert raw_blocks._wide(odd) is odd
+    strided = torch.randn(4, 8)[:, 1:5]  # a run of 16 bytes at an offset of 4 bytes
+    assert raw_blocks._wide(strided) is strided
+    leaf = torch.randn(4, 4, requires_grad=True)
+    assert raw_blocks._wide(leaf) is leaf
+    with torch.no_grad():
+        assert raw_blocks._wide(leaf).dtype == torch.complex128
+
+
+@pytest.mark.parametrize("requires_grad", [False, True])
+def test_sorted_points_weights_are_the_level_major_permutation(requires_grad):
+    q, m, lv_, p = 6, 3, 2, 4
+    g = torch.Generator().manual_seed(5)
+    loc = torch.rand(q, m, lv_, p, 2, generator=g)
+    wt = torch.rand(q, m, lv_, p, generator=g).requires_grad_(requires_grad)
+    order = torch.tensor([3, 0, 5, 1, 4, 2])
+    _, wts = raw_blocks._sorted_points(loc, wt, [(4, 6), (2, 3)], order)
+    expected = torch.stack([torch.stack([wt[order[a], :, b] for b in range(lv_)]) for a in range(q)])
+    assert torch.equal(wts.detach(), expected.detach())
+    assert wts.requires_grad == requires_grad  # (a dtype view would have cut the graph)
+    if requires_grad:
+        (grad,) = torch.autograd.grad((wts * expected.detach()).sum(), wt)
+        assert torch.equal(grad, wt.detach())
