@@ -202,16 +202,14 @@ def _bag_raw(raw: _RawLevel, start: int, stop: int):
     ``[start, stop)``."""
     m, k = raw.c00.shape[1], 4 * raw.c00.shape[2]
     rows, psw = _block_corners(raw, start, stop)
+    # The in-map mask as 1.0 / 0.0 in the weights' type, written by the comparison itself: a bool mask
+    # and a float-times-bool product each take a slow mixed-type loop (measured 2.5x slower for the two
+    # at 512 queries); x * 1.0 and x * 0.0 are the same bits either way. (Fresh arrays: in place.)
+    psw = psw.mul_(torch.ne(rows, raw.n_rows, out=torch.empty_like(psw)))
     if raw.clamp is not None:
-        # the in-map mask as 1.0 / 0.0 in the weights' type, written by the comparison itself: a
-        # bool mask and a float-times-bool product each take a slow mixed-type loop (measured 2.5x
-        # slower for the two at 512 queries); x * 1.0 and x * 0.0 are the same bits either way
-        inside = torch.ne(rows, raw.n_rows, out=torch.empty_like(psw))
-        psw = psw.mul_(inside)  # (fresh arrays of this block: in place)
         sampled = F.embedding_bag(rows.clamp_(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
     else:
-        inside = rows != raw.n_rows
-        psw = psw.mul_(inside)
+        inside = rows != raw.n_rows  # (the compaction's index: rare, see _RawLevel)
         counts = inside.sum(1)
         offsets = torch.cumsum(counts, 0) - counts
         sampled = F.embedding_bag(rows[inside], raw.table, offsets=offsets, per_sample_weights=psw[inside],
