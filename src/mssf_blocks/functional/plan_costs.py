@@ -20,7 +20,7 @@ _GATHER_COST = 48.0
 _BAG_COST = 5.0
 # "direct" (channels-last maps only): embedding_bag straight over the level's free (pixels, D) row
 # view, no gather: corners * D * _DIRECT_BAG_COST + Q * D * E. With the queries in image order
-# (_SORT_BANDS below) its rows are read about as fast as a compact table's (it was 6, random 1 KiB
+# (_SORT_CELL below) its rows are read about as fast as a compact table's (it was 6, random 1 KiB
 # rows of a 10^5-row table missing the cache, before the queries were sorted). Measured per level with
 # benchmarks/msdff.py's setting, paper width, 2,500-8,000 radar-band voxels: "direct" 10-55 ms forward
 # against 10-91 ms for "sample" on every level P2-P6, and 149-220 ms against 165-245 ms with
@@ -32,10 +32,15 @@ _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 c
 # The raw-row plans bag their queries in blocks of this many bytes of (queries * M, D) samples
 # (benchmarks/msdff.py; 4 MiB = 512 queries at M = 8, D = 256 float32).
 _RAW_CHUNK_BYTES = 4 << 20
-# The touched plans take the queries in image order (by image, band of rows, then u): neighbouring
-# queries read neighbouring rows, still in cache. Measured with benchmarks/msdff.py at the paper's
-# width: forward+backward 15-25 % faster, forward 2-16 %; 16 to 128 bands within the noise.
-_SORT_BANDS = 64
+# The touched plans take the queries in image order (by image, then along a Hilbert curve of square
+# cells of _SORT_CELL pixels of the finest level): neighbouring queries read neighbouring rows, still
+# in cache, and a block of queries reads one compact patch of the image. Measured with
+# benchmarks/order.py (msdff.py's setting, paper width, one core of an AMD EPYC with 1 MiB of L2,
+# 9 interleaved rounds) against the earlier order by 64 bands of rows then u: forward 0.85-0.93 of
+# the time, forward+backward 0.78-0.93 (2,500-8,000 queries, uniform and radar band); Z order
+# 0.87-1.0; cells of 1 and 4 pixels within the noise of 2. Against no sort the bands were 1.3-1.5x
+# faster (forward).
+_SORT_CELL = 2.0
 # With gradients: the backward of embedding_bag over raw rows (per-corner weight gradients: one D-long
 # dot product per corner) costs about _BAG_BACKWARD forward passes (measured on one core: 4-5x the
 # forward for fwd+bwd); "project" also zero-fills a dense (pixels, E) map and its gradient for

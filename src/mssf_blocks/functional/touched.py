@@ -9,7 +9,8 @@ cost constants of the choice live in :mod:`~mssf_blocks.functional.plan_costs`. 
 
 from __future__ import annotations
 
-from typing import Iterator, List, Optional
+import math
+from typing import Iterator, List, Optional, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -24,7 +25,7 @@ from .plan_costs import (
     _GATHER_COST,
     _GRID_SAMPLE_COST,
     _PROJECT_CHUNK,
-    _SORT_BANDS,
+    _SORT_CELL,
 )
 from .raw_blocks import (
     _bag_projected,
@@ -328,12 +329,44 @@ def _touched_level(
     return level if defer_projection else _bag_projected(level, 0, q)
 
 
-def _spatial_order(image_index: Tensor, locations: Tensor) -> Tensor:
-    """``(Q,)`` permutation of the queries by image, then by band of ``_SORT_BANDS`` rows of the image,
-    then along ``u``, of each query's first sampling location (near its reference point)."""
+def _hilbert_index(x: Tensor, y: Tensor, bits: int) -> Tensor:
+    """Position of the integer cells ``x, y`` (int64, in ``[0, 2**bits)``) along the Hilbert curve that
+    fills the ``2**bits``-sided square: cells close on the curve are close in the plane (unlike a
+    row-major or Z order, the curve never jumps). Vectorised form of the usual quadrant-by-quadrant
+    construction, from the coarsest quadrant to single cells."""
+    d = torch.zeros_like(x)
+    side = 1 << (bits - 1)
+    while side:
+        rx = (x & side).ne(0).long()
+        ry = (y & side).ne(0).long()
+        d += side * side * ((3 * rx) ^ ry)
+        # (the sub-square is turned so that the curve enters and leaves it where its neighbours join)
+        turn = ry == 0
+        flip = turn & (rx == 1)
+        x = torch.where(flip, side - 1 - x, x)
+        y = torch.where(flip, side - 1 - y, y)
+        x, y = torch.where(turn, y, x), torch.where(turn, x, y)
+        side >>= 1
+    return d
+
+
+def _spatial_order(image_index: Tensor, locations: Tensor, size: Tuple[int, int]) -> Tensor:
+    """``(Q,)`` permutation of the queries by image, then along a Hilbert curve over the image
+    (:func:`_hilbert_index`) of each query's first sampling location (near its reference point).
+
+    The curve's cells are squares of about ``_SORT_CELL`` pixels of a level of ``size`` ``(H, W)`` (the
+    finest): consecutive queries, and the queries of a block, then lie in one compact patch of the
+    image, whose rows the bags read from cache (the order by bands of rows it replaced let a block
+    span the image's width).
+    """
+    h, w = size
     ref = locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
-    band = (ref[:, 1] * (_SORT_BANDS - 1)).round().long()
-    return torch.argsort((image_index * _SORT_BANDS + band) * 4096 + (ref[:, 0] * 4095).round().long())
+    longer = max(h, w, 1)
+    bits = min(max(1, math.ceil(math.log2(max(longer / _SORT_CELL, 2.0)))), 15)
+    scale = ((1 << bits) - 1) / longer  # (cells per pixel; the longer side spans the curve's square)
+    x = (ref[:, 0] * (w * scale)).round().long()
+    y = (ref[:, 1] * (h * scale)).round().long()
+    return torch.argsort(image_index * (1 << (2 * bits)) + _hilbert_index(x, y, bits))
 
 
 def _ms_deform_sample_touched(
@@ -358,7 +391,8 @@ def _ms_deform_sample_touched(
     )
     # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
     # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
-    order = _spatial_order(image_index, locations)
+    finest = max((tuple(v.shape[-2:]) for v in levels), key=lambda hw: hw[0] * hw[1])
+    order = _spatial_order(image_index, locations, finest)
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
         loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
