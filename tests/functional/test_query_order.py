@@ -31,7 +31,7 @@ def test_curve_reference_is_the_textbook_first_orders():
     assert _curve(2)[:8] == [(0, 0), (1, 0), (1, 1), (0, 1), (0, 2), (0, 3), (1, 3), (1, 2)]
 
 
-@pytest.mark.parametrize("bits", [1, 2, 3, 4, 5])
+@pytest.mark.parametrize("bits", [1, 2, 3, 4, 5, 6, 8, 9])
 def test_hilbert_index_equals_the_recursive_curve(bits):
     cells = _curve(bits)
     x = torch.tensor([c[0] for c in cells])

@@ -9,6 +9,7 @@ cost constants of the choice live in :mod:`~mssf_blocks.functional.plan_costs`. 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Iterator, List, Optional, Tuple
 
@@ -329,24 +330,57 @@ def _touched_level(
     return level if defer_projection else _bag_projected(level, 0, q)
 
 
+# The Hilbert curve is walked a few levels at a time: per level, the two bits of a cell (x, y) and
+# the orientation of its sub-square (a swap of x and y, a complement of both: four states) give the
+# level's digit of the curve index and the next state. _HILBERT_LEVELS levels at once are one lookup
+# in a table of 4 * 4**levels entries (made once per device): 0.07 ms for 2,500 cells of 8 levels,
+# against 0.5 ms for the level-by-level arithmetic (one core).
+_HILBERT_LEVELS = 4
+
+
+@functools.lru_cache(maxsize=None)
+def _hilbert_table(levels: int, device: torch.device) -> Tuple[Tensor, Tensor]:
+    """``(digits, states)``, each ``(4 * 4**levels,)`` int64, at ``(state * 2**levels + x) * 2**levels + y``
+    for the ``levels`` bits ``x, y`` of a cell below a sub-square in ``state`` (bit 0: x and y swapped,
+    bit 1: both complemented): the ``2 * levels`` bits of the curve index they add, and the state of
+    the sub-square they lead to."""
+    n = 1 << levels
+    digits, states = [], []
+    for state in range(4):
+        for x in range(n):
+            for y in range(n):
+                st, digit = state, 0
+                for b in range(levels - 1, -1, -1):
+                    rx, ry = (x >> b) & 1, (y >> b) & 1
+                    if st & 1:
+                        rx, ry = ry, rx
+                    if st & 2:
+                        rx, ry = rx ^ 1, ry ^ 1
+                    digit = 4 * digit + ((3 * rx) ^ ry)
+                    if ry == 0:  # the sub-square is turned: swapped, and complemented when rx == 1
+                        st ^= 1 | (rx << 1)
+                digits.append(digit)
+                states.append(st)
+    return (torch.tensor(digits, dtype=torch.int64, device=device),
+            torch.tensor(states, dtype=torch.int64, device=device))
+
+
 def _hilbert_index(x: Tensor, y: Tensor, bits: int) -> Tensor:
     """Position of the integer cells ``x, y`` (int64, in ``[0, 2**bits)``) along the Hilbert curve that
-    fills the ``2**bits``-sided square: cells close on the curve are close in the plane (unlike a
-    row-major or Z order, the curve never jumps). Vectorised form of the usual quadrant-by-quadrant
-    construction, from the coarsest quadrant to single cells."""
+    fills the ``2**bits``-sided square from ``(0, 0)`` to ``(2**bits - 1, 0)``: cells close on the
+    curve are close in the plane (unlike a row-major or Z order, the curve never jumps)."""
     d = torch.zeros_like(x)
-    side = 1 << (bits - 1)
-    while side:
-        rx = (x & side).ne(0).long()
-        ry = (y & side).ne(0).long()
-        d += side * side * ((3 * rx) ^ ry)
-        # (the sub-square is turned so that the curve enters and leaves it where its neighbours join)
-        turn = ry == 0
-        flip = turn & (rx == 1)
-        x = torch.where(flip, side - 1 - x, x)
-        y = torch.where(flip, side - 1 - y, y)
-        x, y = torch.where(turn, y, x), torch.where(turn, x, y)
-        side >>= 1
+    state = torch.zeros_like(x)
+    done = 0
+    while done < bits:
+        levels = (bits - done) % _HILBERT_LEVELS or _HILBERT_LEVELS  # (the top levels first)
+        shift, mask = bits - done - levels, (1 << levels) - 1
+        digits, states = _hilbert_table(levels, x.device)
+        key = ((state << levels) | ((x >> shift) & mask)) << levels
+        key |= (y >> shift) & mask
+        d = (d << (2 * levels)) | digits.index_select(0, key)
+        state = states.index_select(0, key)
+        done += levels
     return d
 
 
