@@ -19,10 +19,32 @@ from torch import Tensor, nn
 from mssf_blocks._checks import check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
-__all__ = ["BasicBlock", "Bottleneck", "ResNet", "FPN", "ImageBranch", "RESNET_LAYERS"]
+__all__ = ["BasicBlock", "Bottleneck", "SubsampledConv1x1", "ResNet", "FPN", "ImageBranch", "RESNET_LAYERS"]
 
 #: blocks per stage for every supported depth.
 RESNET_LAYERS = {18: (2, 2, 2, 2), 34: (3, 4, 6, 3), 50: (3, 4, 6, 3), 101: (3, 4, 23, 3), 152: (3, 8, 36, 3)}
+
+
+class SubsampledConv1x1(nn.Conv2d):
+    """A 1 x 1 convolution with a stride (the ResNet shortcut's projection), computed as the stride-1
+    convolution of every ``stride``-th pixel: the same arithmetic (each output pixel is one input
+    pixel's channels times the weight) and the same parameters (``weight``, ``bias``) as
+    ``nn.Conv2d(in, out, 1, stride)``, so checkpoints load unchanged.
+
+    Why: the weight gradient of a strided 1 x 1 convolution on channels-last memory corrupts the heap
+    in the oneDNN of torch 2.13's CPU build on some CPUs (measured on an AMD EPYC of family 25 with
+    AVX-512: segmentation fault for a batch of 8 at 40 x 64 pixels with 4 or 8 input channels, not at
+    16; fine with ``ONEDNN_MAX_CPU_ISA=SSE41`` or with oneDNN off), which killed ``make demo`` at its
+    first image pre-training step. Its stride-1 kernel is unaffected; the subsampled view costs a copy
+    of a quarter of the input.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int, bias: bool = False) -> None:
+        super().__init__(in_channels, out_channels, 1, stride, bias=bias)
+
+    def forward(self, x: Tensor) -> Tensor:
+        sy, sx = self.stride
+        return F.conv2d(x[..., ::sy, ::sx], self.weight, self.bias)
 
 
 class BasicBlock(nn.Module):
@@ -39,7 +61,7 @@ class BasicBlock(nn.Module):
         self.bn2 = norm_layer(out)
         self.downsample = None
         if stride != 1 or in_channels != out:
-            self.downsample = nn.Sequential(nn.Conv2d(in_channels, out, 1, stride, bias=False), norm_layer(out))
+            self.downsample = nn.Sequential(SubsampledConv1x1(in_channels, out, stride), norm_layer(out))
 
     def forward(self, x: Tensor) -> Tensor:
         identity = x if self.downsample is None else self.downsample(x)
@@ -64,7 +86,7 @@ class Bottleneck(nn.Module):
         self.bn3 = norm_layer(out)
         self.downsample = None
         if stride != 1 or in_channels != out:
-            self.downsample = nn.Sequential(nn.Conv2d(in_channels, out, 1, stride, bias=False), norm_layer(out))
+            self.downsample = nn.Sequential(SubsampledConv1x1(in_channels, out, stride), norm_layer(out))
 
     def forward(self, x: Tensor) -> Tensor:
         identity = x if self.downsample is None else self.downsample(x)

@@ -1,10 +1,14 @@
+import os
+import subprocess
+import sys
+
 import pytest
 import torch
 import torch.nn.functional as F
 
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.testing import assert_close
-from mssf_examples.image_branch import FPN, BasicBlock, Bottleneck, ImageBranch, ResNet
+from mssf_examples.image_branch import FPN, BasicBlock, Bottleneck, ImageBranch, ResNet, SubsampledConv1x1
 
 
 def _bn(x, bn):
@@ -139,3 +143,45 @@ def test_bad_settings_and_input():
         ResNet(depth=20)
     with pytest.raises(MSSFError, match="images"):
         ImageBranch(depth=18, base_channels=4, fpn_channels=8)(torch.randn(1, 3, 32, 32))
+
+
+@pytest.mark.parametrize("stride", [1, 2, (2, 1)])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_subsampled_conv1x1_is_the_strided_1x1_convolution(stride, channels_last):
+    torch.manual_seed(0)
+    conv = SubsampledConv1x1(3, 5, stride, bias=True).double()
+    plain = torch.nn.Conv2d(3, 5, 1, stride, bias=True).double()
+    assert list(conv.state_dict()) == list(plain.state_dict())  # checkpoints load unchanged
+    plain.load_state_dict(conv.state_dict())
+    x = torch.randn(2, 3, 9, 8, dtype=torch.float64)
+    if channels_last:
+        x = x.contiguous(memory_format=torch.channels_last)
+    x.requires_grad_(True)
+    grad = torch.randn_like(plain(x))
+    ours = torch.autograd.grad(conv(x), [x, conv.weight, conv.bias], grad)
+    ref = torch.autograd.grad(plain(x), [x, plain.weight, plain.bias], grad)
+    assert conv(x).shape == plain(x).shape
+    torch.testing.assert_close(conv(x), plain(x), rtol=0, atol=1e-12)
+    for a, b in zip(ours, ref):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-12)
+
+
+def test_resnet_shortcuts_subsample_and_the_demo_step_survives():
+    # The shortcut projections are SubsampledConv1x1; the demo's first image pre-training step (its
+    # branch, a batch of 8 at 160 x 256, channels-last) ran in a fresh interpreter: with nn.Conv2d's
+    # strided 1 x 1 it died of a heap corruption in oneDNN on some CPUs (see SubsampledConv1x1).
+    branch = ImageBranch(18, 4, 8, 4)
+    shortcuts = [m.downsample[0] for m in branch.modules() if isinstance(m, BasicBlock) and m.downsample is not None]
+    assert shortcuts and all(type(c) is SubsampledConv1x1 for c in shortcuts)
+    code = (
+        "import torch\n"
+        "from mssf_examples.image_branch import ImageBranch\n"
+        "torch.set_num_threads(1); torch.manual_seed(0)\n"
+        "branch = ImageBranch(18, 4, 8, 4)\n"
+        "feats = branch(torch.rand(8, 1, 3, 160, 256))\n"
+        "sum(f.square().mean() for f in feats).backward()\n"
+        "print('ok')\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert run.returncode == 0 and run.stdout.strip() == "ok", (run.returncode, run.stderr[-2000:])
