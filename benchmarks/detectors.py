@@ -103,7 +103,7 @@ def msdff_floor(model, frame, repeats: int = 3):
             sizes = [tuple(f.shape[-2:]) for f in feats]
             seen = proj.valid[:, 0]  # (one camera: the voxels it sees are the queries)
             loc, _ = mod.sampling_locations_and_weights(query[seen], proj.uv[seen, 0], sizes)
-            loc = loc[_spatial_order(proj.batch_index[seen], loc, max(sizes, key=lambda hw: hw[0] * hw[1]))]
+            loc = loc[_spatial_order(proj.batch_index[seen], loc, sizes)]
             total = 0.0
             for lvl, (h, w) in enumerate(sizes):
                 table = torch.randn(h * w, mod.value_channels)  # a channels-last stand-in of the level

@@ -205,7 +205,7 @@ def primitive_floor(path: "ImagePath", query, uv, feats, repeats: int):
         shared += measure(lambda: path.output_proj(heads), repeats)[0]
         loc, _ = path.locations_and_weights(query, uv, sizes)
         # the queries in image order, as the touched plans take them (rows of neighbours in cache)
-        loc = loc[_spatial_order(torch.zeros(loc.shape[0], dtype=torch.long), loc, tuple(sizes[0]))]
+        loc = loc[_spatial_order(torch.zeros(loc.shape[0], dtype=torch.long), loc, sizes)]
         levels = []
         for lvl, f in enumerate(feats):
             h, w = f.shape[-2:]

@@ -17,13 +17,12 @@ one thread; ratios are against ``bands`` (lower is faster). The forward and, wit
 forward + backward (w.r.t. the queries and MSDFF's parameters; the image is frozen, as in the paper).
 
 Usage: ``python benchmarks/order.py [--rounds 7] [--backward] [--cases 2500:32 8000:64]
-[--distributions uniform "radar band"]`` (about 2 minutes forward only, 10 with ``--backward``).
+[--distributions uniform "radar band"]`` (about 1 minute forward only, 3 with ``--backward`` and 9 rounds).
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import statistics
 import sys
@@ -41,22 +40,14 @@ from mssf_blocks.functional import touched as touched_mod  # noqa: E402
 LIBRARY_ORDER = touched_mod._spatial_order
 
 
-def _first_points(locations):
-    return locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
-
-
-def bands(image_index, locations, size):
-    ref = _first_points(locations)
+def bands(image_index, locations, sizes):
+    ref = locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
     band = (ref[:, 1] * 63).round().long()
     return torch.argsort((image_index * 64 + band) * 4096 + (ref[:, 0] * 4095).round().long())
 
 
-def z_order(image_index, locations, size, cell=2.0):
-    h, w = size
-    bits = max(1, math.ceil(math.log2(max(h, w) / cell)))
-    scale = ((1 << bits) - 1) / max(h, w)
-    ref = _first_points(locations)
-    x, y = (ref[:, 0] * (w * scale)).round().long(), (ref[:, 1] * (h * scale)).round().long()
+def z_order(image_index, locations, sizes):
+    x, y, bits = touched_mod._sort_cells(locations, sizes, 2.0)  # (the library's cells)
     key = torch.zeros_like(x)
     for b in range(bits):  # interleave the bits of x and y
         key |= ((x >> b) & 1) << (2 * b) | ((y >> b) & 1) << (2 * b + 1)
@@ -64,18 +55,11 @@ def z_order(image_index, locations, size, cell=2.0):
 
 
 def hilbert(cell):
-    def order(image_index, locations, size):
-        saved = touched_mod._SORT_CELL
-        touched_mod._SORT_CELL = cell
-        try:
-            return LIBRARY_ORDER(image_index, locations, size)
-        finally:
-            touched_mod._SORT_CELL = saved
-    return order
+    return lambda image_index, locations, sizes: LIBRARY_ORDER(image_index, locations, sizes, cell=cell)
 
 
 ORDERS = {
-    "callers": lambda image_index, locations, size: torch.arange(locations.shape[0]),
+    "callers": lambda image_index, locations, sizes: torch.arange(locations.shape[0]),
     "bands": bands,
     "z": z_order,
     "hilbert-1": hilbert(1.0),

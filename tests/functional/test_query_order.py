@@ -61,7 +61,7 @@ def test_spatial_order_walks_the_image_in_neighbouring_cells(size):
     image = torch.arange(2).repeat_interleave(rows * cols)
     shuffle = torch.randperm(u.numel(), generator=torch.Generator().manual_seed(0))
     u, v, image = u[shuffle], v[shuffle], image[shuffle]
-    order = _spatial_order(image, _locations(u, v), size)
+    order = _spatial_order(image, _locations(u, v), [size])
     assert torch.equal(order.sort().values, torch.arange(u.numel()))  # a permutation
     assert torch.equal(image[order], image.sort().values)  # by image first
     # the grid is the curve's (its cells are square in pixels, the longer side spans the curve):
@@ -84,7 +84,7 @@ def test_spatial_order_keeps_a_block_of_queries_on_fewer_pixels_than_bands_of_ro
     h, w, n, block, reach = 256, 512, 4096, 64, 8
     g = torch.Generator().manual_seed(3)
     u, v = torch.rand(n, generator=g), torch.rand(n, generator=g)
-    order = _spatial_order(torch.zeros(n, dtype=torch.long), _locations(u, v), (h, w))
+    order = _spatial_order(torch.zeros(n, dtype=torch.long), _locations(u, v), [(h, w), (h // 2, w // 2)])
     bands = torch.argsort((v * 63).round().long() * 4096 + (u * 4095).round().long())
     offsets = torch.arange(-reach, reach + 1)
 

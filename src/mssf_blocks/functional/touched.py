@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Iterator, List, Optional, Tuple
+from typing import Iterator, List, Optional, Sequence, Tuple
 
 import torch
 import torch.nn.functional as F
@@ -384,22 +384,28 @@ def _hilbert_index(x: Tensor, y: Tensor, bits: int) -> Tensor:
     return d
 
 
-def _spatial_order(image_index: Tensor, locations: Tensor, size: Tuple[int, int]) -> Tensor:
-    """``(Q,)`` permutation of the queries by image, then along a Hilbert curve over the image
-    (:func:`_hilbert_index`) of each query's first sampling location (near its reference point).
-
-    The curve's cells are squares of about ``_SORT_CELL`` pixels of a level of ``size`` ``(H, W)`` (the
-    finest): consecutive queries, and the queries of a block, then lie in one compact patch of the
-    image, whose rows the bags read from cache (the order by bands of rows it replaced let a block
-    span the image's width).
-    """
-    h, w = size
+def _sort_cells(locations: Tensor, sizes: Sequence[Tuple[int, int]], cell: float) -> Tuple[Tensor, Tensor, int]:
+    """``(x, y, bits)``: the integer cells, in ``[0, 2**bits)``, of each query's first sampling location
+    (near its reference point) on a grid of squares of about ``cell`` pixels of the finest of the
+    levels of ``sizes`` ``(H_l, W_l)``, whose longer side spans the ``2**bits``-sided square."""
+    h, w = max(sizes, key=lambda hw: hw[0] * hw[1])
     ref = locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
     longer = max(h, w, 1)
-    bits = min(max(1, math.ceil(math.log2(max(longer / _SORT_CELL, 2.0)))), 15)
-    scale = ((1 << bits) - 1) / longer  # (cells per pixel; the longer side spans the curve's square)
-    x = (ref[:, 0] * (w * scale)).round().long()
-    y = (ref[:, 1] * (h * scale)).round().long()
+    bits = min(max(1, math.ceil(math.log2(max(longer / cell, 2.0)))), 15)
+    scale = ((1 << bits) - 1) / longer  # (cells per pixel)
+    return (ref[:, 0] * (w * scale)).round().long(), (ref[:, 1] * (h * scale)).round().long(), bits
+
+
+def _spatial_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[int, int]],
+                   cell: float = _SORT_CELL) -> Tensor:
+    """``(Q,)`` permutation of the queries by image, then along a Hilbert curve over the image
+    (:func:`_hilbert_index`) of the cells (:func:`_sort_cells`) of their first sampling locations.
+
+    The cells are squares of about ``cell`` pixels of the finest level: consecutive queries, and the
+    queries of a block, then lie in one compact patch of the image, whose rows the bags read from cache
+    (the order by bands of rows it replaced let a block span the image's width).
+    """
+    x, y, bits = _sort_cells(locations, sizes, cell)
     return torch.argsort(image_index * (1 << (2 * bits)) + _hilbert_index(x, y, bits))
 
 
@@ -425,8 +431,7 @@ def _ms_deform_sample_touched(
     )
     # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
     # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
-    finest = max((tuple(v.shape[-2:]) for v in levels), key=lambda hw: hw[0] * hw[1])
-    order = _spatial_order(image_index, locations, finest)
+    order = _spatial_order(image_index, locations, [tuple(v.shape[-2:]) for v in levels])
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
         loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
