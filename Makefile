@@ -21,6 +21,10 @@ $(STAMP): pyproject.toml
 	# pull mmcv's compiled build and opencv-python; the registry needs only these (about a minute, measured).
 	$(PY) -m pip install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0
 	$(PY) -m pip install --quiet addict yapf termcolor rich opencv-python-headless
+	# test-only (tests/integrations): what OpenPCDet (../shared/thirdparty, unpacked by the tests) imports at
+	# module level; av2 and kornia --no-deps (their own requirements pull CUDA builds and are not imported).
+	$(PY) -m pip install --quiet scipy scikit-image easydict pyyaml SharedArray pyquaternion tensorboardX numba pandas pyarrow universal_pathlib
+	$(PY) -m pip install --quiet --no-deps av2==0.3.6 kornia==0.6.8
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -24,11 +24,20 @@ from mssf_blocks.integrations.openpcdet import augmentor_order  # noqa: E402
 from mssf_blocks.integrations.openpcdet_backbones import OPENPCDET_BACKBONES, settings_from_model_cfg  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # spconv's CPU kernels, tiny tensors
-CONFIG = Path(__file__).resolve().parents[2] / "examples" / "configs" / "openpcdet" / "mssf_second_vod_radar.yaml"
+CONFIGS = Path(__file__).resolve().parents[2] / "examples" / "configs" / "openpcdet"
+CONFIG = CONFIGS / "vod_models" / "mssf_second.yaml"
+
+
+def read_config(path=CONFIG):
+    """The model config with its DATA_CONFIG._BASE_CONFIG_ merged in (as cfg_from_yaml_file from tools/)."""
+    cfg = yaml.safe_load(path.read_text())
+    base = cfg["DATA_CONFIG"].pop("_BASE_CONFIG_")
+    cfg["DATA_CONFIG"] = {**yaml.safe_load((CONFIGS / "dataset_configs" / Path(base).name).read_text()), **cfg["DATA_CONFIG"]}
+    return easydict.EasyDict(cfg)
 
 
 def load_cfg(**backbone):
-    cfg = easydict.EasyDict(yaml.safe_load(CONFIG.read_text()))
+    cfg = read_config()
     cfg.DATA_CONFIG.DATA_PROCESSOR[-1].VOXEL_SIZE = [0.8, 0.8, 0.125]  # 64 x 64 x 40 cells on the CPU
     cfg.MODEL.BACKBONE_3D.update(IMAGE_CHANNELS=[8, 8], MSDFF_HEADS=2, MSDFF_POINTS=2, SEG_HIDDEN=[16], **backbone)
     return cfg

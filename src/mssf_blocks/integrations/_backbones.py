@@ -19,7 +19,8 @@ from ..sparse import SparseVoxels
 __all__: list = []
 
 #: framework layout name -> example backbone class
-LAYOUTS = {"VoxelBackBone8x": "SECONDBackbone", "VoxelResBackBone8x": "CenterPointBackbone"}
+LAYOUTS = {"VoxelBackBone8x": "SECONDBackbone", "VoxelResBackBone8x": "CenterPointBackbone",
+           "VoxelResBackBone8xVoxelNeXt": "VoxelNeXtBackbone"}
 FUSION_KWARGS = ("num_fusion_blocks", "fusion", "fusion_position", "image_channels", "msdff_heads",
                  "msdff_points", "msdff_value_projection", "msdff_value_dim", "seg_hidden", "channels", "out_channels")
 
@@ -66,21 +67,39 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
     return getattr(bb, LAYOUTS[layout])(int(in_channels), grid, **kwargs)
 
 
-def run_dense_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int,
-                     fusion_inputs: Any) -> Tuple[Any, Any]:
-    """``(BackboneOutput, conv_out spconv tensor)`` of a SECOND/CenterPoint example backbone."""
+def _input_voxels(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int) -> Any:
     if not isinstance(voxel_coords, Tensor) or voxel_coords.dim() != 2 or voxel_coords.shape[1] != 4:
         raise MSSFError(f"voxel_coords: expected (N, 4) (batch, z, y, x), got {getattr(voxel_coords, 'shape', voxel_coords)!r}")
     coords = voxel_coords.to(torch.int32)
     if not torch.equal(coords.to(voxel_coords.dtype), voxel_coords):
         raise MSSFError("voxel_coords: expected integer voxel indices")
-    from ..compat.spconv import enable_cpu_backward, quiet
+    from ..compat.spconv import enable_cpu_backward
 
     enable_cpu_backward()  # spconv's backward on a CPU-only torch (no effect on CUDA builds)
-    voxels = net.grid.sparse_voxels(voxel_features, coords, int(batch_size))
+    return net.grid.sparse_voxels(voxel_features, coords, int(batch_size))
+
+
+def run_dense_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int,
+                     fusion_inputs: Any) -> Tuple[Any, Any]:
+    """``(BackboneOutput, conv_out spconv tensor)`` of a SECOND/CenterPoint example backbone."""
+    from ..compat.spconv import quiet
+
+    voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net.forward_stages(voxels, fusion_inputs)
     with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
         return out, net.conv_out(out.stages[-1].to_spconv())
+
+
+def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int,
+                         fusion_inputs: Any) -> Tuple[Any, Any]:
+    """``(BackboneOutput, sparse BEV spconv tensor)`` of the example VoxelNeXt backbone: 2D indices
+    ``(b, y, x)`` at stride 8 on the ``bev_shape`` grid, as OpenPCDet's ``VoxelResBackBone8xVoxelNeXt``."""
+    import spconv.pytorch as spconv
+
+    voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
+    out = net(voxels, fusion_inputs)
+    features, indices = out.sparse_bev
+    return out, spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
 
 
 def stage_spconv(out: Any) -> Dict[str, Any]:

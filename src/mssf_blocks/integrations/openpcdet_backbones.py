@@ -38,7 +38,8 @@ from . import _backbones
 from ._common import points_with_batch
 from .openpcdet import DEFAULT_AUGMENTOR_ORDER, fusion_inputs_from_batch_dict
 
-__all__ = ["MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "OPENPCDET_BACKBONES", "settings_from_model_cfg"]
+__all__ = ["MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt", "OPENPCDET_BACKBONES",
+           "settings_from_model_cfg"]
 
 _CFG = {
     "NUM_FUSION_BLOCKS": "num_fusion_blocks", "FUSION": "fusion", "FUSION_POSITION": "fusion_position",
@@ -70,6 +71,7 @@ def settings_from_model_cfg(model_cfg: Any) -> Tuple[Dict[str, Any], Dict[str, A
 
 class _OpenPCDetFusionBackbone(nn.Module):
     LAYOUT = ""
+    _run = staticmethod(_backbones.run_dense_layout)
 
     def __init__(self, model_cfg: Any, input_channels: int, grid_size: Any, voxel_size: Any = None,
                  point_cloud_range: Any = None, **kwargs: Any) -> None:
@@ -83,7 +85,7 @@ class _OpenPCDetFusionBackbone(nn.Module):
         self.net = _backbones.build(self.LAYOUT, input_channels, point_cloud_range, voxel_size, grid_size, **settings)
         self.sparse_shape = list(self.net.input_shape)  # (nz + 1, ny, nx), as OpenPCDet pads z
         self.num_point_features = list(self.net.conv_out)[0].out_channels
-        self.backbone_channels = {f"x_conv{i + 1}": c for i, c in enumerate(self.net.channels)}
+        self.backbone_channels = {f"x_conv{i + 1}": c for i, c in enumerate(self.net.channels[:4])}
 
     @property
     def num_fusion_blocks(self) -> int:
@@ -91,14 +93,14 @@ class _OpenPCDetFusionBackbone(nn.Module):
 
     def forward(self, batch_dict: Dict[str, Any]) -> Dict[str, Any]:
         inputs = fusion_inputs_from_batch_dict(batch_dict, **self.adapter_kwargs) if self.num_fusion_blocks else None
-        out, encoded = _backbones.run_dense_layout(
+        out, encoded = self._run(
             self.net, batch_dict["voxel_features"], batch_dict["voxel_coords"], batch_dict["batch_size"], inputs
         )
         batch_dict.update({
             "encoded_spconv_tensor": encoded,
             "encoded_spconv_tensor_stride": 8,
             "multi_scale_3d_features": _backbones.stage_spconv(out),
-            "multi_scale_3d_strides": {f"x_conv{i + 1}": s[-1] for i, s in enumerate(self.net.strides)},
+            "multi_scale_3d_strides": {f"x_conv{i + 1}": s[-1] for i, s in enumerate(self.net.strides[:4])},
         })
         if out.seg_logits is not None:
             batch_dict["mssf_seg_logits"] = out.seg_logits
@@ -135,5 +137,19 @@ class MSSFVoxelResBackBone8x(_OpenPCDetFusionBackbone):
     LAYOUT = "VoxelResBackBone8x"
 
 
+class MSSFVoxelResBackBone8xVoxelNeXt(_OpenPCDetFusionBackbone):
+    """OpenPCDet's ``VoxelResBackBone8xVoxelNeXt`` layout (the paper's MSSF-V) with MSSF fusion.
+
+    Six residual stages (default: the paper's doubled widths, ``CHANNELS: [32, 32, 64, 128, 256, 256,
+    256]`` = stem, stages 1-6), stages 4-6 merged into a sparse BEV at stride 8 and a 3 x 3 submanifold
+    ``conv_out`` (``OUT_CHANNELS``, default 256). ``encoded_spconv_tensor`` is that 2D sparse tensor
+    (indices ``(b, y, x)``), what ``VoxelNeXtHead`` reads (``DENSE_HEAD.INPUT_FEATURES`` = ``OUT_CHANNELS``).
+    """
+
+    LAYOUT = "VoxelResBackBone8xVoxelNeXt"
+    _run = staticmethod(_backbones.run_voxelnext_layout)
+
+
 #: what to merge into ``pcdet.models.backbones_3d.__all__``
-OPENPCDET_BACKBONES = {"MSSFVoxelBackBone8x": MSSFVoxelBackBone8x, "MSSFVoxelResBackBone8x": MSSFVoxelResBackBone8x}
+OPENPCDET_BACKBONES = {"MSSFVoxelBackBone8x": MSSFVoxelBackBone8x, "MSSFVoxelResBackBone8x": MSSFVoxelResBackBone8x,
+                       "MSSFVoxelResBackBone8xVoxelNeXt": MSSFVoxelResBackBone8xVoxelNeXt}

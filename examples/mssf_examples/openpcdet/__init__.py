@@ -1,0 +1,48 @@
+"""MSSF for OpenPCDet: the View-of-Delft dataset, MSSF-SECOND and MSSF-VoxelNeXt (docs/frameworks.md).
+
+``register()`` inserts the classes into OpenPCDet's registries (the ``__all__`` dicts of
+``pcdet.datasets``, ``pcdet.models.backbones_3d`` and ``pcdet.models.detectors``) for users who do
+not edit pcdet's ``__init__.py`` files; ``python -m mssf_examples.openpcdet train.py --cfg_file ...``
+registers and then runs one of OpenPCDet's ``tools/`` scripts. Importing this package does not import
+OpenPCDet; ``register()`` and the submodules ``vod_dataset`` / ``detectors`` do.
+"""
+
+from __future__ import annotations
+
+from typing import Dict
+
+__all__ = ["register", "REGISTERED_NAMES"]
+
+#: registry -> the names :func:`register` adds to it
+REGISTERED_NAMES = {
+    "pcdet.datasets": ("VoDDataset",),
+    "pcdet.models.backbones_3d": ("MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt"),
+    "pcdet.models.detectors": ("MSSFSECONDNet", "MSSFVoxelNeXt"),
+}
+
+
+def register(pure_torch_box_ops: bool = False) -> Dict[str, tuple]:
+    """Add the MSSF classes to OpenPCDet's registries (idempotent); returns :data:`REGISTERED_NAMES`.
+
+    Args:
+        pure_torch_box_ops: also replace the CUDA extension's rotated NMS / IoU with the project's
+            pure-torch ones (:func:`~mssf_examples.openpcdet.box_ops.use_pure_torch_box_ops`), for
+            evaluation on a machine where OpenPCDet's extensions are not built.
+    """
+    import pcdet.datasets as datasets
+    import pcdet.models.backbones_3d as backbones_3d
+    import pcdet.models.detectors as detectors
+
+    from mssf_blocks.integrations.openpcdet_backbones import OPENPCDET_BACKBONES
+
+    from .detectors import MSSF_DETECTORS
+    from .vod_dataset import VoDDataset
+
+    datasets.__all__["VoDDataset"] = VoDDataset
+    backbones_3d.__all__.update(OPENPCDET_BACKBONES)
+    detectors.__all__.update(MSSF_DETECTORS)
+    if pure_torch_box_ops:
+        from .box_ops import use_pure_torch_box_ops
+
+        use_pure_torch_box_ops()
+    return REGISTERED_NAMES

@@ -1,0 +1,59 @@
+"""``python -m mssf_examples.openpcdet``: VoD infos, and OpenPCDet's tools with the MSSF classes registered.
+
+    python -m mssf_examples.openpcdet create_vod_infos CFG [--data_path DIR] [--save_path DIR]
+        Write vod_infos_{train,val,trainval}.pkl from the dataset config CFG (DATA_PATH unless --data_path).
+    python -m mssf_examples.openpcdet [--pure-torch-nms] SCRIPT.py ARGS...
+        register() the MSSF classes, then run OpenPCDet's tools/SCRIPT.py (train.py, test.py) with ARGS,
+        from the current folder (OpenPCDet's tools/, where its configs' relative paths resolve).
+"""
+
+from __future__ import annotations
+
+import argparse
+import runpy
+import sys
+from pathlib import Path
+
+
+def _infos(argv) -> None:
+    parser = argparse.ArgumentParser(prog="python -m mssf_examples.openpcdet create_vod_infos")
+    parser.add_argument("cfg_file", help="the VoD dataset config (e.g. cfgs/dataset_configs/vod_radar5_dataset.yaml)")
+    parser.add_argument("--data_path", default=None, help="the VoD sensor folder; default: the config's DATA_PATH")
+    parser.add_argument("--save_path", default=None, help="where the .pkl files go; default: the data path")
+    parser.add_argument("--workers", type=int, default=4)
+    args = parser.parse_args(argv)
+    import yaml
+    from easydict import EasyDict
+
+    from .vod_dataset import create_vod_infos
+
+    cfg = EasyDict(yaml.safe_load(Path(args.cfg_file).read_text()))
+    data_path = Path(args.data_path or cfg.DATA_PATH)
+    create_vod_infos(cfg, cfg.get("CLASS_NAMES", ["Car", "Pedestrian", "Cyclist"]), data_path,
+                     Path(args.save_path) if args.save_path else data_path, workers=args.workers)
+
+
+def main(argv=None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return
+    if argv[0] == "create_vod_infos":
+        _infos(argv[1:])
+        return
+    pure = argv[0] == "--pure-torch-nms"
+    if pure:
+        argv = argv[1:]
+    script = Path(argv[0])
+    if not script.is_file():
+        raise SystemExit(f"SCRIPT: {script} not found (run from OpenPCDet's tools/ folder)")
+    from . import register
+
+    register(pure_torch_box_ops=pure)
+    sys.argv = [str(script)] + argv[1:]
+    sys.path.insert(0, str(script.resolve().parent))
+    runpy.run_path(str(script), run_name="__main__")
+
+
+if __name__ == "__main__":
+    main()

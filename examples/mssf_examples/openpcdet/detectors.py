@@ -1,0 +1,113 @@
+"""MSSF-SECOND and MSSF-VoxelNeXt as OpenPCDet detectors (``MODEL.NAME: MSSFSECONDNet`` / ``MSSFVoxelNeXt``).
+
+Each is OpenPCDet's ``SECONDNet`` / ``VoxelNeXt`` with two changes:
+
+* an image branch (``MODEL.IMAGE_BRANCH``, :class:`~mssf_examples.openpcdet.image_module.OpenPCDetImageBranch`)
+  runs first in ``module_list`` (before ``vfe`` and ``backbone_3d``) and writes the FPN levels the
+  fusion backbone reads; with ``BACKBONE_3D.NUM_FUSION_BLOCKS: 0`` (radar-only) there is none;
+* ``get_training_loss(batch_dict)`` adds the semantic-guided head's focal loss
+  (``backbone_3d.get_loss``, ``tb_dict['loss_mssf_seg']``) to the dense head's.
+
+The configuration is checked when the model is built; errors name the key (image levels / channels
+against ``BACKBONE_3D.IMAGE_CHANNELS``, ``DATA_CONFIG.GET_ITEM_LIST`` without images, ``AUG_ORDER``
+against ``DATA_AUGMENTOR.AUG_CONFIG_LIST``). Importing this module imports OpenPCDet.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict
+
+from pcdet.models.detectors.second_net import SECONDNet
+from pcdet.models.detectors.voxelnext import VoxelNeXt
+
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.integrations.openpcdet import DEFAULT_AUGMENTOR_ORDER, augmentor_order
+
+from .image_module import IMAGE_BRANCH_DEFAULTS, OpenPCDetImageBranch
+
+__all__ = ["MSSFSECONDNet", "MSSFVoxelNeXt", "MSSF_DETECTORS", "check_mssf_config"]
+
+
+def check_mssf_config(model_cfg: Any, dataset_cfg: Any) -> bool:
+    """Check a model config against its dataset config; ``True`` when the backbone fuses the image."""
+    bb = model_cfg.BACKBONE_3D
+    fuses = int(bb.get("NUM_FUSION_BLOCKS", 0) or 0) > 0
+    aug = dataset_cfg.get("DATA_AUGMENTOR", None)
+    if aug is not None:
+        expected = augmentor_order(aug)
+        given = bb.get("AUG_ORDER", None)
+        given = DEFAULT_AUGMENTOR_ORDER if given is None else tuple(given)
+        if fuses and given != expected:
+            raise MSSFError(f"MODEL.BACKBONE_3D.AUG_ORDER: {list(given)} does not match the order in which "
+                            f"DATA_CONFIG.DATA_AUGMENTOR.AUG_CONFIG_LIST applies the geometric augmentations "
+                            f"(after DISABLE_AUG_LIST): {list(expected)}")
+    if not fuses:
+        return False
+    items = list(dataset_cfg.get("GET_ITEM_LIST", ["points"]))
+    need = [k for k in ("points", "images", "calib_matricies") if k not in items]
+    if need:
+        raise MSSFError(f"DATA_CONFIG.GET_ITEM_LIST: MSSF fusion (MODEL.BACKBONE_3D.NUM_FUSION_BLOCKS > 0) needs "
+                        f"{need} from the dataset, got {items}")
+    if "IMAGE_BRANCH" not in model_cfg:
+        raise MSSFError("MODEL.IMAGE_BRANCH: required when MODEL.BACKBONE_3D.NUM_FUSION_BLOCKS > 0 (the ResNet + FPN "
+                        "whose levels the fusion blocks sample)")
+    ib = {**IMAGE_BRANCH_DEFAULTS, **dict(model_cfg.IMAGE_BRANCH)}
+    levels = [int(ib["FPN_CHANNELS"])] * int(ib["NUM_OUTS"])
+    declared = [int(c) for c in bb.get("IMAGE_CHANNELS", None) or []]
+    if declared != levels:
+        raise MSSFError(f"MODEL.BACKBONE_3D.IMAGE_CHANNELS: the image branch (MODEL.IMAGE_BRANCH FPN_CHANNELS "
+                        f"{ib['FPN_CHANNELS']}, NUM_OUTS {ib['NUM_OUTS']}) gives levels of {levels} channels, the "
+                        f"backbone declares {declared}")
+    key = bb.get("IMAGE_FEATURES_KEY", "image_fpn")
+    if key != ib["OUTPUT_KEY"]:
+        raise MSSFError(f"MODEL.BACKBONE_3D.IMAGE_FEATURES_KEY: {key!r}, but MODEL.IMAGE_BRANCH.OUTPUT_KEY writes "
+                        f"{ib['OUTPUT_KEY']!r}")
+    return True
+
+
+class _MSSFDetector:
+    """What both detectors add to their OpenPCDet parent (listed first in the bases)."""
+
+    def _add_image_branch(self, model_cfg: Any, dataset: Any) -> None:
+        self.image_branch = None
+        if check_mssf_config(model_cfg, dataset.dataset_cfg):
+            self.image_branch = OpenPCDetImageBranch(model_cfg.IMAGE_BRANCH)
+            self.module_list.insert(0, self.image_branch)  # runs before vfe / backbone_3d
+
+    def forward(self, batch_dict: Dict[str, Any]):
+        for cur_module in self.module_list:
+            batch_dict = cur_module(batch_dict)
+        if self.training:
+            loss, tb_dict, disp_dict = self.get_training_loss(batch_dict)
+            return {"loss": loss}, tb_dict, disp_dict
+        return self.post_processing(batch_dict)
+
+    def get_training_loss(self, batch_dict: Dict[str, Any] = None):
+        loss, tb_dict, disp_dict = super().get_training_loss()
+        if batch_dict is not None and "mssf_seg_logits" in batch_dict:
+            loss_seg, tb_seg = self.backbone_3d.get_loss(batch_dict)
+            loss = loss + loss_seg
+            tb_dict.update(tb_seg)
+        tb_dict["loss"] = float(loss.detach())
+        return loss, tb_dict, disp_dict
+
+
+class MSSFSECONDNet(_MSSFDetector, SECONDNet):
+    """SECOND (``MSSFVoxelBackBone8x`` + ``HeightCompression`` + ``BaseBEVBackbone`` + ``AnchorHeadSingle``)
+    with the MSSF image branch and semantic loss."""
+
+    def __init__(self, model_cfg, num_class, dataset):
+        SECONDNet.__init__(self, model_cfg=model_cfg, num_class=num_class, dataset=dataset)
+        self._add_image_branch(model_cfg, dataset)
+
+
+class MSSFVoxelNeXt(_MSSFDetector, VoxelNeXt):
+    """The paper's MSSF-V: ``MSSFVoxelResBackBone8xVoxelNeXt`` (doubled widths) + ``VoxelNeXtHead``."""
+
+    def __init__(self, model_cfg, num_class, dataset):
+        VoxelNeXt.__init__(self, model_cfg=model_cfg, num_class=num_class, dataset=dataset)
+        self._add_image_branch(model_cfg, dataset)
+
+
+#: what to merge into ``pcdet.models.detectors.__all__``
+MSSF_DETECTORS = {"MSSFSECONDNet": MSSFSECONDNet, "MSSFVoxelNeXt": MSSFVoxelNeXt}

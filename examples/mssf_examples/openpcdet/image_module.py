@@ -1,0 +1,98 @@
+"""The image branch of the OpenPCDet MSSF detectors: ResNet + FPN (:mod:`mssf_examples.image_branch`,
+no torchvision) as an OpenPCDet module that reads ``batch_dict['images']`` and writes the FPN levels.
+
+Model config (``MODEL.IMAGE_BRANCH``)::
+
+    IMAGE_BRANCH:
+        DEPTH: 50                 # ResNet depth
+        FPN_CHANNELS: 256
+        NUM_OUTS: 4               # FPN levels (strides 4, 8, 16, 32)
+        FROZEN: True              # the paper: pre-trained and frozen
+        CHECKPOINT: /path/htc_resnet50_fpn.pth    # required when FROZEN
+        CHECKPOINT_PREFIXES: {'img_backbone.': 'backbone.', 'img_neck.': 'neck.'}
+        MEAN: [0.485, 0.456, 0.406]   # on [0, 1] RGB, as OpenPCDet's KittiDataset loads images
+        STD: [0.229, 0.224, 0.225]
+        OUTPUT_KEY: image_fpn     # = BACKBONE_3D.IMAGE_FEATURES_KEY
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict, Mapping
+
+import torch
+from torch import nn
+
+from mssf_blocks.errors import MSSFError
+
+from ..image_branch import ImageBranch
+
+__all__ = ["OpenPCDetImageBranch", "IMAGE_BRANCH_DEFAULTS", "load_branch_checkpoint"]
+
+IMAGE_BRANCH_DEFAULTS: Dict[str, Any] = {
+    "DEPTH": 50, "BASE_CHANNELS": 64, "FPN_CHANNELS": 256, "NUM_OUTS": 4, "FROZEN": True, "CHECKPOINT": None,
+    "CHECKPOINT_PREFIXES": {"img_backbone.": "backbone.", "img_neck.": "neck."},
+    "MEAN": [0.485, 0.456, 0.406], "STD": [0.229, 0.224, 0.225], "OUTPUT_KEY": "image_fpn",
+}
+
+
+def load_branch_checkpoint(branch: nn.Module, path: Any, prefixes: Mapping[str, str]) -> None:
+    """Load ``backbone.*`` / ``neck.*`` weights from a checkpoint file (a state dict, or a dict with
+    ``state_dict`` / ``model_state``); keys starting with a ``prefixes`` key are renamed first."""
+    path = Path(str(path)).expanduser()
+    if not path.is_file():
+        raise MSSFError(f"MODEL.IMAGE_BRANCH.CHECKPOINT: file not found: {path}")
+    obj = torch.load(path, map_location="cpu", weights_only=True)
+    state = obj.get("state_dict", obj.get("model_state", obj)) if isinstance(obj, Mapping) else None
+    if not isinstance(state, Mapping):
+        raise MSSFError(f"MODEL.IMAGE_BRANCH.CHECKPOINT: expected a state dict in {path}, got {type(obj).__name__}")
+    renamed = {}
+    for key, value in state.items():
+        for old, new in prefixes.items():
+            if key.startswith(old):
+                key = new + key[len(old):]
+                break
+        if key.startswith(("backbone.", "neck.")):
+            renamed[key] = value
+    missing, unexpected = branch.load_state_dict(renamed, strict=False)
+    if missing or unexpected:
+        raise MSSFError(f"MODEL.IMAGE_BRANCH.CHECKPOINT: {path} does not fit the image branch: missing "
+                        f"{sorted(missing)[:6]} ({len(missing)}), unexpected {sorted(unexpected)[:6]} ({len(unexpected)})")
+
+
+class OpenPCDetImageBranch(nn.Module):
+    """``batch_dict['images'] (B, 3, H, W)`` in [0, 1] -> ``batch_dict[OUTPUT_KEY]``: ``NUM_OUTS`` levels
+    ``(B, FPN_CHANNELS, H / s, W / s)``, ``s = 4, 8, 16, 32``."""
+
+    def __init__(self, model_cfg: Mapping[str, Any]) -> None:
+        super().__init__()
+        unknown = sorted(set(model_cfg) - set(IMAGE_BRANCH_DEFAULTS))
+        if unknown:
+            raise MSSFError(f"MODEL.IMAGE_BRANCH: unknown keys {unknown}; expected among {sorted(IMAGE_BRANCH_DEFAULTS)}")
+        cfg = {**IMAGE_BRANCH_DEFAULTS, **dict(model_cfg)}
+        self.cfg = cfg
+        self.output_key = str(cfg["OUTPUT_KEY"])
+        self.branch = ImageBranch(depth=int(cfg["DEPTH"]), base_channels=int(cfg["BASE_CHANNELS"]),
+                                  fpn_channels=int(cfg["FPN_CHANNELS"]), num_outs=int(cfg["NUM_OUTS"]),
+                                  frozen=bool(cfg["FROZEN"]), channels_last=False)
+        if cfg["CHECKPOINT"] is not None:
+            load_branch_checkpoint(self.branch, cfg["CHECKPOINT"], dict(cfg["CHECKPOINT_PREFIXES"]))
+        elif cfg["FROZEN"]:
+            raise MSSFError("MODEL.IMAGE_BRANCH.CHECKPOINT: a frozen image branch needs pre-trained weights (the paper: "
+                            "HTC's ResNet-50 + FPN); got none. Set CHECKPOINT, or FROZEN: False to train it")
+        self.register_buffer("mean", torch.tensor(cfg["MEAN"], dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(cfg["STD"], dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
+
+    @property
+    def level_channels(self) -> list:
+        return [int(self.cfg["FPN_CHANNELS"])] * int(self.cfg["NUM_OUTS"])
+
+    def forward(self, batch_dict: Dict[str, Any]) -> Dict[str, Any]:
+        images = batch_dict.get("images", None)
+        if not torch.is_tensor(images) or images.dim() != 4 or images.shape[1] != 3:
+            raise MSSFError("batch_dict['images']: expected (B, 3, H, W) (DATA_CONFIG.GET_ITEM_LIST with 'images'), "
+                            f"got {getattr(images, 'shape', type(images).__name__)}")
+        x = (images - self.mean) / self.std
+        levels = self.branch(x.unsqueeze(1))  # (B, 1, C, h, w) per level
+        batch_dict[self.output_key] = tuple(lvl[:, 0] for lvl in levels)
+        return batch_dict

@@ -1,0 +1,182 @@
+"""View-of-Delft for OpenPCDet: ``DATASET: VoDDataset`` (a ``KittiDataset`` for VoD's release tree).
+
+What differs from OpenPCDet's ``KittiDataset`` (which would read a VoD radar ``.bin`` as 4 floats per
+point and look for ``image_2/<id>.png``):
+
+* points: ``velodyne/<id>.bin`` as float32 ``N x 7`` (``x, y, z, RCS, v_r, v_r_compensated, time``)
+  for ``radar``, ``radar_3frames`` and ``radar_5frames`` alike; ``POINT_FEATURE_ENCODING`` must list
+  those seven as ``src_feature_list``;
+* images: ``image_2/<id>.jpg`` (``IMAGE_FILE_EXTENSION``, default ``.jpg``);
+* calibration and labels: VoD's KITTI-style files (``P2``, ``R0_rect``, ``Tr_velo_to_cam`` = radar to
+  camera; the label's 16th column is VoD's, unused), the VoD classes (``Car``, ``Pedestrian``,
+  ``Cyclist`` learned; other types such as ``bicycle`` or ``rider`` are kept in the infos and
+  dropped from training like any class not in ``CLASS_NAMES``);
+* infos: :func:`create_vod_infos` (``python -m mssf_examples.openpcdet create_vod_infos``), no
+  ground-truth database (the paper's VoD recipe does not sample ground truth);
+* ``evaluation()``: the VoD devkit's protocol rule for rule (:mod:`mssf_examples.evaluation_vod`:
+  entire annotated area and driving corridor, IoU 0.5 / 0.25 / 0.25, R11 and R40), not KITTI's.
+
+Importing this module imports OpenPCDet (``pcdet``).
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Sequence, Tuple
+
+import numpy as np
+from pcdet.datasets.kitti.kitti_dataset import KittiDataset
+
+from mssf_blocks.errors import MSSFError
+
+from ..evaluation import VOD_IOU_THRESHOLDS
+from ..evaluation_kitti import Objects
+from ..evaluation_vod import VOD_REGIONS, evaluate_vod
+
+__all__ = ["VoDDataset", "VOD_POINT_FEATURES", "create_vod_infos", "annos_to_objects", "check_dataset_cfg"]
+
+#: the seven float32 columns of every VoD radar ``.bin``
+VOD_POINT_FEATURES = ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time")
+
+
+def check_dataset_cfg(dataset_cfg: Mapping) -> None:
+    """Raise :class:`MSSFError` naming the key when a VoD dataset config cannot read VoD's points."""
+    enc = dataset_cfg.get("POINT_FEATURE_ENCODING", None)
+    if enc is None or "src_feature_list" not in enc or "used_feature_list" not in enc:
+        raise MSSFError("DATA_CONFIG.POINT_FEATURE_ENCODING: expected src_feature_list and used_feature_list, "
+                        f"got {enc!r}")
+    src = list(enc["src_feature_list"])
+    if len(src) != len(VOD_POINT_FEATURES):
+        raise MSSFError(f"DATA_CONFIG.POINT_FEATURE_ENCODING.src_feature_list: VoD radar points have "
+                        f"{len(VOD_POINT_FEATURES)} float32 features {list(VOD_POINT_FEATURES)}, the list names "
+                        f"{len(src)}: {src}")
+    missing = [f for f in enc["used_feature_list"] if f not in src]
+    if missing:
+        raise MSSFError(f"DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list: {missing} not in src_feature_list {src}")
+
+
+class VoDDataset(KittiDataset):
+    """OpenPCDet dataset over a VoD sensor folder (``DATA_PATH``: e.g. ``view_of_delft/radar_5frames``
+    with ``training/{velodyne,calib,image_2,label_2}`` and ``ImageSets/{train,val,test}.txt``)."""
+
+    def __init__(self, dataset_cfg, class_names, training=True, root_path=None, logger=None):
+        check_dataset_cfg(dataset_cfg)
+        self.image_extension = str(dataset_cfg.get("IMAGE_FILE_EXTENSION", ".jpg"))
+        super().__init__(dataset_cfg=dataset_cfg, class_names=class_names, training=training,
+                         root_path=root_path, logger=logger)
+
+    # ------------------------------------------------------------------ files
+    def _file(self, folder: str, idx: str, ext: str) -> Path:
+        path = self.root_split_path / folder / f"{idx}{ext}"
+        if not path.is_file():
+            raise MSSFError(f"VoD frame {idx}: expected {path} (DATA_PATH {self.root_path}), not found")
+        return path
+
+    def get_lidar(self, idx):
+        path = self._file("velodyne", idx, ".bin")
+        raw = np.fromfile(str(path), dtype=np.float32)
+        n = len(self.dataset_cfg.POINT_FEATURE_ENCODING.src_feature_list)
+        if raw.size % n:
+            raise MSSFError(f"{path}: {raw.size} float32 values, not a multiple of the {n} features of "
+                            "DATA_CONFIG.POINT_FEATURE_ENCODING.src_feature_list")
+        return raw.reshape(-1, n)
+
+    def get_image(self, idx):
+        from skimage import io
+
+        return io.imread(self._file("image_2", idx, self.image_extension)).astype(np.float32) / 255.0
+
+    def get_image_shape(self, idx):
+        from PIL import Image
+
+        with Image.open(self._file("image_2", idx, self.image_extension)) as img:
+            w, h = img.size
+        return np.array([h, w], dtype=np.int32)
+
+    def get_label(self, idx):
+        self._file("label_2", idx, ".txt")
+        return super().get_label(idx)
+
+    def get_calib(self, idx):
+        self._file("calib", idx, ".txt")
+        return super().get_calib(idx)
+
+    def get_infos(self, num_workers=4, has_label=True, count_inside_pts=True, sample_id_list=None):
+        infos = super().get_infos(num_workers, has_label, count_inside_pts, sample_id_list)
+        for info in infos:
+            info["point_cloud"]["num_features"] = len(self.dataset_cfg.POINT_FEATURE_ENCODING.src_feature_list)
+        return infos
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluation(self, det_annos, class_names, **kwargs) -> Tuple[str, Dict[str, float]]:
+        """The VoD devkit's AP (entire area, driving corridor) of ``det_annos`` (``generate_prediction_dicts``).
+
+        Returns ``(table text, {"<region>/<Class>_<AP3D|APBEV>_<R11|R40>": AP in percent})``.
+        """
+        if not self.kitti_infos or "annos" not in self.kitti_infos[0]:
+            return None, {}
+        by_frame = {str(d["frame_id"]): d for d in det_annos}
+        frames = [str(info["point_cloud"]["lidar_idx"]) for info in self.kitti_infos]
+        missing = [f for f in frames if f not in by_frame]
+        if missing:
+            raise MSSFError(f"det_annos: no predictions for frames {missing[:5]} ({len(missing)} of {len(frames)})")
+        gts = [annos_to_objects(info["annos"], scored=False) for info in self.kitti_infos]
+        dets = [annos_to_objects(by_frame[f], scored=True) for f in frames]
+        thresholds = {c: VOD_IOU_THRESHOLDS[c] for c in class_names}
+        results = evaluate_vod(dets, gts, list(class_names), thresholds)
+        ap_dict: Dict[str, float] = {}
+        lines: List[str] = []
+        for region in VOD_REGIONS:
+            lines.append(f"VoD {region}:")
+            for cname in class_names:
+                r = results[region][cname]
+                lines.append(f"  {cname:<11} AP3D R40 {r['AP3D_R40']:6.2f}  APBEV R40 {r['APBEV_R40']:6.2f}  "
+                             f"AP3D R11 {r['AP3D_R11']:6.2f}  (GT {r['num_gt']}, detections {r['num_pred']})")
+                ap_dict.update({f"{region}/{cname}_{k}": v for k, v in r.items() if k.startswith("AP")})
+            m = [results[region][c]["AP3D_R40"] for c in class_names]
+            ap_dict[f"{region}/mAP3D_R40"] = float(np.mean(m))
+            lines.append(f"  mAP3D R40 {float(np.mean(m)):6.2f}")
+        return "\n".join(lines) + "\n", ap_dict
+
+
+def annos_to_objects(annos: Mapping[str, Any], scored: bool) -> Objects:
+    """OpenPCDet's KITTI-style annos (``dimensions`` as ``(l, h, w)``) -> the kit's :class:`Objects`."""
+    g = len(annos["name"])
+    dims = np.asarray(annos["dimensions"], dtype=np.float64).reshape(g, 3)
+    return Objects(
+        names=np.array([str(n).lower() for n in annos["name"]], dtype=object),
+        bbox=np.asarray(annos["bbox"], dtype=np.float64).reshape(g, 4),
+        location=np.asarray(annos["location"], dtype=np.float64).reshape(g, 3),
+        dimensions=dims[:, [1, 2, 0]],  # (l, h, w) -> (h, w, l)
+        rotation_y=np.asarray(annos["rotation_y"], dtype=np.float64).reshape(g),
+        occluded=np.asarray(annos["occluded"], dtype=np.float64).reshape(g),
+        truncated=np.asarray(annos["truncated"], dtype=np.float64).reshape(g),
+        score=np.asarray(annos["score"], dtype=np.float64).reshape(g) if scored else np.zeros(g),
+        ignore=np.zeros(g, dtype=bool),
+    )
+
+
+def create_vod_infos(dataset_cfg, class_names: Sequence[str], data_path, save_path, workers: int = 4) -> Dict[str, Path]:
+    """Write ``vod_infos_{train,val,trainval}.pkl`` (and ``_test`` when ``ImageSets/test.txt`` and
+    ``testing/`` exist) into ``save_path``, as OpenPCDet's ``create_kitti_infos`` does for KITTI."""
+    data_path, save_path = Path(data_path), Path(save_path)
+    dataset = VoDDataset(dataset_cfg=dataset_cfg, class_names=list(class_names), root_path=data_path, training=False)
+    written: Dict[str, Path] = {}
+    infos: Dict[str, list] = {}
+    for split in ("train", "val"):
+        if not (data_path / "ImageSets" / f"{split}.txt").is_file():
+            raise MSSFError(f"data_path: expected {data_path / 'ImageSets' / (split + '.txt')} (VoD's split lists)")
+        dataset.set_split(split)
+        infos[split] = dataset.get_infos(num_workers=workers, has_label=True, count_inside_pts=True)
+    infos["trainval"] = infos["train"] + infos["val"]
+    if (data_path / "ImageSets" / "test.txt").is_file() and (data_path / "testing").is_dir():
+        dataset.set_split("test")
+        infos["test"] = dataset.get_infos(num_workers=workers, has_label=False, count_inside_pts=False)
+    save_path.mkdir(parents=True, exist_ok=True)
+    for split, value in infos.items():
+        written[split] = save_path / f"vod_infos_{split}.pkl"
+        with open(written[split], "wb") as f:
+            pickle.dump(value, f)
+        print(f"VoD info {split} file is saved to {written[split]} ({len(value)} frames)")
+    return written
