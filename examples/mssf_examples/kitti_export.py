@@ -235,6 +235,7 @@ def write_vod_tree(
     class_names: Sequence[str] = ("Car", "Pedestrian", "Cyclist"),
     other_type: Optional[str] = "bicycle_rack",
     first_id: int = 0,
+    image_format: str = "png",
 ) -> Dict[str, List[str]]:
     """Save synthetic scenes as a View-of-Delft release tree.
 
@@ -252,12 +253,15 @@ def write_vod_tree(
         class_names: names of the scenes' labels.
         other_type: type string of the clutter lines.
         first_id: the first frame id.
+        image_format: ``"png"`` (lossless) or ``"jpg"`` (VoD's own files; PIL's default quality).
 
     Returns:
         ``{split: frame ids}``.
     """
     from PIL import Image
 
+    if image_format not in ("png", "jpg"):
+        raise MSSFError(f"image_format: expected 'png' or 'jpg', got {image_format!r}")
     base = Path(root) / sensor
     dirs = {name: base / "training" / name for name in ("velodyne", "calib", "image_2", "label_2")}
     for d in list(dirs.values()) + [base / "ImageSets"]:
@@ -274,7 +278,7 @@ def write_vod_tree(
             calib = scene_calibration(scene)
             (dirs["calib"] / f"{fid}.txt").write_text(calibration_text(calib.P2, calib.Tr_velo_to_cam, calib.R0_rect))
             rgb = (scene.image.clamp(0, 1) * 255.0).round().to(torch.uint8).permute(1, 2, 0).numpy()
-            Image.fromarray(np.ascontiguousarray(rgb)).save(dirs["image_2"] / f"{fid}.png")
+            Image.fromarray(np.ascontiguousarray(rgb)).save(dirs["image_2"] / f"{fid}.{image_format}")
             lines = kitti_lines(scene.gt_boxes.double(), scene.gt_labels, class_names, calib, scene.image_size,
                                 truncated=0.0, occluded=0)
             if other_type is not None and len(scene.clutter_boxes):
