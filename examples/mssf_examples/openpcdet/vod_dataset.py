@@ -83,9 +83,11 @@ class VoDDataset(KittiDataset):
         return raw.reshape(-1, n)
 
     def get_image(self, idx):
-        from skimage import io
+        """``(H, W, 3)`` float32 RGB in [0, 1], as ``KittiDataset.get_image``."""
+        from PIL import Image
 
-        return io.imread(self._file("image_2", idx, self.image_extension)).astype(np.float32) / 255.0
+        with Image.open(self._file("image_2", idx, self.image_extension)) as img:
+            return np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
 
     def get_image_shape(self, idx):
         from PIL import Image
