@@ -310,3 +310,29 @@ def test_config_errors_name_the_key(tools):
     bad.MODEL.IMAGE_BRANCH.CHECKPOINT = None
     with pytest.raises(MSSFError, match="MODEL.IMAGE_BRANCH.CHECKPOINT"):
         build(bad)  # built through OpenPCDet's build_network: the detector raises
+
+
+def test_documented_train_command_runs_openpcdet_train_py(tools, monkeypatch):
+    """docs/frameworks.md's ``python -m mssf_examples.openpcdet train.py --cfg_file ...``, from tools/, with
+    CPU sizes given through train.py's own options (``--epochs``, ``--workers``, ``--set``): OpenPCDet's
+    train.py trains, saves a checkpoint and evaluates it (test.py's repeat_eval_ckpt) with evaluation()."""
+    from mssf_examples.image_branch import ImageBranch
+    from mssf_examples.openpcdet.__main__ import main
+
+    monkeypatch.setattr("time.sleep", lambda seconds: None)  # repeat_eval_ckpt waits 30 s for new checkpoints
+    ckpt = tools.root.parent / "checkpoints" / "htc_r50_fpn_image_branch.pth"  # the config's CHECKPOINT
+    ckpt.parent.mkdir(exist_ok=True)
+    torch.save(ImageBranch(depth=18, base_channels=8, fpn_channels=256, num_outs=4).state_dict(), ckpt)
+    cpu = ["--workers", "0", "--extra_tag", "cpu_test", "--batch_size", "2",
+           "--set", "MODEL.IMAGE_BRANCH.DEPTH", "18", "MODEL.IMAGE_BRANCH.BASE_CHANNELS", "8",
+           "MODEL.DENSE_HEAD.POST_PROCESSING.MAX_OBJ_PER_SAMPLE", "50", "OPTIMIZATION.PCT_START", "0.5"]
+    cfg = ["--cfg_file", "cfgs/vod_models/mssf_voxelnext.yaml"]
+    main(["--pure-torch-nms", "train.py", *cfg, "--epochs", "1", "--wo_gpu_stat", *cpu])
+    out = tools.root.parent / "output" / "vod_models" / "mssf_voxelnext" / "cpu_test"
+    assert (out / "ckpt" / "checkpoint_epoch_1.pth").is_file()
+    log = "".join(p.read_text() for p in out.glob("*.log"))
+    assert "VoD entire_area:" in log and "VoD driving_corridor:" in log, log[-2000:]
+    # the documented evaluation of a checkpoint
+    main(["--pure-torch-nms", "test.py", *cfg, "--ckpt", str(out / "ckpt" / "checkpoint_epoch_1.pth"), *cpu])
+    logs = list((out / "eval").rglob("log_eval_*.txt"))
+    assert logs and "VoD driving_corridor:" in logs[-1].read_text()

@@ -33,6 +33,21 @@ def _infos(argv) -> None:
                      Path(args.save_path) if args.save_path else data_path, workers=args.workers)
 
 
+def allow_numpy_scalars_in_checkpoints() -> None:
+    """OpenPCDet saves numpy scalars in its checkpoints (the one-cycle learning rate in the optimizer
+    state); torch >= 2.6 loads with ``weights_only=True`` by default and refuses them in ``test.py`` /
+    ``--ckpt``. Allow-list exactly those types (numpy scalars and float / int dtypes), nothing else."""
+    import numpy as np
+    import torch
+
+    try:
+        from numpy._core.multiarray import scalar
+    except ImportError:  # numpy < 2
+        from numpy.core.multiarray import scalar
+    kinds = [np.float64, np.float32, np.int64, np.int32, np.bool_]
+    torch.serialization.add_safe_globals([scalar, np.dtype] + [type(np.dtype(k)) for k in kinds])
+
+
 def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
@@ -50,6 +65,7 @@ def main(argv=None) -> None:
     from . import register
 
     register(pure_torch_box_ops=pure)
+    allow_numpy_scalars_in_checkpoints()
     sys.argv = [str(script)] + argv[1:]
     sys.path.insert(0, str(script.resolve().parent))
     runpy.run_path(str(script), run_name="__main__")
