@@ -102,3 +102,9 @@ def openpcdet(tmp_path_factory) -> Path:
     yield root
     sys.path.remove(str(root))
     sys.path.remove(str(root / "tools"))
+
+
+@pytest.fixture
+def openpcdet_copy(openpcdet, tmp_path) -> Path:
+    """A second, private unpacked copy (for tests that edit OpenPCDet's files); not on sys.path."""
+    return unpack_openpcdet(tmp_path / "copy")
