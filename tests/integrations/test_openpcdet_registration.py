@@ -69,3 +69,41 @@ def test_stand_ins_raise_when_used(openpcdet):
         iou3d_nms_cuda.nms_gpu
     with pytest.raises(RuntimeError, match="roiaware_pool3d_cuda.points_in_boxes_cpu"):
         roiaware_pool3d_utils.points_in_boxes_cpu(__import__("torch").zeros(1, 3), __import__("torch").zeros(1, 7))
+
+
+def test_voxelnext_wrapper_has_openpcdets_layout(openpcdet):
+    """MSSFVoxelResBackBone8xVoxelNeXt (radar only, OpenPCDet's widths) against OpenPCDet's own
+    VoxelResBackBone8xVoxelNeXt on the same voxels: the same sparse shape, the same active sites of every
+    stage and of the encoded BEV tensor, the same channels and strides."""
+    import numpy as np
+    import torch
+    from easydict import EasyDict
+    from pcdet.models.backbones_3d.spconv_backbone_voxelnext import VoxelResBackBone8xVoxelNeXt
+
+    from mssf_blocks.integrations.openpcdet_backbones import MSSFVoxelResBackBone8xVoxelNeXt
+
+    pcr, vs = np.array([0, -25.6, -3, 51.2, 25.6, 2], dtype=np.float32), [0.4, 0.4, 0.125]
+    grid = np.round((pcr[3:] - pcr[:3]) / np.array(vs)).astype(np.int64)
+    theirs = VoxelResBackBone8xVoxelNeXt(EasyDict(CHANNELS=[16, 32, 64, 128, 128], OUT_CHANNEL=128), 7, grid)
+    ours = MSSFVoxelResBackBone8xVoxelNeXt(EasyDict(NAME="MSSFVoxelResBackBone8xVoxelNeXt", NUM_FUSION_BLOCKS=0,
+                                                    CHANNELS=[16, 16, 32, 64, 128, 128, 128], OUT_CHANNELS=128),
+                                           7, grid, voxel_size=vs, point_cloud_range=pcr)
+    assert ours.sparse_shape == list(theirs.sparse_shape)
+    assert ours.backbone_channels == theirs.backbone_channels and ours.num_point_features == theirs.num_point_features
+    gen = np.random.default_rng(0)
+    coords = np.unique(np.concatenate([np.stack([np.full(n, b), gen.integers(0, grid[2], n), gen.integers(0, grid[1], n),
+                                                 gen.integers(0, grid[0], n)], 1) for b, n in ((0, 300), (1, 200))]), axis=0)
+    batch = lambda: {"voxel_features": torch.randn(len(coords), 7, generator=torch.Generator().manual_seed(0)),  # noqa: E731
+                     "voxel_coords": torch.from_numpy(coords).float(), "batch_size": 2}
+    a, b = theirs(batch()), ours(batch())
+
+    def sites(t):
+        return sorted(map(tuple, t.indices.tolist()))
+
+    # (OpenPCDet's forward overwrites its x_conv4 in place with the stage 4-6 merge: compared via the BEV)
+    for key in ("x_conv1", "x_conv2", "x_conv3"):
+        ta, tb = a["multi_scale_3d_features"][key], b["multi_scale_3d_features"][key]
+        assert list(ta.spatial_shape) == list(tb.spatial_shape) and sites(ta) == sites(tb), key
+    ea, eb = a["encoded_spconv_tensor"], b["encoded_spconv_tensor"]
+    assert list(ea.spatial_shape) == list(eb.spatial_shape) and sites(ea) == sites(eb)
+    assert eb.features.shape == ea.features.shape and b["encoded_spconv_tensor_stride"] == a["encoded_spconv_tensor_stride"]

@@ -45,6 +45,7 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
     """
     if layout not in LAYOUTS:
         raise MSSFError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
+    layout_kwargs = {"z_pad": int(kwargs.pop("z_pad"))} if "z_pad" in kwargs else {}  # the framework's, not a setting
     unknown = sorted(set(kwargs) - set(FUSION_KWARGS))
     if unknown:
         raise MSSFError(f"backbone settings: unknown {unknown}; expected among {FUSION_KWARGS}")
@@ -64,7 +65,7 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
             raise MSSFError(
                 f"grid_size: expected {grid.grid_size} (point_cloud_range / voxel_size), got {given}"
             )
-    return getattr(bb, LAYOUTS[layout])(int(in_channels), grid, **kwargs)
+    return getattr(bb, LAYOUTS[layout])(int(in_channels), grid, **kwargs, **layout_kwargs)
 
 
 def _input_voxels(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int) -> Any:
@@ -96,10 +97,16 @@ def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor,
     ``(b, y, x)`` at stride 8 on the ``bev_shape`` grid, as OpenPCDet's ``VoxelResBackBone8xVoxelNeXt``."""
     import spconv.pytorch as spconv
 
+    from ..compat.spconv import quiet
+
     voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net(voxels, fusion_inputs)
     features, indices = out.sparse_bev
-    return out, spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
+    encoded = spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
+    if getattr(net, "shared_conv", None) is not None:
+        with quiet():
+            encoded = net.shared_conv(encoded)
+    return out, encoded
 
 
 def stage_spconv(out: Any) -> Dict[str, Any]:

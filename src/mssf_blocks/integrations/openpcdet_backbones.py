@@ -71,6 +71,7 @@ def settings_from_model_cfg(model_cfg: Any) -> Tuple[Dict[str, Any], Dict[str, A
 
 class _OpenPCDetFusionBackbone(nn.Module):
     LAYOUT = ""
+    LAYOUT_KWARGS: Dict[str, Any] = {}  # what the layout fixes (not a config setting)
     _run = staticmethod(_backbones.run_dense_layout)
 
     def __init__(self, model_cfg: Any, input_channels: int, grid_size: Any, voxel_size: Any = None,
@@ -82,7 +83,8 @@ class _OpenPCDetFusionBackbone(nn.Module):
             )
         self.model_cfg = model_cfg
         settings, self.adapter_kwargs = settings_from_model_cfg(model_cfg)
-        self.net = _backbones.build(self.LAYOUT, input_channels, point_cloud_range, voxel_size, grid_size, **settings)
+        self.net = _backbones.build(self.LAYOUT, input_channels, point_cloud_range, voxel_size, grid_size,
+                                    **settings, **self.LAYOUT_KWARGS)
         self.sparse_shape = list(self.net.input_shape)  # (nz + 1, ny, nx), as OpenPCDet pads z
         self.num_point_features = list(self.net.conv_out)[0].out_channels
         self.backbone_channels = {f"x_conv{i + 1}": c for i, c in enumerate(self.net.channels[:4])}
@@ -142,12 +144,32 @@ class MSSFVoxelResBackBone8xVoxelNeXt(_OpenPCDetFusionBackbone):
 
     Six residual stages (default: the paper's doubled widths, ``CHANNELS: [32, 32, 64, 128, 256, 256,
     256]`` = stem, stages 1-6), stages 4-6 merged into a sparse BEV at stride 8 and a 3 x 3 submanifold
-    ``conv_out`` (``OUT_CHANNELS``, default 256). ``encoded_spconv_tensor`` is that 2D sparse tensor
-    (indices ``(b, y, x)``), what ``VoxelNeXtHead`` reads (``DENSE_HEAD.INPUT_FEATURES`` = ``OUT_CHANNELS``).
+    ``conv_out`` and ``shared_conv`` as OpenPCDet's (``OUT_CHANNELS``, default 256; the grid padded by one z
+    layer). ``encoded_spconv_tensor`` is that 2D sparse tensor (indices ``(b, y, x)``), what
+    ``VoxelNeXtHead`` reads (``DENSE_HEAD.INPUT_FEATURES`` = ``OUT_CHANNELS``).
     """
 
     LAYOUT = "VoxelResBackBone8xVoxelNeXt"
+    LAYOUT_KWARGS = {"z_pad": 1}  # OpenPCDet's sparse_shape = grid_size[::-1] + [1, 0, 0]
     _run = staticmethod(_backbones.run_voxelnext_layout)
+
+    def __init__(self, model_cfg: Any, input_channels: int, grid_size: Any, voxel_size: Any = None,
+                 point_cloud_range: Any = None, **kwargs: Any) -> None:
+        super().__init__(model_cfg, input_channels, grid_size, voxel_size, point_cloud_range, **kwargs)
+        # OpenPCDet's head of this layout: a (non-submanifold) 3 x 3 SparseConv2d over the merged BEV,
+        # then a 3 x 3 submanifold ``shared_conv`` (the example backbone's own conv_out is replaced).
+        # OpenPCDet's shared_conv has a bias before its BatchNorm, which the normalisation cancels; it is
+        # left out because spconv's CPU kernels refuse biased convolutions in eval mode.
+        import spconv.pytorch as spconv
+
+        c, out = self.net.channels[3], self.num_point_features
+        self.net.conv_out = spconv.SparseSequential(
+            spconv.SparseConv2d(c, out, 3, stride=1, padding=1, bias=False, indice_key="spconv_down2"),
+            nn.BatchNorm1d(out, eps=1e-3, momentum=0.01), nn.ReLU(),
+        )
+        self.net.shared_conv = spconv.SparseSequential(
+            spconv.SubMConv2d(out, out, 3, stride=1, padding=1, bias=False), nn.BatchNorm1d(out), nn.ReLU(True),
+        )
 
 
 #: what to merge into ``pcdet.models.backbones_3d.__all__``
