@@ -336,3 +336,17 @@ def test_documented_train_command_runs_openpcdet_train_py(tools, monkeypatch):
     main(["--pure-torch-nms", "test.py", *cfg, "--ckpt", str(out / "ckpt" / "checkpoint_epoch_1.pth"), *cpu])
     logs = list((out / "eval").rglob("log_eval_*.txt"))
     assert logs and "VoD driving_corridor:" in logs[-1].read_text()
+
+
+def test_image_branch_checkpoint_errors_name_the_key(tools, tmp_path):
+    from mssf_examples.openpcdet.image_module import OpenPCDetImageBranch
+
+    base = dict(DEPTH=18, BASE_CHANNELS=8, FPN_CHANNELS=16)
+    with pytest.raises(MSSFError, match="MODEL.IMAGE_BRANCH.CHECKPOINT: file not found"):
+        OpenPCDetImageBranch({**base, "CHECKPOINT": str(tmp_path / "none.pth")})
+    with pytest.raises(MSSFError, match="MODEL.IMAGE_BRANCH.CHECKPOINT: .* does not fit"):
+        OpenPCDetImageBranch({**base, "FPN_CHANNELS": 32, "CHECKPOINT": str(tools.ckpt)})  # 16-channel weights
+    with pytest.raises(MSSFError, match="MODEL.IMAGE_BRANCH: unknown keys \\['DEPHT'\\]"):
+        OpenPCDetImageBranch({**base, "DEPHT": 50, "CHECKPOINT": str(tools.ckpt)})
+    trainable = OpenPCDetImageBranch({**base, "FROZEN": False})  # from scratch: allowed, and trained
+    assert all(p.requires_grad for p in trainable.parameters())

@@ -54,10 +54,16 @@ def load_branch_checkpoint(branch: nn.Module, path: Any, prefixes: Mapping[str, 
                 break
         if key.startswith(("backbone.", "neck.")):
             renamed[key] = value
-    missing, unexpected = branch.load_state_dict(renamed, strict=False)
-    if missing or unexpected:
-        raise MSSFError(f"MODEL.IMAGE_BRANCH.CHECKPOINT: {path} does not fit the image branch: missing "
-                        f"{sorted(missing)[:6]} ({len(missing)}), unexpected {sorted(unexpected)[:6]} ({len(unexpected)})")
+    own = branch.state_dict()
+    missing = sorted(set(own) - set(renamed))
+    unexpected = sorted(set(renamed) - set(own))
+    shapes = [f"{k} {tuple(renamed[k].shape)} (branch: {tuple(own[k].shape)})" for k in sorted(set(own) & set(renamed))
+              if tuple(renamed[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or shapes:
+        raise MSSFError(f"MODEL.IMAGE_BRANCH.CHECKPOINT: {path} does not fit the image branch (DEPTH, BASE_CHANNELS, "
+                        f"FPN_CHANNELS, NUM_OUTS): missing {missing[:6]} ({len(missing)}), unexpected {unexpected[:6]} "
+                        f"({len(unexpected)}), other shapes {shapes[:3]} ({len(shapes)})")
+    branch.load_state_dict(renamed, strict=True)
 
 
 class OpenPCDetImageBranch(nn.Module):
