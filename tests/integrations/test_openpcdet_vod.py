@@ -169,6 +169,13 @@ def test_vod_dataset_reads_7_float_points_jpg_and_infos(tools):
     batch = next(iter(loader))
     assert batch["points"].shape[1] == 1 + 7 and batch["images"].shape[1:] == (152, 240, 3)
     assert len(dataset) == 2 and {"trans_lidar_to_cam", "trans_cam_to_img"} <= set(batch)
+    # a frame without annotations: get_infos still works (one DontCare placeholder, no training box)
+    empty = "99999"
+    (dataset.root_split_path / "label_2" / f"{empty}.txt").write_text("")
+    for sub, ext in (("velodyne", ".bin"), ("calib", ".txt"), ("image_2", ".jpg")):
+        shutil.copy(dataset.root_split_path / sub / f"{fid}{ext}", dataset.root_split_path / sub / f"{empty}{ext}")
+    (info_empty,) = dataset.get_infos(num_workers=1, sample_id_list=[empty])
+    assert list(info_empty["annos"]["name"]) == ["DontCare"] and info_empty["annos"]["gt_boxes_lidar"].shape == (0, 7)
 
 
 @pytest.mark.parametrize("name", ["mssf_second", "mssf_voxelnext"])

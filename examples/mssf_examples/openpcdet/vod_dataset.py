@@ -36,6 +36,8 @@ from ..evaluation_vod import VOD_REGIONS, evaluate_vod
 
 __all__ = ["VoDDataset", "VOD_POINT_FEATURES", "create_vod_infos", "annos_to_objects", "check_dataset_cfg"]
 
+#: the placeholder object of a frame without annotations (KITTI's DontCare convention: sizes -1)
+_EMPTY_FRAME_LINE = "DontCare -1 -1 -10 0 0 0 0 -1 -1 -1 -1000 -1000 -1000 -10"
 #: the seven float32 columns of every VoD radar ``.bin``
 VOD_POINT_FEATURES = ("x", "y", "z", "rcs", "v_r", "v_r_comp", "time")
 
@@ -97,7 +99,13 @@ class VoDDataset(KittiDataset):
         return np.array([h, w], dtype=np.int32)
 
     def get_label(self, idx):
-        self._file("label_2", idx, ".txt")
+        """KITTI objects; a frame without annotations gives one ``DontCare`` placeholder (never learned nor
+        evaluated), because ``KittiDataset.get_infos`` cannot stack an empty list."""
+        path = self._file("label_2", idx, ".txt")
+        if not path.read_text().strip():
+            from pcdet.utils.object3d_kitti import Object3d
+
+            return [Object3d(_EMPTY_FRAME_LINE)]
         return super().get_label(idx)
 
     def get_calib(self, idx):
@@ -125,6 +133,9 @@ class VoDDataset(KittiDataset):
             raise MSSFError(f"det_annos: no predictions for frames {missing[:5]} ({len(missing)} of {len(frames)})")
         gts = [annos_to_objects(info["annos"], scored=False) for info in self.kitti_infos]
         dets = [annos_to_objects(by_frame[f], scored=True) for f in frames]
+        unknown = [c for c in class_names if c not in VOD_IOU_THRESHOLDS]
+        if unknown:
+            raise MSSFError(f"CLASS_NAMES: the VoD protocol evaluates {sorted(VOD_IOU_THRESHOLDS)}, got {unknown}")
         thresholds = {c: VOD_IOU_THRESHOLDS[c] for c in class_names}
         results = evaluate_vod(dets, gts, list(class_names), thresholds)
         ap_dict: Dict[str, float] = {}
