@@ -89,6 +89,9 @@ class MSSFDetector(nn.Module):
         num_fusion_blocks: ``n`` (0..4; 0..3 for PointPillars, which has three 2D blocks).
         fusion: ``"msdff"`` or ``"sff"``.
         fusion_position: ``"before_residual"`` or ``"after_residual"``.
+        head_position: where the semantic head reads the last fusion block's voxels: ``"after_fusion"``
+            (the paper's and the authors' place, before the block's residual blocks) or
+            ``"after_residual"`` (voxel backbones only; PointPillars' head always reads the fused voxels).
         image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
             ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
         score_threshold, nms_iou, max_detections: decoding settings in eval mode.
@@ -109,6 +112,7 @@ class MSSFDetector(nn.Module):
         score_threshold: float = 0.1,
         nms_iou: Optional[float] = 0.5,
         max_detections: int = 100,
+        head_position: str = "after_fusion",
     ) -> None:
         super().__init__()
         if name not in DETECTOR_NAMES:
@@ -136,6 +140,9 @@ class MSSFDetector(nn.Module):
         self.voxelizer = None
         self.neck = None
         x0, y0, _, x1, y1, _ = p.point_cloud_range
+        if name == "pointpillars" and head_position != "after_fusion":
+            raise MSSFError(f"head_position: PointPillars' semantic head reads the fused lift voxels; expected "
+                            f"'after_fusion', got {head_position!r}")
         if name == "pointpillars":
             grid = VoxelGrid(p.pillar_range, (p.pillar_size[0], p.pillar_size[1], p.pillar_range[5] - p.pillar_range[2]))
             self.backbone = PointPillarsBackbone(
@@ -151,6 +158,7 @@ class MSSFDetector(nn.Module):
         else:
             grid = VoxelGrid(p.point_cloud_range, p.voxel_size)
             self.voxelizer = DynamicVoxelizer(p.point_cloud_range, p.voxel_size)
+            fusion_kwargs["head_position"] = head_position
             if name == "voxelnext":
                 self.backbone = VoxelNeXtBackbone(c_in, grid, channels=p.voxelnext_channels, out_channels=p.voxelnext_out,
                                                   **fusion_kwargs)
