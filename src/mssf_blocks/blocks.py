@@ -109,7 +109,8 @@ class FusionBlock(nn.Module):
     ``SparseConvTensor``, ``inputs`` a :class:`FusionInputs`; returns the same type as ``x`` at stride
     ``in_stride * downsample_stride``. With ``return_logits=True`` (needs ``semantic_head``) it returns
     ``(out, head_voxels, logits)``: the :class:`SparseVoxels` the head read (for the centroids of its
-    loss) and its ``(N,)`` logits.
+    loss) and its ``(N,)`` logits. ``query_add``: see :meth:`fuse` (the voxels reaching the fusion
+    must be those of ``x``: a block without ``downsample``).
     The fused features are in the fusion's parameter dtype; voxel features of lower precision are read
     in it, float64 ones into a non-float64 block are refused (``docs/conventions.md``, "Dtypes").
 
@@ -199,8 +200,14 @@ class FusionBlock(nn.Module):
         return tuple(int(a) * b for a, b in zip(in_stride, self.downsample_stride))
 
     # -- the fusion step (eq. 1-5) on a fixed voxel set ---------------------------------------------
-    def fuse(self, voxels: SparseVoxels, inputs: FusionInputs) -> SparseVoxels:
-        """``f_fuse = f_vox + f_img`` for every voxel; coordinates (and spconv index cache) unchanged."""
+    def fuse(self, voxels: SparseVoxels, inputs: FusionInputs, query_add: Optional[torch.Tensor] = None) -> SparseVoxels:
+        """``f_fuse = f_vox + f_img`` for every voxel; coordinates (and spconv index cache) unchanged.
+
+        ``query_add``: MSDFF only, ``(N, C)`` added to the query (the authors' MSSF-PP adds the BEV
+        feature of the voxel's pillar to the initialised query); ``None`` for the paper's query.
+        """
+        if query_add is not None and not isinstance(self.fusion, MSDFF):
+            raise MSSFError("query_add: only an MSDFF fusion takes a query; got query_add with SFF")
         f_vox = voxels.features
         c = f_vox.shape[1]
         if c != self.out_channels:
@@ -238,10 +245,16 @@ class FusionBlock(nn.Module):
                 query = qi(f_vox, f_img0, where)
             else:
                 query = f_vox
+            if query_add is not None:
+                if tuple(query_add.shape) != tuple(query.shape):
+                    raise MSSFError(f"query_add: expected shape {tuple(query.shape)} (the query), "
+                                    f"got {tuple(query_add.shape)}")
+                query = query + to_module_dtype(query_add, "query_add", dtype, "FusionBlock")
             f_img = self.fusion(query, inputs.image_features, projection)
         return voxels.replace(features=f_vox + f_img.to(dtype))
 
-    def forward(self, x: Any, inputs: FusionInputs, return_logits: bool = False) -> Any:
+    def forward(self, x: Any, inputs: FusionInputs, return_logits: bool = False,
+                query_add: Optional[torch.Tensor] = None) -> Any:
         if not isinstance(inputs, FusionInputs):
             raise MSSFError(f"inputs: expected FusionInputs, got {type(inputs).__name__}")
         if not isinstance(return_logits, bool):
@@ -285,7 +298,7 @@ class FusionBlock(nn.Module):
         if self.downsample is not None:
             cur = self.downsample(as_spconv(cur))
         if self.position == "before_residual":
-            cur = self.fuse(as_voxels(cur), inputs)
+            cur = self.fuse(as_voxels(cur), inputs, query_add)
             if self.head_position == "after_fusion":
                 cur = head(cur)
             if self.blocks is not None:
@@ -295,7 +308,7 @@ class FusionBlock(nn.Module):
         else:
             if self.blocks is not None:
                 cur = self.blocks(as_spconv(cur))
-            cur = head(self.fuse(as_voxels(cur), inputs))
+            cur = head(self.fuse(as_voxels(cur), inputs, query_add))
         out = as_voxels(cur) if isinstance(x, SparseVoxels) else as_spconv(cur)
         if return_logits:
             return (out,) + head_read[0]
