@@ -44,8 +44,10 @@ Two parts:
   exact. ``image_size`` of :class:`~mssf_blocks.fusion.FusionInputs` must be their padded input shape
   (``batch_input_shape``) for the reference points to agree.
 
+MSSF-PP's ``conv_input`` branch, ``query + BEV`` query and concatenated BEV: the ``pillar_*`` switches
+with :class:`~mssf_blocks.pillar_stage.PillarFusionStage` and :mod:`mssf_blocks.compat.mssf_pp`.
 Not reproduced (documented in ``docs/differences.md``): their projection of points behind the camera
-(no depth test), MSSF-PP's ``query + BEV`` query and ``conv_input`` branch, their dense voxel table.
+(no depth test), their dense voxel table.
 
 Example:
     >>> import torch
