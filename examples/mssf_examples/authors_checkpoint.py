@@ -1,0 +1,116 @@
+"""Load an MSSF authors' checkpoint (``EricLiuhhh/MSSF``, an mmdetection3d fork) into the example models.
+
+:func:`convert_authors` converts a whole state dict for a target model and reports every tensor of
+theirs as **mapped** (their name -> ours, shape checked against the model), or **ignored** (with the
+reason); our tensors it did not fill are **missing**. A tensor of theirs that no rule covers, or a shape
+that differs, raises :class:`~mssf_blocks.errors.MSSFError` naming it.
+
+Layouts (``layout=``):
+
+* ``"mssf_pp"``: their MSSF-PP into :class:`~mssf_examples.backbones.AuthorsPointPillarsBackbone`:
+  ``voxel_encoder.pfn_layers.0`` -> ``pfn``, both fusion stages (``middle_encoder.*`` ->
+  ``scatter_stage``, ``backbone.*`` -> ``backbone_stage``, through
+  :func:`mssf_blocks.compat.mssf_pp.mssf_pp_stage_maps`), ``backbone.blocks`` -> ``blocks``,
+  ``neck.deblocks`` -> ``deblocks``. Ignored: the image backbone and neck (``img_backbone``, ``img_neck``:
+  mmdet's ResNet-50 and FPN, which the example image branch does not reproduce), the detection head
+  (``bbox_head``: their ``Anchor3DHead``, not mapped onto the example ``AnchorHead``) and the dead
+  ``voxel_fuse.img_transform`` of both stages.
+
+``python -m mssf_examples convert-authors CHECKPOINT --out FILE`` runs it and prints the report.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Mapping, Tuple
+
+from torch import Tensor, nn
+
+from mssf_blocks.compat.mssf_official import official_to_ours
+from mssf_blocks.compat.mssf_pp import mssf_pp_stage_maps
+from mssf_blocks.errors import MSSFError
+
+__all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "unwrap_checkpoint"]
+
+LAYOUTS = ("mssf_pp",)
+
+_PP_RENAMES = (("voxel_encoder.pfn_layers.0.", "pfn."), ("backbone.blocks.", "blocks."), ("neck.deblocks.", "deblocks."))
+_PP_IGNORED = (
+    ("img_backbone.", "their mmdet ResNet-50 image backbone: the example image branch has another layout"),
+    ("img_neck.", "their mmdet FPN: the example image branch has another layout"),
+    ("bbox_head.", "their Anchor3DHead: not mapped onto the example AnchorHead"),
+    ("middle_encoder.voxel_fuse.img_transform.", "dead: built by their query initialiser, never called"),
+    ("backbone.voxel_fuse.img_transform.", "dead: built by their query initialiser, never called"),
+)
+
+
+@dataclass
+class ConversionReport:
+    """What :func:`convert_authors` did with every tensor."""
+
+    mapped: List[Tuple[str, str, Tuple[int, ...]]] = field(default_factory=list)  # theirs, ours, shape
+    ignored: List[Tuple[str, str]] = field(default_factory=list)  # theirs, reason
+    missing: List[str] = field(default_factory=list)  # ours, not filled
+
+    def summary(self) -> str:
+        lines = [f"mapped {len(self.mapped)}, ignored {len(self.ignored)}, missing {len(self.missing)}"]
+        reasons: Dict[str, int] = {}
+        for _, why in self.ignored:
+            reasons[why] = reasons.get(why, 0) + 1
+        lines += [f"  ignored {n}: {why}" for why, n in reasons.items()]
+        lines += [f"  missing: {k}" for k in self.missing]
+        return "\n".join(lines)
+
+
+def unwrap_checkpoint(obj) -> Mapping[str, Tensor]:
+    """An mmengine checkpoint's ``state_dict`` (or the mapping itself)."""
+    if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
+        obj = obj["state_dict"]
+    if not isinstance(obj, Mapping) or not all(isinstance(v, Tensor) for v in obj.values()):
+        raise MSSFError("checkpoint: expected a state dict of tensors or a dict with one under 'state_dict'")
+    return obj
+
+
+def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str = "mssf_pp",
+                    stage_channels: int = 64) -> Tuple[Dict[str, Tensor], ConversionReport]:
+    """Their state dict -> one for ``model`` (load it with ``strict=True`` when nothing is missing).
+
+    Raises:
+        MSSFError: a tensor of theirs that no rule maps or ignores, or whose shape differs from the
+            model's tensor (both named).
+    """
+    if layout not in LAYOUTS:
+        raise MSSFError(f"layout: expected one of {LAYOUTS}, got {layout!r}")
+    theirs = unwrap_checkpoint(theirs)
+    target = model.state_dict()
+    report = ConversionReport()
+    out: Dict[str, Tensor] = {}
+    ignored = {k: why for k in theirs for p, why in _PP_IGNORED if k.startswith(p)}
+    renamed = {k: dst + k[len(src):] for k in theirs for src, dst in _PP_RENAMES if k.startswith(src)}
+    stage_keys = {}
+    for stage, enc, ours in (("scatter", "middle_encoder", "scatter_stage"), ("backbone", "backbone", "backbone_stage")):
+        keys = [k for k in theirs if k.startswith(enc + ".") and k not in ignored and k not in renamed]
+        maps, ignore = mssf_pp_stage_maps(stage, ours, stage_channels)
+        converted = official_to_ours({k: theirs[k] for k in keys}, maps, ignore)
+        for m in maps:  # the name pairs (the converter's rules, per module)
+            mine = [k for k in keys if k.startswith(m.theirs + ".")]
+            rules = dict(m.rules([k[len(m.theirs) + 1:] for k in mine]))
+            stage_keys.update({k: f"{m.ours}.{rules[k[len(m.theirs) + 1:]]}" for k in mine})
+        out.update(converted)
+    unknown = [k for k in theirs if k not in ignored and k not in renamed and k not in stage_keys]
+    if unknown:
+        shown = ", ".join(unknown[:12]) + (f", ... ({len(unknown)} in all)" if len(unknown) > 12 else "")
+        raise MSSFError(f"checkpoint: {len(unknown)} tensor(s) of theirs map to nothing in layout {layout!r}: {shown}")
+    out.update({renamed[k]: theirs[k] for k in renamed})
+    pairs = {**renamed, **stage_keys}
+    for k, ours in pairs.items():
+        if ours not in target:
+            raise MSSFError(f"checkpoint: {k} maps to {ours}, which the model does not have")
+        if tuple(out[ours].shape) != tuple(target[ours].shape):
+            raise MSSFError(f"checkpoint: {k} has shape {tuple(out[ours].shape)}, the model's {ours} "
+                            f"{tuple(target[ours].shape)}")
+        report.mapped.append((k, ours, tuple(out[ours].shape)))
+    report.ignored = sorted(ignored.items())
+    report.missing = [k for k in target if k not in out]
+    return out, report
+

@@ -1,0 +1,116 @@
+"""Whole-checkpoint import of the authors' MSSF-PP (``EricLiuhhh/MSSF``) into the example models.
+
+Their tensor names and shapes are written out below from their config
+(``pointpillars_hv_secfpn_8xb6-160e_vod-3d-3class_mm_bb_bevfeat_lr0001`` on
+``pointpillars_hv_secfpn_vod_mm_backbone``) and source (``VoxelNetFuse``, ``PillarFeatureNet``,
+``PointPillarsScatterFuse``, ``SECONDFuse``, ``SECONDFPN``, ``Anchor3DHead``, mmdet's ResNet-50 and FPN);
+no download. Random tensors under those names go through the converter and must load with
+``strict=True``.
+"""
+
+import pytest
+import torch
+
+pytest.importorskip("spconv")
+
+from mssf_blocks.errors import MSSFError  # noqa: E402
+from mssf_examples.authors_checkpoint import convert_authors  # noqa: E402
+from mssf_examples.backbones import AuthorsPointPillarsBackbone  # noqa: E402
+from mssf_examples.voxelize import VoxelGrid  # noqa: E402
+
+VOD_PILLARS = VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.16, 0.16, 5.0))
+
+
+def _bn(p, c):
+    return {f"{p}.weight": (c,), f"{p}.bias": (c,), f"{p}.running_mean": (c,), f"{p}.running_var": (c,),
+            f"{p}.num_batches_tracked": ()}
+
+
+def their_mssf_pp_shapes():
+    s = {"voxel_encoder.pfn_layers.0.linear.weight": (64, 7 + 3 + 3)}  # points, cluster offset, centre offset
+    s.update(_bn("voxel_encoder.pfn_layers.0.norm", 64))
+    for enc in ("middle_encoder", "backbone"):
+        s[f"{enc}.conv_input.0.weight"] = (64, 3, 3, 3, 7)  # SubMConv3d 7 -> 64, spconv 2 layout
+        att = f"{enc}.fusion_blocks.x_conv1.img_cross_att.deformable_attention"
+        for name, (o, i) in {"sampling_offsets": (8 * 5 * 4 * 2, 64), "attention_weights": (8 * 5 * 4, 64),
+                             "value_proj": (256, 256), "output_proj": (64, 256)}.items():
+            s[f"{att}.{name}.weight"], s[f"{att}.{name}.bias"] = (o, i), (o,)
+        s[f"{enc}.query_proj.0.weight"], s[f"{enc}.query_proj.0.bias"] = (64, 256 + 64 + 3), (64,)
+        s.update(_bn(f"{enc}.query_proj.1", 64))
+        s[f"{enc}.voxel_fuse.img_transform.0.weight"], s[f"{enc}.voxel_fuse.img_transform.0.bias"] = (256, 256), (256,)
+        s.update(_bn(f"{enc}.voxel_fuse.img_transform.1", 256))
+        seg = f"{enc}.seg_heads.x_conv1.seg_cls_layer"
+        s[f"{seg}.0.weight"], s[f"{seg}.3.weight"] = (256, 64), (256, 256)
+        s.update(_bn(f"{seg}.1", 256))
+        s.update(_bn(f"{seg}.4", 256))
+        s[f"{seg}.6.weight"], s[f"{seg}.6.bias"] = (1, 256), (1,)
+    s["backbone.height_embeddings.weight"] = (41, 64)
+    for i, (cin, cout, n) in enumerate(((128, 64, 3), (128, 128, 5), (128, 256, 5))):
+        s[f"backbone.blocks.{i}.0.weight"] = (cout, cin, 3, 3)
+        s.update(_bn(f"backbone.blocks.{i}.1", cout))
+        for j in range(n):
+            s[f"backbone.blocks.{i}.{3 + 3 * j}.weight"] = (cout, cout, 3, 3)
+            s.update(_bn(f"backbone.blocks.{i}.{4 + 3 * j}", cout))
+    for i, (cin, k) in enumerate(((128, 1), (128, 2), (256, 4))):
+        s[f"neck.deblocks.{i}.0.weight"] = (cin, 128, k, k)  # ConvTranspose2d: (in, out, k, k)
+        s.update(_bn(f"neck.deblocks.{i}.1", 128))
+    for name, o in (("conv_cls", 3 * 2 * 3), ("conv_reg", 3 * 2 * 7), ("conv_dir_cls", 3 * 2 * 2)):
+        s[f"bbox_head.{name}.weight"], s[f"bbox_head.{name}.bias"] = (o, 384, 1, 1), (o,)
+    s["img_backbone.conv1.weight"] = (64, 3, 7, 7)
+    s.update(_bn("img_backbone.bn1", 64))
+    cin = 64
+    for layer, (n, planes) in enumerate(zip((3, 4, 6, 3), (64, 128, 256, 512)), 1):
+        for b in range(n):
+            p = f"img_backbone.layer{layer}.{b}"
+            for c, shape in ((1, (planes, cin, 1, 1)), (2, (planes, planes, 3, 3)), (3, (4 * planes, planes, 1, 1))):
+                s[f"{p}.conv{c}.weight"] = shape
+                s.update(_bn(f"{p}.bn{c}", shape[0]))
+            if b == 0:
+                s[f"{p}.downsample.0.weight"] = (4 * planes, cin, 1, 1)
+                s.update(_bn(f"{p}.downsample.1", 4 * planes))
+            cin = 4 * planes
+    for i, c in enumerate((256, 512, 1024, 2048)):
+        s[f"img_neck.lateral_convs.{i}.conv.weight"], s[f"img_neck.lateral_convs.{i}.conv.bias"] = (256, c, 1, 1), (256,)
+        s[f"img_neck.fpn_convs.{i}.conv.weight"], s[f"img_neck.fpn_convs.{i}.conv.bias"] = (256, 256, 3, 3), (256,)
+    return s
+
+
+def random_checkpoint(shapes, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"meta": {}, "state_dict": {k: torch.tensor(5) if v == () else torch.randn(v, generator=g)
+                                       for k, v in shapes.items()}}
+
+
+def test_their_mssf_pp_checkpoint_loads_strictly_into_the_authors_layout():
+    model = AuthorsPointPillarsBackbone(7, VOD_PILLARS, [256] * 5)
+    ckpt = random_checkpoint(their_mssf_pp_shapes())
+    theirs = ckpt["state_dict"]
+    sd, report = convert_authors(ckpt, model)
+    model.load_state_dict(sd, strict=True)
+    assert report.missing == []
+    assert len(report.mapped) + len(report.ignored) == len(theirs)
+    assert {k.split(".")[0] for k, _ in report.ignored} == {"img_backbone", "img_neck", "bbox_head", "middle_encoder",
+                                                           "backbone"}
+    assert all("voxel_fuse.img_transform" in k for k, _ in report.ignored if k.startswith(("middle", "backbone")))
+    own = model.state_dict()
+    for k, ours, shape in report.mapped:
+        assert tuple(own[ours].shape) == shape
+        if "query_proj.0.weight" not in k:
+            assert torch.equal(own[ours], theirs[k]), k
+    # the query-init columns: theirs [img | voxel | pos], ours [voxel | img | pos]
+    w = theirs["backbone.query_proj.0.weight"]
+    assert torch.equal(own["backbone_stage.block.query_init.linear.weight"], torch.cat([w[:, 256:320], w[:, :256], w[:, 320:]], 1))
+    assert report.summary().startswith(f"mapped {len(report.mapped)}, ignored {len(report.ignored)}, missing 0")
+
+
+def test_unknown_and_misshapen_tensors_raise_naming_them():
+    model = AuthorsPointPillarsBackbone(7, VOD_PILLARS, [256] * 5)
+    shapes = their_mssf_pp_shapes()
+    extra = random_checkpoint({**shapes, "pts_fusion_layer.weight": (3,)})
+    with pytest.raises(MSSFError, match=r"pts_fusion_layer\.weight"):
+        convert_authors(extra, model)
+    bad = random_checkpoint({**shapes, "backbone.blocks.1.0.weight": (128, 64, 3, 3)})
+    with pytest.raises(MSSFError, match=r"backbone\.blocks\.1\.0\.weight has shape \(128, 64, 3, 3\)"):
+        convert_authors(bad, model)
+    with pytest.raises(MSSFError, match="layout"):
+        convert_authors(extra, model, layout="mssf_v")
