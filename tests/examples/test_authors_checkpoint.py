@@ -114,3 +114,24 @@ def test_unknown_and_misshapen_tensors_raise_naming_them():
         convert_authors(bad, model)
     with pytest.raises(MSSFError, match="layout"):
         convert_authors(extra, model, layout="mssf_v")
+
+
+def test_convert_authors_command(tmp_path, capsys):
+    from mssf_examples.cli import main
+
+    src, out = tmp_path / "mssf_pp.pth", tmp_path / "converted.pt"
+    shapes = their_mssf_pp_shapes()
+    torch.save(random_checkpoint(shapes, seed=1), src)
+    assert main(["convert-authors", str(src), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    saved = torch.load(out, weights_only=True)
+    n_ignored = len(saved["report"]["ignored"])
+    assert f"mapped {len(shapes) - n_ignored}, ignored {n_ignored}, missing 0" in text and "strict=True" in text
+    model = AuthorsPointPillarsBackbone(7, VOD_PILLARS, [256] * 5)
+    model.load_state_dict(saved["state_dict"], strict=True)
+    assert torch.equal(model.blocks[2][0].weight, torch.load(src, weights_only=True)["state_dict"]["backbone.blocks.2.0.weight"])
+    bad = tmp_path / "bad.pth"
+    torch.save({"state_dict": {**random_checkpoint(shapes)["state_dict"], "pts_voxel_layer.x": torch.zeros(1)}}, bad)
+    with pytest.raises(SystemExit):
+        main(["convert-authors", str(bad), "--out", str(out)])
+    assert "pts_voxel_layer.x" in capsys.readouterr().err
