@@ -92,6 +92,10 @@ class MSSFDetector(nn.Module):
         head_position: where the semantic head reads the last fusion block's voxels: ``"after_fusion"``
             (the paper's and the authors' place, before the block's residual blocks) or
             ``"after_residual"`` (voxel backbones only; PointPillars' head always reads the fused voxels).
+        pillar_layout: PointPillars only: ``"paper"`` (:class:`PointPillarsBackbone`, ``n`` fusion blocks
+            replacing) or ``"authors"`` (:class:`AuthorsPointPillarsBackbone`: the authors' MSSF-PP, two
+            concatenating fusion stages, their widths; ``num_fusion_blocks`` must be 2 and ``fusion``
+            ``"msdff"``; loads their checkpoints through ``mssf_examples.authors_checkpoint``).
         image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
             ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
         score_threshold, nms_iou, max_detections: decoding settings in eval mode.
@@ -113,6 +117,7 @@ class MSSFDetector(nn.Module):
         nms_iou: Optional[float] = 0.5,
         max_detections: int = 100,
         head_position: str = "after_fusion",
+        pillar_layout: str = "paper",
     ) -> None:
         super().__init__()
         if name not in DETECTOR_NAMES:
@@ -143,13 +148,25 @@ class MSSFDetector(nn.Module):
         if name == "pointpillars" and head_position != "after_fusion":
             raise MSSFError(f"head_position: PointPillars' semantic head reads the fused lift voxels; expected "
                             f"'after_fusion', got {head_position!r}")
+        if pillar_layout not in ("paper", "authors"):
+            raise MSSFError(f"pillar_layout: expected 'paper' or 'authors', got {pillar_layout!r}")
+        if pillar_layout == "authors" and (name != "pointpillars" or num_fusion_blocks != 2 or fusion != "msdff"):
+            raise MSSFError(f"pillar_layout: 'authors' is their MSSF-PP (pointpillars, 2 MSDFF stages), got name={name!r}, "
+                            f"num_fusion_blocks={num_fusion_blocks}, fusion={fusion!r}")
         if name == "pointpillars":
             grid = VoxelGrid(p.pillar_range, (p.pillar_size[0], p.pillar_size[1], p.pillar_range[5] - p.pillar_range[2]))
-            self.backbone = PointPillarsBackbone(
-                c_in, grid, lift_z_size=p.lift_z_size, pfn_channels=p.pfn_channels,
-                layer_nums=p.pillar_layer_nums, num_filters=p.pillar_filters,
-                num_upsample_filters=p.pillar_upsample_filters, **fusion_kwargs,
-            )
+            if pillar_layout == "authors":
+                from .backbones import AuthorsPointPillarsBackbone
+
+                self.backbone = AuthorsPointPillarsBackbone(c_in, grid, image_channels, lift_z_size=p.lift_z_size,
+                                                            msdff_heads=p.msdff_heads, msdff_points=p.msdff_points,
+                                                            seg_hidden=p.seg_hidden)
+            else:
+                self.backbone = PointPillarsBackbone(
+                    c_in, grid, lift_z_size=p.lift_z_size, pfn_channels=p.pfn_channels,
+                    layer_nums=p.pillar_layer_nums, num_filters=p.pillar_filters,
+                    num_upsample_filters=p.pillar_upsample_filters, **fusion_kwargs,
+                )
             px0, py0, _, px1, py1, _ = p.pillar_range
             bev_grid = BEVGrid(px0, py0, px1, py1, *self.backbone.bev_shape)
             matched, unmatched = _anchor_thresholds(p.class_names)

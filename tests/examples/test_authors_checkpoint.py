@@ -135,3 +135,34 @@ def test_convert_authors_command(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["convert-authors", str(bad), "--out", str(out)])
     assert "pts_voxel_layer.x" in capsys.readouterr().err
+
+
+def test_example_detector_in_the_authors_mssf_pp_layout_trains_and_detects():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_detectors import make_batch
+
+    from mssf_examples.detectors import build_detector
+    from mssf_examples.presets import TINY
+
+    torch.manual_seed(0)
+    batch = make_batch()
+    model = build_detector("pointpillars", TINY, num_fusion_blocks=2, pillar_layout="authors", score_threshold=0.0,
+                           max_detections=10)
+    assert isinstance(model.backbone, AuthorsPointPillarsBackbone) and model.backbone.bev_channels == 384
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    model.train()
+    for _ in range(2):
+        losses = model(batch)
+        assert "seg" in losses and all(torch.isfinite(v) for v in losses.values())
+        opt.zero_grad()
+        losses["loss"].backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        dets = model(batch)
+    assert len(dets) == 2 and all(d["boxes"].shape[1] == 7 for d in dets)
+    with pytest.raises(MSSFError, match="pillar_layout"):
+        build_detector("pointpillars", TINY, num_fusion_blocks=1, pillar_layout="authors")
