@@ -16,32 +16,66 @@ Layouts (``layout=``):
   (``bbox_head``: their ``Anchor3DHead``, not mapped onto the example ``AnchorHead``) and the dead
   ``voxel_fuse.img_transform`` of both stages.
 
+* ``"mssf_v"``: their MSSF-V (``VoxelNeXtFuse`` with ``SparseEncoderVoxelNeXtFuse``) into
+  :class:`~mssf_examples.backbones.VoxelNeXtBackbone` built with ``authors_layout=True`` and the same
+  fusion locations: ``pts_middle_encoder.conv_input`` / ``conv_out`` / ``shared_conv`` by name,
+  ``conv1.<j>`` -> ``stages.0.blocks.<j>``, ``conv<i>.0`` -> ``stages.<i-1>.downsample``,
+  ``conv<i>.<j>`` -> ``stages.<i-1>.blocks.<j-1>``, the fusion modules, query initialiser and semantic
+  head through :func:`mssf_blocks.compat.mssf_official.mssf_v_module_maps` (``stage_channels`` = their
+  ``base_channels``, 32). Ignored: ``img_backbone``, ``img_neck``, ``pts_bbox_head`` (their
+  ``VoxelNeXtHead``, not mapped onto the example ``SparseCenterHead``) and the dead
+  ``voxel_fuse.img_transform``.
+
 ``python -m mssf_examples convert-authors CHECKPOINT --out FILE`` runs it and prints the report.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, List, Mapping, Tuple
+import re
+from typing import Dict, List, Mapping, Optional, Tuple
 
 from torch import Tensor, nn
 
-from mssf_blocks.compat.mssf_official import official_to_ours
+from mssf_blocks.compat.mssf_official import mssf_v_module_maps, official_to_ours
 from mssf_blocks.compat.mssf_pp import mssf_pp_stage_maps
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "unwrap_checkpoint"]
 
-LAYOUTS = ("mssf_pp",)
+LAYOUTS = ("mssf_pp", "mssf_v")
 
 _PP_RENAMES = (("voxel_encoder.pfn_layers.0.", "pfn."), ("backbone.blocks.", "blocks."), ("neck.deblocks.", "deblocks."))
-_PP_IGNORED = (
+_IMAGE_IGNORED = (
     ("img_backbone.", "their mmdet ResNet-50 image backbone: the example image branch has another layout"),
     ("img_neck.", "their mmdet FPN: the example image branch has another layout"),
-    ("bbox_head.", "their Anchor3DHead: not mapped onto the example AnchorHead"),
-    ("middle_encoder.voxel_fuse.img_transform.", "dead: built by their query initialiser, never called"),
-    ("backbone.voxel_fuse.img_transform.", "dead: built by their query initialiser, never called"),
 )
+_DEAD = "dead: built by their query initialiser, never called"
+_PP_IGNORED = _IMAGE_IGNORED + (
+    ("bbox_head.", "their Anchor3DHead: not mapped onto the example AnchorHead"),
+    ("middle_encoder.voxel_fuse.img_transform.", _DEAD),
+    ("backbone.voxel_fuse.img_transform.", _DEAD),
+)
+_V_IGNORED = _IMAGE_IGNORED + (
+    ("pts_bbox_head.", "their VoxelNeXtHead: not mapped onto the example SparseCenterHead"),
+    ("pts_middle_encoder.voxel_fuse.img_transform.", _DEAD),
+)
+_ENC = "pts_middle_encoder."
+_V_CONV = re.compile(r"pts_middle_encoder\.conv(\d)\.(\d+)\.(.*)")
+
+
+def _v_rename(key: str) -> Optional[str]:
+    """Their ``SparseEncoderVoxelNeXtFuse`` convolutions -> the example ``VoxelNeXtBackbone``."""
+    for mine in ("conv_input.", "conv_out.", "shared_conv."):
+        if key.startswith(_ENC + mine):
+            return key[len(_ENC):]
+    m = _V_CONV.fullmatch(key)
+    if m is None:
+        return None
+    stage, j, rest = int(m.group(1)) - 1, int(m.group(2)), m.group(3)
+    if stage == 0:  # conv1: two residual blocks, no downsampling
+        return f"stages.0.blocks.{j}.{rest}"
+    return f"stages.{stage}.downsample.{rest}" if j == 0 else f"stages.{stage}.blocks.{j - 1}.{rest}"
 
 
 @dataclass
@@ -85,12 +119,28 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
     target = model.state_dict()
     report = ConversionReport()
     out: Dict[str, Tensor] = {}
-    ignored = {k: why for k in theirs for p, why in _PP_IGNORED if k.startswith(p)}
-    renamed = {k: dst + k[len(src):] for k in theirs for src, dst in _PP_RENAMES if k.startswith(src)}
+    table = _PP_IGNORED if layout == "mssf_pp" else _V_IGNORED
+    ignored = {k: why for k in theirs for p, why in table if k.startswith(p)}
+    if layout == "mssf_pp":
+        renamed = {k: dst + k[len(src):] for k in theirs for src, dst in _PP_RENAMES if k.startswith(src)}
+        stages = []
+        for stage, enc, ours in (("scatter", "middle_encoder", "scatter_stage"), ("backbone", "backbone", "backbone_stage")):
+            maps, ignore = mssf_pp_stage_maps(stage, ours, stage_channels)
+            stages.append((enc, maps, ignore))
+    else:
+        renamed = {k: v for k in theirs if k not in ignored for v in [_v_rename(k)] if v is not None}
+        locs = sorted({k.split(".")[2] for k in theirs if k.startswith(_ENC + "fusion_blocks.")})
+        heads = sorted({k.split(".")[2] for k in theirs if k.startswith(_ENC + "seg_heads.")})
+        simple = any(".img_transform." in k for k in theirs if k.startswith(_ENC + "fusion_blocks."))
+        maps, ignore = mssf_v_module_maps(
+            {loc: f"stages.{int(loc[-1]) - 1}.fusion" for loc in locs},
+            query_init=None if simple else "stages.0.query_init", voxel_channels=stage_channels,
+            semantic_heads={loc: f"stages.{int(loc[-1]) - 1}.semantic_head" for loc in heads},
+            fusion="sff" if simple else "msdff")
+        stages = [("pts_middle_encoder", maps, ignore)]
     stage_keys = {}
-    for stage, enc, ours in (("scatter", "middle_encoder", "scatter_stage"), ("backbone", "backbone", "backbone_stage")):
+    for enc, maps, ignore in stages:
         keys = [k for k in theirs if k.startswith(enc + ".") and k not in ignored and k not in renamed]
-        maps, ignore = mssf_pp_stage_maps(stage, ours, stage_channels)
         converted = official_to_ours({k: theirs[k] for k in keys}, maps, ignore)
         for m in maps:  # the name pairs (the converter's rules, per module)
             mine = [k for k in keys if k.startswith(m.theirs + ".")]

@@ -166,3 +166,99 @@ def test_example_detector_in_the_authors_mssf_pp_layout_trains_and_detects():
     assert len(dets) == 2 and all(d["boxes"].shape[1] == 7 for d in dets)
     with pytest.raises(MSSFError, match="pillar_layout"):
         build_detector("pointpillars", TINY, num_fusion_blocks=1, pillar_layout="authors")
+
+
+def their_mssf_v_shapes():
+    """``vx_mm_r50_ablation_n2m4`` on ``voxelnext_voxel005_vod_multimodal_r50pytorch``: fusion at x_conv1 and
+    x_conv2, the semantic head at x_conv2, encoder channels 32/64/128/256/256/256 (the paper's doubled)."""
+    e = "pts_middle_encoder"
+    s = {f"{e}.conv_input.0.weight": (32, 3, 3, 3, 7)}
+    s.update(_bn(f"{e}.conv_input.1", 32))
+
+    def basic(p, c):
+        for i in (1, 2):
+            s[f"{p}.conv{i}.weight"] = (c, 3, 3, 3, c)
+            s.update(_bn(f"{p}.bn{i}", c))
+
+    chans = (32, 64, 128, 256, 256, 256)
+    basic(f"{e}.conv1.0", 32)
+    basic(f"{e}.conv1.1", 32)
+    for i in range(2, 7):
+        s[f"{e}.conv{i}.0.0.weight"] = (chans[i - 1], 3, 3, 3, chans[i - 2])
+        s.update(_bn(f"{e}.conv{i}.0.1", chans[i - 1]))
+        basic(f"{e}.conv{i}.1", chans[i - 1])
+        basic(f"{e}.conv{i}.2", chans[i - 1])
+    s[f"{e}.conv_out.0.weight"] = (256, 3, 3, 256)  # SparseConv2d, spconv 2 layout (out, kh, kw, in)
+    s.update(_bn(f"{e}.conv_out.1", 256))
+    s[f"{e}.shared_conv.0.weight"], s[f"{e}.shared_conv.0.bias"] = (256, 3, 3, 256), (256,)
+    s.update(_bn(f"{e}.shared_conv.1", 256))
+    for loc, c in (("x_conv1", 32), ("x_conv2", 64)):
+        att = f"{e}.fusion_blocks.{loc}.img_cross_att.deformable_attention"
+        for name, (o, i) in {"sampling_offsets": (8 * 5 * 4 * 2, c), "attention_weights": (8 * 5 * 4, c),
+                             "value_proj": (256, 256), "output_proj": (c, 256)}.items():
+            s[f"{att}.{name}.weight"], s[f"{att}.{name}.bias"] = (o, i), (o,)
+    s[f"{e}.query_proj.0.weight"], s[f"{e}.query_proj.0.bias"] = (32, 256 + 32 + 3), (32,)
+    s.update(_bn(f"{e}.query_proj.1", 32))
+    s[f"{e}.voxel_fuse.img_transform.0.weight"], s[f"{e}.voxel_fuse.img_transform.0.bias"] = (256, 256), (256,)
+    s.update(_bn(f"{e}.voxel_fuse.img_transform.1", 256))
+    seg = f"{e}.seg_heads.x_conv2.seg_cls_layer"
+    s[f"{seg}.0.weight"], s[f"{seg}.3.weight"], s[f"{seg}.6.weight"], s[f"{seg}.6.bias"] = (256, 64), (256, 256), (1, 256), (1,)
+    s.update(_bn(f"{seg}.1", 256))
+    s.update(_bn(f"{seg}.4", 256))
+    # the detection head is ignored as a whole (by its prefix): two of its tensors stand for it here
+    s["pts_bbox_head.heads.0.hm.0.weight"], s["pts_bbox_head.heads.0.hm.0.bias"] = (256, 3, 3, 256), (256,)
+    pp = their_mssf_pp_shapes()
+    s.update({k: v for k, v in pp.items() if k.startswith(("img_backbone.", "img_neck."))})
+    return s
+
+
+def test_their_mssf_v_checkpoint_loads_strictly_into_voxelnext_in_their_layout():
+    from mssf_examples.backbones import VoxelNeXtBackbone
+
+    grid = VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.05, 0.05, 0.125))
+    model = VoxelNeXtBackbone(7, grid, authors_layout=True, num_fusion_blocks=2, image_channels=[256] * 5)
+    assert model.input_shape == (41, 1024, 1024)
+    ckpt = random_checkpoint(their_mssf_v_shapes(), seed=2)
+    theirs = ckpt["state_dict"]
+    sd, report = convert_authors(ckpt, model, layout="mssf_v", stage_channels=32)
+    model.load_state_dict(sd, strict=True)
+    assert report.missing == [] and len(report.mapped) + len(report.ignored) == len(theirs)
+    pairs = {k: ours for k, ours, _ in report.mapped}
+    assert pairs["pts_middle_encoder.conv1.1.bn2.running_var"] == "stages.0.blocks.1.bn2.running_var"
+    assert pairs["pts_middle_encoder.conv4.0.0.weight"] == "stages.3.downsample.0.weight"
+    assert pairs["pts_middle_encoder.conv4.2.conv1.weight"] == "stages.3.blocks.1.conv1.weight"
+    assert pairs["pts_middle_encoder.seg_heads.x_conv2.seg_cls_layer.6.bias"] == "stages.1.semantic_head.classifier.bias"
+    own = model.state_dict()
+    assert all(torch.equal(own[o], theirs[k]) for k, o in pairs.items() if "query_proj.0.weight" not in k)
+    assert model.stages[1].head_position == "after_fusion" and model.stages[0].fusion.add_query
+
+
+def test_convert_authors_command_mssf_v(tmp_path, capsys):
+    from mssf_examples.cli import main
+
+    src, out = tmp_path / "mssf_v.pth", tmp_path / "v.pt"
+    torch.save(random_checkpoint(their_mssf_v_shapes(), seed=3), src)
+    assert main(["convert-authors", str(src), "--out", str(out), "--layout", "mssf_v"]) == 0
+    assert "missing 0" in capsys.readouterr().out
+
+
+def test_voxelnext_in_their_layout_runs_its_regular_conv_out_and_shared_conv():
+    from mssf_blocks.fusion import FusionInputs
+    from mssf_examples.backbones import VoxelNeXtBackbone
+    from mssf_examples.voxelize import DynamicVoxelizer
+
+    grid = VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.4, 0.4, 0.125))
+    kw = dict(channels=(8,) * 7, out_channels=8, num_fusion_blocks=2, image_channels=[16] * 3, msdff_heads=2,
+              msdff_points=2, seg_hidden=(8,))
+    torch.manual_seed(0)
+    pts = torch.rand(60, 7) * torch.tensor([51.2, 51.2, 5, 1, 1, 1, 1]) - torch.tensor([0, 25.6, 3, 0, 0, 0, 0])
+    pb = torch.randint(0, 2, (60,))
+    cam = torch.tensor([[20.0, -30, 0, 0], [12, 0, -30, 0], [1, 0, 0, 0]]).expand(2, 3, 4).contiguous()
+    inputs = FusionInputs([torch.randn(2, 16, 24 // s, 40 // s) for s in (4, 8, 16)], cam, (24, 40), pts[:, :3], pb)
+    vox = DynamicVoxelizer(grid.point_cloud_range, grid.voxel_size)(pts, pb, 2)
+    theirs = VoxelNeXtBackbone(7, grid, authors_layout=True, **kw).eval()
+    ours = VoxelNeXtBackbone(7, grid, **kw).eval()
+    a, b = theirs(vox, inputs).sparse_bev, ours(vox, inputs).sparse_bev
+    # the regular conv_out dilates the merged BEV set; the submanifold one keeps it
+    cells = lambda c: {tuple(r) for r in c.tolist()}  # noqa: E731
+    assert cells(b[1]) < cells(a[1]) and a[0].shape[1] == 8

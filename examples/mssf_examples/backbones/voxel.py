@@ -108,6 +108,8 @@ class SparseFusionBackbone(nn.Module):
             fused features before the block's residual blocks: the paper's eq. 12-13 and the authors'
             ``SparseEncoderVoxelNeXtFuse``) or ``"after_residual"`` (the block's output); see
             :class:`mssf_blocks.blocks.FusionBlock`.
+        authors_switches: build the fusion modules, query initialiser and projector with
+            ``mssf_blocks.compat.mssf_official.OFFICIAL_SWITCHES`` (the authors' forward).
         z_pad: extra empty z layers on top of the grid (OpenPCDet's ``+1`` so ``41`` z cells downsample
             ``41 -> 21 -> 11 -> 5 -> 2``).
     """
@@ -129,6 +131,7 @@ class SparseFusionBackbone(nn.Module):
         z_pad: int = 0,
         msdff_value_dim: Union[int, str, None] = None,
         head_position: str = "after_fusion",
+        authors_switches: bool = False,
     ) -> None:
         super().__init__()
         _check_fusion_args(num_fusion_blocks, min(4, len(stages)), fusion, fusion_position)
@@ -168,12 +171,17 @@ class SparseFusionBackbone(nn.Module):
                 if i == num_fusion_blocks - 1 and seg_hidden is not None:
                     # the semantic-guided head runs inside the last fusion block (paper Sec. III-D)
                     head = SemanticGuidedHead(spec.channels, hidden=tuple(seg_hidden))
+                from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES as SW
+                from mssf_blocks.geometry import VoxelCentroidProjector
+
                 query_init = None
                 if fusion == "msdff" and i == 0:
-                    query_init = QueryInit(spec.channels, image_channels[0], spec.channels, grid.point_cloud_range)
+                    query_init = QueryInit(spec.channels, image_channels[0], spec.channels, grid.point_cloud_range,
+                                           **(SW["query_init"] if authors_switches else {}))
                 stage = FusionBlock(
                     _make_fusion(fusion, spec.channels, image_channels, msdff_heads, msdff_points,
-                                 msdff_value_projection, msdff_value_dim),
+                                 msdff_value_projection, msdff_value_dim, authors_switches),
+                    projector=VoxelCentroidProjector(**SW["projector"]) if authors_switches else None,
                     downsample=down,
                     blocks=blocks,
                     position=fusion_position,
