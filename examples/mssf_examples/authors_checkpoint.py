@@ -26,6 +26,13 @@ Layouts (``layout=``):
   ``VoxelNeXtHead``, not mapped onto the example ``SparseCenterHead``) and the dead
   ``voxel_fuse.img_transform``.
 
+The target may also be the example detector (:class:`~mssf_examples.detectors.MSSFDetector` built with
+``pillar_layout="authors"``, or ``"voxelnext"`` with an ``authors_layout`` backbone): the backbone's
+tensors then go under ``backbone.``, and their image backbone and neck map by name onto the example
+image branch (``img_backbone`` -> ``image_branch.backbone``, ``img_neck`` -> ``image_branch.neck``: the
+same ResNet / FPN layout; the preset needs ``num_image_levels=5`` and ``image_depth=50``). The detection
+head is then reported missing.
+
 ``python -m mssf_examples convert-authors CHECKPOINT --out FILE`` runs it and prints the report.
 """
 
@@ -119,25 +126,37 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
     target = model.state_dict()
     report = ConversionReport()
     out: Dict[str, Tensor] = {}
+    # an example detector (MSSFDetector): its backbone under "backbone.", its image branch (mmdet's
+    # ResNet / FPN names) under "image_branch."; the detection head stays unmapped (missing)
+    detector = hasattr(model, "image_branch") and hasattr(model, "head") and hasattr(model, "backbone")
+    bb = "backbone." if detector else ""
     table = _PP_IGNORED if layout == "mssf_pp" else _V_IGNORED
+    if detector and model.image_branch is not None:
+        table = tuple(t for t in table if t not in _IMAGE_IGNORED)
     ignored = {k: why for k in theirs for p, why in table if k.startswith(p)}
+    image = {}
+    if detector and model.image_branch is not None:
+        image = {k: dst + k[len(src):] for k in theirs
+                 for src, dst in (("img_backbone.", "image_branch.backbone."), ("img_neck.", "image_branch.neck."))
+                 if k.startswith(src)}
     if layout == "mssf_pp":
-        renamed = {k: dst + k[len(src):] for k in theirs for src, dst in _PP_RENAMES if k.startswith(src)}
+        renamed = {k: bb + dst + k[len(src):] for k in theirs for src, dst in _PP_RENAMES if k.startswith(src)}
         stages = []
         for stage, enc, ours in (("scatter", "middle_encoder", "scatter_stage"), ("backbone", "backbone", "backbone_stage")):
-            maps, ignore = mssf_pp_stage_maps(stage, ours, stage_channels)
+            maps, ignore = mssf_pp_stage_maps(stage, bb + ours, stage_channels)
             stages.append((enc, maps, ignore))
     else:
-        renamed = {k: v for k in theirs if k not in ignored for v in [_v_rename(k)] if v is not None}
+        renamed = {k: bb + v for k in theirs if k not in ignored for v in [_v_rename(k)] if v is not None}
         locs = sorted({k.split(".")[2] for k in theirs if k.startswith(_ENC + "fusion_blocks.")})
         heads = sorted({k.split(".")[2] for k in theirs if k.startswith(_ENC + "seg_heads.")})
         simple = any(".img_transform." in k for k in theirs if k.startswith(_ENC + "fusion_blocks."))
         maps, ignore = mssf_v_module_maps(
-            {loc: f"stages.{int(loc[-1]) - 1}.fusion" for loc in locs},
-            query_init=None if simple else "stages.0.query_init", voxel_channels=stage_channels,
-            semantic_heads={loc: f"stages.{int(loc[-1]) - 1}.semantic_head" for loc in heads},
+            {loc: f"{bb}stages.{int(loc[-1]) - 1}.fusion" for loc in locs},
+            query_init=None if simple else f"{bb}stages.0.query_init", voxel_channels=stage_channels,
+            semantic_heads={loc: f"{bb}stages.{int(loc[-1]) - 1}.semantic_head" for loc in heads},
             fusion="sff" if simple else "msdff")
         stages = [("pts_middle_encoder", maps, ignore)]
+    renamed.update(image)
     stage_keys = {}
     for enc, maps, ignore in stages:
         keys = [k for k in theirs if k.startswith(enc + ".") and k not in ignored and k not in renamed]

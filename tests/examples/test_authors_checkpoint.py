@@ -262,3 +262,24 @@ def test_voxelnext_in_their_layout_runs_its_regular_conv_out_and_shared_conv():
     # the regular conv_out dilates the merged BEV set; the submanifold one keeps it
     cells = lambda c: {tuple(r) for r in c.tolist()}  # noqa: E731
     assert cells(b[1]) < cells(a[1]) and a[0].shape[1] == 8
+
+
+def test_their_mssf_pp_checkpoint_into_the_example_detector_maps_the_image_branch_too():
+    import dataclasses
+
+    from mssf_examples.detectors import build_detector
+    from mssf_examples.presets import VOD
+
+    preset = dataclasses.replace(VOD, num_image_levels=5)  # their FPN: five outputs, all fused
+    model = build_detector("pointpillars", preset, num_fusion_blocks=2, pillar_layout="authors")
+    ckpt = random_checkpoint(their_mssf_pp_shapes(), seed=4)
+    theirs = ckpt["state_dict"]
+    sd, report = convert_authors(ckpt, model)
+    assert {k.split(".")[0] for k, _ in report.ignored} == {"bbox_head", "middle_encoder", "backbone"}
+    assert report.missing and all(k.startswith("head.") for k in report.missing)
+    result = model.load_state_dict(sd, strict=False)
+    assert sorted(result.missing_keys) == sorted(report.missing) and result.unexpected_keys == []
+    own = model.state_dict()
+    assert torch.equal(own["image_branch.backbone.layer3.5.conv2.weight"], theirs["img_backbone.layer3.5.conv2.weight"])
+    assert torch.equal(own["image_branch.neck.fpn_convs.3.conv.bias"], theirs["img_neck.fpn_convs.3.conv.bias"])
+    assert torch.equal(own["backbone.blocks.1.0.weight"], theirs["backbone.blocks.1.0.weight"])
