@@ -8,7 +8,8 @@ that differs, raises :class:`~mssf_blocks.errors.MSSFError` naming it.
 Layouts (``layout=``):
 
 * ``"mssf_pp"``: their MSSF-PP into :class:`~mssf_examples.backbones.AuthorsPointPillarsBackbone`:
-  ``voxel_encoder.pfn_layers.0`` -> ``pfn``, both fusion stages (``middle_encoder.*`` ->
+  ``voxel_encoder.pfn_layers.0`` -> ``pfn`` (the linear weight's columns folded,
+  :func:`fold_legacy_pfn_columns`), both fusion stages (``middle_encoder.*`` ->
   ``scatter_stage``, ``backbone.*`` -> ``backbone_stage``, through
   :func:`mssf_blocks.compat.mssf_pp.mssf_pp_stage_maps`), ``backbone.blocks`` -> ``blocks``,
   ``neck.deblocks`` -> ``deblocks``. Ignored: the image backbone and neck (``img_backbone``, ``img_neck``:
@@ -48,7 +49,7 @@ from mssf_blocks.compat.mssf_official import mssf_v_module_maps, official_to_our
 from mssf_blocks.compat.mssf_pp import mssf_pp_stage_maps
 from mssf_blocks.errors import MSSFError
 
-__all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "unwrap_checkpoint"]
+__all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "fold_legacy_pfn_columns", "unwrap_checkpoint"]
 
 LAYOUTS = ("mssf_pp", "mssf_v")
 
@@ -101,6 +102,23 @@ class ConversionReport:
         lines += [f"  ignored {n}: {why}" for why, n in reasons.items()]
         lines += [f"  missing: {k}" for k in self.missing]
         return "\n".join(lines)
+
+
+def fold_legacy_pfn_columns(weight: Tensor) -> Tensor:
+    """Their ``PillarFeatureNet`` linear weight ``(C_out, C + 6)`` -> ours, exactly.
+
+    mmdet3d's ``PillarFeatureNet(legacy=True)`` (the default, and their config's) computes the pillar-centre
+    offsets in place in the points' first three columns, so its input is
+    ``[xyz - centre, rest, xyz - mean, xyz - centre]``; ours is ``[xyz, rest, xyz - mean, xyz - centre]``.
+    The linear map has no bias, so their first three columns fold into the last three and ours read
+    zero weight on the raw ``xyz``.
+    """
+    if weight.dim() != 2 or weight.shape[1] < 9:
+        raise MSSFError(f"voxel_encoder.pfn_layers.0.linear.weight: expected (C_out, C + 6), got {tuple(weight.shape)}")
+    out = weight.clone()
+    out[:, -3:] = weight[:, -3:] + weight[:, :3]
+    out[:, :3] = 0
+    return out
 
 
 def unwrap_checkpoint(obj) -> Mapping[str, Tensor]:
@@ -171,6 +189,9 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
         shown = ", ".join(unknown[:12]) + (f", ... ({len(unknown)} in all)" if len(unknown) > 12 else "")
         raise MSSFError(f"checkpoint: {len(unknown)} tensor(s) of theirs map to nothing in layout {layout!r}: {shown}")
     out.update({renamed[k]: theirs[k] for k in renamed})
+    pfn = "voxel_encoder.pfn_layers.0.linear.weight"
+    if layout == "mssf_pp" and pfn in renamed:
+        out[renamed[pfn]] = fold_legacy_pfn_columns(theirs[pfn])
     pairs = {**renamed, **stage_keys}
     for k, ours in pairs.items():
         if ours not in target:

@@ -18,6 +18,8 @@ prefix (:mod:`mssf_examples.authors_checkpoint`). Their voxelisation caps a voxe
 
 from __future__ import annotations
 
+import functools
+
 from typing import List, Sequence
 
 import torch
@@ -50,6 +52,7 @@ class AuthorsPointPillarsBackbone(nn.Module):
         upsample_strides, upsample_channels: their ``SECONDFPN`` (1/2/4, 128 each).
         msdff_heads, msdff_points: their ``MSDeformableAttention`` (8 heads, 4 points).
         seg_hidden: the semantic heads' hidden widths (their ``ForegroundSegmentationHead``: 256, 256).
+        max_points: their ``max_num_points`` (32): the PFN's zero-padded rows (``PillarFeatureNet(max_points=)``).
     """
 
     def __init__(
@@ -69,6 +72,7 @@ class AuthorsPointPillarsBackbone(nn.Module):
         msdff_heads: int = 8,
         msdff_points: int = 4,
         seg_hidden: Sequence[int] = (256, 256),
+        max_points: int = 32,
     ) -> None:
         super().__init__()
         from mssf_blocks.blocks import FusionBlock
@@ -90,7 +94,9 @@ class AuthorsPointPillarsBackbone(nn.Module):
         vx, vy, _ = grid.voxel_size
         self.lift_grids = [VoxelGrid(pcr, (vx, vy, float(lift_z_size))), VoxelGrid(pcr, (2 * vx, 2 * vy, float(lift_z_size)))]
         num_z = self.lift_grids[0].spatial_shape[0] + self.z_pad
-        self.pfn = PillarFeatureNet(in_channels, pfn_channels, pcr, (vx, vy))
+        # mmdet3d's PFN norm: BN1d(eps=1e-3, momentum=0.01)
+        self.pfn = PillarFeatureNet(in_channels, pfn_channels, pcr, (vx, vy), max_points=max_points,
+                                    norm_layer=functools.partial(nn.BatchNorm1d, eps=1e-3, momentum=0.01))
         c = stage_channels
         levels = list(image_channels)
 
