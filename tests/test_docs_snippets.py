@@ -191,7 +191,8 @@ def detectors_openpcdet_init(run, tmp_path):
 
     ns = run_detectors_init(run)
     assert isinstance(ns["self"].conv2, FusionBlock) and isinstance(ns["self"].conv2.query_init, QueryInit)
-    assert isinstance(ns["self"].seg_head, SemanticGuidedHead)
+    assert isinstance(ns["self"].conv2.semantic_head, SemanticGuidedHead)
+    assert ns["self"].conv2.head_position == "after_fusion"
 
 
 @snippet("docs/detectors.md", "inputs = FusionInputs(image_features=img_feats,            # L levels (B, V, C, H_l, W_l)")

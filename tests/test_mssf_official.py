@@ -314,3 +314,24 @@ def test_switch_arguments_are_checked():
         SFF([2], 2, align_corners="yes")
     with pytest.raises(MSSFError, match="half_pixel"):
         VoxelCentroidProjector(half_pixel=0)
+
+
+def test_corner_origin_image_augmentation_is_their_apply_img_aug():
+    from mssf_blocks.geometry import image_augmentation_matrix
+
+    # their apply_img_aug: pts * scale_factor - crop_offset, then u -> W_img - u (img_shape before padding)
+    g = torch.Generator().manual_seed(6)
+    uv = torch.rand(20, 2, generator=g, dtype=D64) * torch.tensor([1936.0, 1216.0], dtype=D64)
+    scale = torch.tensor([1333 / 1936, 800 / 1216], dtype=D64)
+    want = uv * scale - torch.tensor([7.0, 3.0], dtype=D64)
+    want[:, 0] = 1300 - want[:, 0]
+    a, size = image_augmentation_matrix((1216, 1936), resize=(800, 1333), crop=(3, 7, 790, 1300), flip=True,
+                                        corner_origin=True)
+    got = (torch.cat([uv, torch.ones(20, 1, dtype=D64)], 1) @ a.T)[:, :2]
+    assert size == (790, 1300) and (got - want).abs().max() <= 1e-9
+    # ours (pixel centres): the flip differs by exactly one pixel, the resize by 0.5 (s - 1)
+    ours, _ = image_augmentation_matrix((1216, 1936), flip=True)
+    theirs, _ = image_augmentation_matrix((1216, 1936), flip=True, corner_origin=True)
+    assert torch.equal(theirs - ours, torch.tensor([[0, 0, 1.0], [0, 0, 0], [0, 0, 0]], dtype=D64))
+    with pytest.raises(MSSFError, match="corner_origin"):
+        image_augmentation_matrix((4, 4), corner_origin=1)

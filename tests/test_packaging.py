@@ -117,7 +117,7 @@ def test_installed_wheel_runs_the_cli_outside_the_repository(built, tmp_path):
     r = subprocess.run([sys.executable, "-m", "mssf_examples", "--help"], cwd=tmp_path, env=env,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "usage: python -m mssf_examples" in r.stdout and "{train,eval}" in r.stdout
+    assert "usage: python -m mssf_examples" in r.stdout and "{train,eval,convert-authors}" in r.stdout
 
 
 def test_sdist_is_the_whole_source_tree(built):

@@ -272,6 +272,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     """Entry point of ``python -m mssf_examples``; returns the exit code (argparse errors exit with 2)."""
     ap = build_parser()
     args = ap.parse_args(None if argv is None else list(argv))
+    if args.command == "convert-authors":
+        from .cli_convert import run
+
+        return run(args.parser, args)
     from .spconv_compat import enable_cpu_backward
 
     enable_cpu_backward()  # spconv 2.3 cannot run backward on CPU-only torch without it

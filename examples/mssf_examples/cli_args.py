@@ -109,7 +109,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=PROG, description="Train / evaluate MSSF example detectors on KITTI-format "
                                  "radar + camera datasets (View-of-Delft, TJ4DRadSet).")
-    sub = ap.add_subparsers(dest="command", required=True, metavar="{train,eval}")
+    sub = ap.add_subparsers(dest="command", required=True, metavar="{train,eval,convert-authors}")
 
     t = sub.add_parser("train", help="train a detector, save a checkpoint", description="Train a detector on "
                        "the --split frames and save <out>/checkpoint.pt and <out>/config.json.")
@@ -154,4 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="detections kept (default: the training run's, 0.1)")
     e.add_argument("--out", type=Path, default=None, help="output folder (default: <checkpoint dir>/eval_<split>)")
     e.set_defaults(parser=e)
+    from .cli_convert import add_parser
+
+    add_parser(sub)
     return ap

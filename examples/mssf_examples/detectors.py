@@ -89,6 +89,13 @@ class MSSFDetector(nn.Module):
         num_fusion_blocks: ``n`` (0..4; 0..3 for PointPillars, which has three 2D blocks).
         fusion: ``"msdff"`` or ``"sff"``.
         fusion_position: ``"before_residual"`` or ``"after_residual"``.
+        head_position: where the semantic head reads the last fusion block's voxels: ``"after_fusion"``
+            (the paper's and the authors' place, before the block's residual blocks) or
+            ``"after_residual"`` (voxel backbones only; PointPillars' head always reads the fused voxels).
+        pillar_layout: PointPillars only: ``"paper"`` (:class:`PointPillarsBackbone`, ``n`` fusion blocks
+            replacing) or ``"authors"`` (:class:`AuthorsPointPillarsBackbone`: the authors' MSSF-PP, two
+            concatenating fusion stages, their widths; ``num_fusion_blocks`` must be 2 and ``fusion``
+            ``"msdff"``; loads their checkpoints through ``mssf_examples.authors_checkpoint``).
         image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
             ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
         score_threshold, nms_iou, max_detections: decoding settings in eval mode.
@@ -109,6 +116,8 @@ class MSSFDetector(nn.Module):
         score_threshold: float = 0.1,
         nms_iou: Optional[float] = 0.5,
         max_detections: int = 100,
+        head_position: str = "after_fusion",
+        pillar_layout: str = "paper",
     ) -> None:
         super().__init__()
         if name not in DETECTOR_NAMES:
@@ -136,13 +145,28 @@ class MSSFDetector(nn.Module):
         self.voxelizer = None
         self.neck = None
         x0, y0, _, x1, y1, _ = p.point_cloud_range
+        if name == "pointpillars" and head_position != "after_fusion":
+            raise MSSFError(f"head_position: PointPillars' semantic head reads the fused lift voxels; expected "
+                            f"'after_fusion', got {head_position!r}")
+        if pillar_layout not in ("paper", "authors"):
+            raise MSSFError(f"pillar_layout: expected 'paper' or 'authors', got {pillar_layout!r}")
+        if pillar_layout == "authors" and (name != "pointpillars" or num_fusion_blocks != 2 or fusion != "msdff"):
+            raise MSSFError(f"pillar_layout: 'authors' is their MSSF-PP (pointpillars, 2 MSDFF stages), got name={name!r}, "
+                            f"num_fusion_blocks={num_fusion_blocks}, fusion={fusion!r}")
         if name == "pointpillars":
             grid = VoxelGrid(p.pillar_range, (p.pillar_size[0], p.pillar_size[1], p.pillar_range[5] - p.pillar_range[2]))
-            self.backbone = PointPillarsBackbone(
-                c_in, grid, lift_z_size=p.lift_z_size, pfn_channels=p.pfn_channels,
-                layer_nums=p.pillar_layer_nums, num_filters=p.pillar_filters,
-                num_upsample_filters=p.pillar_upsample_filters, **fusion_kwargs,
-            )
+            if pillar_layout == "authors":
+                from .backbones import AuthorsPointPillarsBackbone
+
+                self.backbone = AuthorsPointPillarsBackbone(c_in, grid, image_channels, lift_z_size=p.lift_z_size,
+                                                            msdff_heads=p.msdff_heads, msdff_points=p.msdff_points,
+                                                            seg_hidden=p.seg_hidden)
+            else:
+                self.backbone = PointPillarsBackbone(
+                    c_in, grid, lift_z_size=p.lift_z_size, pfn_channels=p.pfn_channels,
+                    layer_nums=p.pillar_layer_nums, num_filters=p.pillar_filters,
+                    num_upsample_filters=p.pillar_upsample_filters, **fusion_kwargs,
+                )
             px0, py0, _, px1, py1, _ = p.pillar_range
             bev_grid = BEVGrid(px0, py0, px1, py1, *self.backbone.bev_shape)
             matched, unmatched = _anchor_thresholds(p.class_names)
@@ -151,6 +175,7 @@ class MSSFDetector(nn.Module):
         else:
             grid = VoxelGrid(p.point_cloud_range, p.voxel_size)
             self.voxelizer = DynamicVoxelizer(p.point_cloud_range, p.voxel_size)
+            fusion_kwargs["head_position"] = head_position
             if name == "voxelnext":
                 self.backbone = VoxelNeXtBackbone(c_in, grid, channels=p.voxelnext_channels, out_channels=p.voxelnext_out,
                                                   **fusion_kwargs)

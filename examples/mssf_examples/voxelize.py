@@ -197,12 +197,16 @@ def pillar_feature_net(
     linear: nn.Linear,
     norm: nn.Module,
     vox: Optional[Voxelization] = None,
+    max_points: Optional[int] = None,
 ) -> Tuple[Tensor, Voxelization]:
     """Pillar features: decorate points, ``Linear - norm - ReLU``, max over each pillar.
 
     ``grid`` must have a single z cell (a pillar spans the whole height). Each point becomes
     ``[point (C), xyz - pillar mean (3), xyz - pillar centre (3)]``. ``vox``: the pillars'
-    :func:`dynamic_voxelize` when computed already (``None``: computed here).
+    :func:`dynamic_voxelize` when computed already (``None``: computed here). ``max_points``: ``None``, or
+    mmdet3d's hard-voxelisation padding (``max_num_points``): a pillar of fewer points also gets its
+    zero-padded rows, ``relu(norm(linear(0)))``, into the max (and the norm sees them in training),
+    as mmdet3d's ``PillarFeatureNet``.
 
     Returns:
         ``(N, C_out)`` pillar features and the :class:`Voxelization` of the pillars.
@@ -219,9 +223,17 @@ def pillar_feature_net(
     cell = vox.coords[vox.point_voxel][:, [3, 2, 1]].to(pts.dtype)
     centre = (cell + 0.5) * vs + lo
     decorated = torch.cat([pts, xyz - mean, xyz - centre], 1)
+    pad = 0
+    if max_points is not None:
+        short = vox.num_points < max_points
+        pad = int((max_points - vox.num_points[short]).sum())
+        decorated = torch.cat([decorated, decorated.new_zeros(pad, decorated.shape[1])])
     x = torch.relu(norm(linear(decorated)))
     out = x.new_zeros(vox.coords.shape[0], x.shape[1])
-    out = out.scatter_reduce(0, vox.point_voxel.unsqueeze(1).expand_as(x), x, "amax", include_self=False)
+    n = x.shape[0] - pad
+    out = out.scatter_reduce(0, vox.point_voxel.unsqueeze(1).expand(n, x.shape[1]), x[:n], "amax", include_self=False)
+    if pad:  # every padded row gives the same vector
+        out = torch.where(short[:, None], torch.maximum(out, x[-1]), out)
     return out, vox
 
 
@@ -234,6 +246,9 @@ class PillarFeatureNet(nn.Module):
         point_cloud_range: ``(x0, y0, z0, x1, y1, z1)``.
         pillar_size: ``(x, y)`` metres (a pillar spans the whole z range).
         norm_layer: normalisation type over ``(P, C_out)``.
+        max_points: ``None`` (the max over a pillar's points), or the authors' / mmdet3d's hard
+            voxelisation ``max_num_points``: pillars of fewer points also take their zero-padded rows
+            into the max (see :func:`pillar_feature_net`). Points beyond it are not dropped here.
 
     Shapes:
         - points ``(P, C)``, points_batch ``(P,)`` -> SparseVoxels ``(N, out_channels)`` on a grid with
@@ -249,10 +264,12 @@ class PillarFeatureNet(nn.Module):
         norm_layer: Type[nn.Module] = nn.BatchNorm1d,
         device=None,
         dtype=None,
+        max_points: Optional[int] = None,
     ) -> None:
         super().__init__()
         check_positive_int(in_channels, "in_channels")
         check_positive_int(out_channels, "out_channels")
+        self.max_points = None if max_points is None else check_positive_int(max_points, "max_points")
         pcr = tuple(float(v) for v in point_cloud_range)
         if len(tuple(pillar_size)) != 2:
             raise MSSFError(f"pillar_size: expected (x, y), got {pillar_size!r}")
@@ -267,7 +284,7 @@ class PillarFeatureNet(nn.Module):
         if points.dim() == 2 and points.shape[1] != self.in_channels:
             raise MSSFError(f"points: expected {self.in_channels} columns, got shape {tuple(points.shape)}")
         feats, vox = pillar_feature_net(points, points_batch, batch_size, self.grid, self.linear, self.norm,
-                                        voxelization)
+                                        voxelization, self.max_points)
         return self.grid.sparse_voxels(feats, vox.coords, batch_size)
 
     def extra_repr(self) -> str:

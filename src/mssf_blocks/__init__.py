@@ -3,7 +3,7 @@
 Core dependencies are torch, numpy and einops; spconv, matplotlib and tqdm are optional extras.
 Modules: :class:`SparseVoxels` (the sparse tensor), :class:`VoxelCentroidProjector`, the image samplers
 :class:`SFF` and :class:`MSDFF` with :class:`QueryInit`, :class:`FusionBlock`, :class:`SemanticGuidedHead`,
-:class:`PillarLift` with :class:`HeightEmbedding`; pure functions in :mod:`mssf_blocks.functional`;
+:class:`PillarLift` with :class:`HeightEmbedding` (and :class:`PillarFusionStage`); pure functions in :mod:`mssf_blocks.functional`;
 feature-blurring analysis in :mod:`mssf_blocks.diagnostics`; test helpers in :mod:`mssf_blocks.testing`.
 """
 
@@ -16,6 +16,7 @@ from .geometry import CentroidProjection, VoxelCentroidProjector, augmentation_m
 from .geometry import apply_image_augmentation, image_augmentation_matrix
 from .heads import SemanticGuidedHead, points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import HeightEmbedding, PillarLift
+from .pillar_stage import PillarFusionStage
 from .sparse import SparseVoxels
 
 __all__ = [
@@ -36,6 +37,7 @@ __all__ = [
     "voxel_foreground_labels",
     "HeightEmbedding",
     "PillarLift",
+    "PillarFusionStage",
     "static_path",
     "image_augmentation_matrix",
     "apply_image_augmentation",

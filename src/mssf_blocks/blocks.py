@@ -8,7 +8,11 @@ paper) or after them (``"after_residual"``):
 1. voxel centroids projected into the cameras (:class:`~mssf_blocks.geometry.VoxelCentroidProjector`);
 2. an image sampler, :class:`~mssf_blocks.fusion.SFF` or :class:`~mssf_blocks.fusion.MSDFF` (the
    first MSDFF block builds its query with :class:`~mssf_blocks.fusion.QueryInit`);
-3. ``f_fuse = f_vox + f_img`` (eq. 5) - the voxel set is unchanged, only features are replaced.
+3. ``f_fuse = f_vox + f_img`` (eq. 5) - the voxel set is unchanged, only features are replaced;
+4. optionally the semantic-guided head (:class:`~mssf_blocks.heads.SemanticGuidedHead`, Sec. III-D)
+   on the fused voxels, ``f_fuse' = f_fuse * s_seg``, right after the fusion and before the residual
+   blocks (``head_position="after_fusion"``: the paper's eq. 12-13 read ``f_fuse``, and the authors'
+   ``SparseEncoderVoxelNeXtFuse`` does it there) or after the residual blocks (``"after_residual"``).
 
 The block takes and returns either a :class:`~mssf_blocks.sparse.SparseVoxels` or an spconv
 ``SparseConvTensor`` (whichever it was given). Because fusion never changes the voxel set, the spconv
@@ -33,6 +37,7 @@ from .sparse import SparseVoxels
 __all__ = ["FusionBlock", "infer_downsample_stride"]
 
 _POSITIONS = ("before_residual", "after_residual")
+_HEAD_POSITIONS = ("after_fusion", "after_residual")
 
 
 def _is_spconv_tensor(x: Any) -> bool:
@@ -93,9 +98,19 @@ class FusionBlock(nn.Module):
             ``(sz, sy, sx)`` stride of the input; needed only when the input is a raw spconv tensor
             (a :class:`SparseVoxels` carries them).
         projector: the centroid projector (default ``VoxelCentroidProjector()``).
+        semantic_head: a :class:`~mssf_blocks.heads.SemanticGuidedHead` to run in this block (the
+            paper puts it in the last fusion block), or ``None``.
+        head_position: where the head reads the voxels: ``"after_fusion"`` (default; the fused
+            features ``f_fuse`` before the residual blocks, as the paper's eq. 12-13 and the authors'
+            code) or ``"after_residual"`` (the block's output). With ``position="after_residual"``
+            the fusion is the block's last step and both places are the same.
 
-    ``forward(x, inputs)``: ``x`` a :class:`SparseVoxels` or spconv ``SparseConvTensor``, ``inputs`` a
-    :class:`FusionInputs`; returns the same type as ``x`` at stride ``in_stride * downsample_stride``.
+    ``forward(x, inputs, return_logits=False)``: ``x`` a :class:`SparseVoxels` or spconv
+    ``SparseConvTensor``, ``inputs`` a :class:`FusionInputs`; returns the same type as ``x`` at stride
+    ``in_stride * downsample_stride``. With ``return_logits=True`` (needs ``semantic_head``) it returns
+    ``(out, head_voxels, logits)``: the :class:`SparseVoxels` the head read (for the centroids of its
+    loss) and its ``(N,)`` logits. ``query_add``: see :meth:`fuse` (the voxels reaching the fusion
+    must be those of ``x``: a block without ``downsample``).
     The fused features are in the fusion's parameter dtype; voxel features of lower precision are read
     in it, float64 ones into a non-float64 block are refused (``docs/conventions.md``, "Dtypes").
 
@@ -116,12 +131,25 @@ class FusionBlock(nn.Module):
         point_range_min: Optional[Sequence[float]] = None,
         in_stride: Optional[Sequence[int]] = None,
         projector: Optional[VoxelCentroidProjector] = None,
+        semantic_head: Optional[nn.Module] = None,
+        head_position: str = "after_fusion",
     ) -> None:
         super().__init__()
         if not isinstance(fusion, (SFF, MSDFF)):
             raise MSSFError(f"fusion: expected an SFF or MSDFF module, got {type(fusion).__name__}")
         if position not in _POSITIONS:
             raise MSSFError(f"position: expected one of {_POSITIONS}, got {position!r}")
+        if head_position not in _HEAD_POSITIONS:
+            raise MSSFError(f"head_position: expected one of {_HEAD_POSITIONS}, got {head_position!r}")
+        if semantic_head is not None:
+            from .heads import SemanticGuidedHead
+
+            if not isinstance(semantic_head, SemanticGuidedHead):
+                raise MSSFError(f"semantic_head: expected a SemanticGuidedHead or None, got {type(semantic_head).__name__}")
+            fused = fusion.out_channels if isinstance(fusion, SFF) else fusion.embed_dim
+            if semantic_head.in_channels != fused:
+                raise MSSFError(f"semantic_head: expected in_channels={fused} (the fused voxel channels), "
+                                f"got {semantic_head.in_channels}")
         for name, part in (("downsample", downsample), ("blocks", blocks)):
             if part is not None and not isinstance(part, nn.Module):
                 raise MSSFError(f"{name}: expected an nn.Module or None, got {type(part).__name__}")
@@ -145,6 +173,8 @@ class FusionBlock(nn.Module):
         self.blocks = blocks
         self.query_init = query_init
         self.position = position
+        self.semantic_head = semantic_head
+        self.head_position = head_position
         self.projector = projector if projector is not None else VoxelCentroidProjector()
         self.downsample_stride = (
             infer_downsample_stride(downsample)
@@ -170,8 +200,14 @@ class FusionBlock(nn.Module):
         return tuple(int(a) * b for a, b in zip(in_stride, self.downsample_stride))
 
     # -- the fusion step (eq. 1-5) on a fixed voxel set ---------------------------------------------
-    def fuse(self, voxels: SparseVoxels, inputs: FusionInputs) -> SparseVoxels:
-        """``f_fuse = f_vox + f_img`` for every voxel; coordinates (and spconv index cache) unchanged."""
+    def fuse(self, voxels: SparseVoxels, inputs: FusionInputs, query_add: Optional[torch.Tensor] = None) -> SparseVoxels:
+        """``f_fuse = f_vox + f_img`` for every voxel; coordinates (and spconv index cache) unchanged.
+
+        ``query_add``: MSDFF only, ``(N, C)`` added to the query (the authors' MSSF-PP adds the BEV
+        feature of the voxel's pillar to the initialised query); ``None`` for the paper's query.
+        """
+        if query_add is not None and not isinstance(self.fusion, MSDFF):
+            raise MSSFError("query_add: only an MSDFF fusion takes a query; got query_add with SFF")
         f_vox = voxels.features
         c = f_vox.shape[1]
         if c != self.out_channels:
@@ -209,12 +245,22 @@ class FusionBlock(nn.Module):
                 query = qi(f_vox, f_img0, where)
             else:
                 query = f_vox
+            if query_add is not None:
+                if tuple(query_add.shape) != tuple(query.shape):
+                    raise MSSFError(f"query_add: expected shape {tuple(query.shape)} (the query), "
+                                    f"got {tuple(query_add.shape)}")
+                query = query + to_module_dtype(query_add, "query_add", dtype, "FusionBlock")
             f_img = self.fusion(query, inputs.image_features, projection)
         return voxels.replace(features=f_vox + f_img.to(dtype))
 
-    def forward(self, x: Any, inputs: FusionInputs) -> Any:
+    def forward(self, x: Any, inputs: FusionInputs, return_logits: bool = False,
+                query_add: Optional[torch.Tensor] = None) -> Any:
         if not isinstance(inputs, FusionInputs):
             raise MSSFError(f"inputs: expected FusionInputs, got {type(inputs).__name__}")
+        if not isinstance(return_logits, bool):
+            raise MSSFError(f"return_logits: expected a bool, got {return_logits!r}")
+        if return_logits and self.semantic_head is None:
+            raise MSSFError("return_logits: True needs a semantic_head; this FusionBlock was built without one")
         if isinstance(x, SparseVoxels):
             grid = (x.voxel_size, x.point_range_min)
             in_stride = x.stride
@@ -238,21 +284,38 @@ class FusionBlock(nn.Module):
             # from_spconv shares features, indices and the index cache of t (no copy).
             return t if isinstance(t, SparseVoxels) else SparseVoxels.from_spconv(t, *grid, stride=out_stride)
 
+        head_read: list = []
+
+        def head(t: Any) -> Any:
+            if self.semantic_head is None:
+                return t
+            v = as_voxels(t)
+            weighted, _, logits = self.semantic_head(v, return_logits=True)
+            head_read.append((v, logits))
+            return weighted
+
         cur = x
         if self.downsample is not None:
             cur = self.downsample(as_spconv(cur))
         if self.position == "before_residual":
-            cur = self.fuse(as_voxels(cur), inputs)
+            cur = self.fuse(as_voxels(cur), inputs, query_add)
+            if self.head_position == "after_fusion":
+                cur = head(cur)
             if self.blocks is not None:
                 cur = self.blocks(as_spconv(cur))
+            if self.head_position == "after_residual":
+                cur = head(cur)
         else:
             if self.blocks is not None:
                 cur = self.blocks(as_spconv(cur))
-            cur = self.fuse(as_voxels(cur), inputs)
-        return as_voxels(cur) if isinstance(x, SparseVoxels) else as_spconv(cur)
+            cur = head(self.fuse(as_voxels(cur), inputs, query_add))
+        out = as_voxels(cur) if isinstance(x, SparseVoxels) else as_spconv(cur)
+        if return_logits:
+            return (out,) + head_read[0]
+        return out
 
     def extra_repr(self) -> str:
         return (
-            f"position={self.position!r}, downsample_stride={self.downsample_stride}, "
+            f"position={self.position!r}, head_position={self.head_position!r}, downsample_stride={self.downsample_stride}, "
             f"in_stride={self.in_stride}, voxel_size={self.voxel_size}, point_range_min={self.point_range_min}"
         )

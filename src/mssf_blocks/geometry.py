@@ -189,6 +189,7 @@ def image_augmentation_matrix(
     crop: Optional[Sequence[int]] = None,
     flip: bool = False,
     dtype: torch.dtype = torch.float64,
+    corner_origin: bool = False,
 ) -> Tuple[Tensor, Tuple[int, int]]:
     """``(3, 3)`` pixel affine of an image resize, crop and horizontal flip (in that order), and the new size.
 
@@ -211,6 +212,11 @@ def image_augmentation_matrix(
             image: those pixels are padding).
         flip: mirror the (resized, cropped) image left-right.
         dtype: floating dtype of ``A``.
+        corner_origin: ``True`` reproduces mmdet3d's ``apply_img_aug`` / ``point_sample`` (and the MSSF
+            authors' ``proj_to_img``), which treat pixel coordinates as corner-origin: resize
+            ``u -> s_x u`` and flip ``u -> W - u``. Against the pixels the image operations move, that
+            is ``0.5 (s_x - 1)`` px off after a resize and 1 px off after a flip
+            (``docs/differences.md``).
 
     Returns:
         ``(A, (H_out, W_out))``: ``A (3, 3)`` maps homogeneous ``(u, v, 1)`` of the input image to the output.
@@ -221,11 +227,14 @@ def image_augmentation_matrix(
         ([5.0, 1.0, 1.0], (4, 6))
     """
     h, w = _check_size(image_size, "image_size")
+    if not isinstance(corner_origin, bool):
+        raise MSSFError(f"corner_origin: expected a bool, got {corner_origin!r}")
     a = torch.eye(3, dtype=dtype)
     if resize is not None:
         nh, nw = _check_size(resize, "resize")
         sx, sy = nw / w, nh / h
-        s = torch.tensor([[sx, 0.0, 0.5 * (sx - 1.0)], [0.0, sy, 0.5 * (sy - 1.0)], [0.0, 0.0, 1.0]], dtype=dtype)
+        ox, oy = (0.0, 0.0) if corner_origin else (0.5 * (sx - 1.0), 0.5 * (sy - 1.0))
+        s = torch.tensor([[sx, 0.0, ox], [0.0, sy, oy], [0.0, 0.0, 1.0]], dtype=dtype)
         a, (h, w) = s @ a, (nh, nw)
     if crop is not None:
         if not (isinstance(crop, (tuple, list)) and len(crop) == 4 and all(isinstance(c, int) for c in crop)):
@@ -235,7 +244,7 @@ def image_augmentation_matrix(
         c = torch.tensor([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]], dtype=dtype)
         a, (h, w) = c @ a, (ch, cw)
     if flip:
-        f = torch.tensor([[-1.0, 0.0, w - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
+        f = torch.tensor([[-1.0, 0.0, w - (0.0 if corner_origin else 1.0)], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=dtype)
         a = f @ a
     return a, (h, w)
 

@@ -8,7 +8,7 @@ functions and ``docs/pillar.md`` for a walk-through.
 
 from __future__ import annotations
 
-from typing import Sequence, Tuple, Union
+from typing import Optional, Sequence, Tuple, Union
 
 import torch
 from torch import Tensor, nn
@@ -79,7 +79,13 @@ class PillarLift(nn.Module):
         stride: ``int`` or ``(sy, sx)``: the BEV map's stride relative to the voxel grid's x/y cells
             (the BEV map must be ``(B, C, ceil(H / sy), ceil(W / sx))`` for a voxel grid ``(D, H, W)``).
         use_height_embedding: False drops the height term (the paper's plain lift).
-        device, dtype: factory kwargs of the embedding.
+        raw_channels: ``None`` (the paper) or ``C_raw``: add a raw-voxel term, a bias-free 3x3x3
+            submanifold convolution (spconv ``SubMConv3d``, :attr:`raw_conv`) of the voxels' own
+            ``(N, C_raw)`` features, as the authors' MSSF-PP (``conv_input``, keys
+            ``conv_input.0.weight``); the voxels' features are then read instead of discarded.
+        use_bev: False drops the ``BEV(x, y)`` term (the authors' ``PointPillarsScatterFuse``, whose
+            voxels are ``conv_input(radar voxels)`` only); needs ``raw_channels``.
+        device, dtype: factory kwargs of the embedding (and of ``raw_conv``).
 
     Shapes:
         - bev: ``(B, C, H_b, W_b)``; voxels: :class:`SparseVoxels` with ``spatial_shape (D, H, W)``.
@@ -110,6 +116,8 @@ class PillarLift(nn.Module):
         use_height_embedding: bool = True,
         device=None,
         dtype=None,
+        raw_channels: Optional[int] = None,
+        use_bev: bool = True,
     ) -> None:
         super().__init__()
         self.channels = check_positive_int(channels, "channels")
@@ -117,6 +125,18 @@ class PillarLift(nn.Module):
         self.stride = _check_stride2(stride)
         if not isinstance(use_height_embedding, bool):
             raise MSSFError(f"use_height_embedding: expected a bool, got {use_height_embedding!r}")
+        if not isinstance(use_bev, bool):
+            raise MSSFError(f"use_bev: expected a bool, got {use_bev!r}")
+        if not use_bev and raw_channels is None:
+            raise MSSFError("use_bev: False needs raw_channels (the voxels would have no feature at all)")
+        self.use_bev = use_bev
+        self.raw_conv = None
+        if raw_channels is not None:
+            raw_channels = check_positive_int(raw_channels, "raw_channels")
+            import spconv.pytorch as spconv  # only for the authors' layout
+
+            conv = spconv.SubMConv3d(raw_channels, channels, 3, padding=1, bias=False, indice_key="lift_raw")
+            self.raw_conv = conv.to(device=device, dtype=dtype) if device is not None or dtype is not None else conv
         self.height_embedding = (
             HeightEmbedding(num_z, channels, device=device, dtype=dtype) if use_height_embedding else None
         )
@@ -147,7 +167,19 @@ class PillarLift(nn.Module):
         emb = None if self.height_embedding is None else self.height_embedding.weight
         if emb is not None:  # the dtype rule (docs/conventions.md): bev is read in the embedding's dtype
             bev = to_module_dtype(bev, "bev", emb.dtype, "PillarLift")
-        feats = pillar_lift(bev, voxels.coords, emb, self.stride)
+        if not self.use_bev:
+            feats = emb[voxels.coords[:, 1].long()] if emb is not None else None
+        else:
+            feats = pillar_lift(bev, voxels.coords, emb, self.stride)
+        if self.raw_conv is not None:
+            c_raw = self.raw_conv.in_channels
+            if voxels.features.dim() != 2 or voxels.features.shape[1] != c_raw:
+                raise MSSFError(f"voxels: expected raw voxel features (N, {c_raw}) for raw_conv, "
+                                f"got {tuple(voxels.features.shape)}")
+            w = self.raw_conv.weight
+            raw = self.raw_conv(voxels.replace(features=to_module_dtype(voxels.features, "voxels.features", w.dtype,
+                                                                        "PillarLift")).to_spconv()).features
+            feats = raw if feats is None else raw + feats.to(raw.dtype)
         return voxels.replace(features=feats)
 
     def to_bev(self, voxels: SparseVoxels) -> Tensor:
@@ -166,4 +198,5 @@ class PillarLift(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"channels={self.channels}, num_z={self.num_z}, stride={self.stride}, "
-                f"use_height_embedding={self.height_embedding is not None}")
+                f"use_height_embedding={self.height_embedding is not None}, use_bev={self.use_bev}, "
+                f"raw_channels={None if self.raw_conv is None else self.raw_conv.in_channels}")

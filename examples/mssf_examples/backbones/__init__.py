@@ -23,6 +23,7 @@ merge) and :mod:`.pillars` (PointPillars); import the names from here.
 
 from .fusion_stage import FUSION_POSITIONS, FUSION_TYPES, BackboneOutput
 from .pillars import PointPillarsBackbone
+from .pillars_authors import AuthorsPointPillarsBackbone
 from .voxel import CenterPointBackbone, SECONDBackbone, SparseBasicBlock, SparseFusionBackbone
 from .voxelnext import VoxelNeXtBackbone, merge_sparse_bev, merge_sparse_bev_dense_reference
 
@@ -34,6 +35,7 @@ __all__ = [
     "CenterPointBackbone",
     "VoxelNeXtBackbone",
     "PointPillarsBackbone",
+    "AuthorsPointPillarsBackbone",
     "merge_sparse_bev",
     "merge_sparse_bev_dense_reference",
     "FUSION_TYPES",

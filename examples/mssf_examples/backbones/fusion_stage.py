@@ -51,15 +51,18 @@ def _check_fusion_args(num_fusion_blocks: int, max_blocks: int, fusion: str, fus
 
 
 def _make_fusion(kind: str, channels: int, image_channels: Sequence[int], msdff_heads: int, msdff_points: int,
-                 value_projection: str = "after_sampling", value_dim: Union[int, str, None] = None):
+                 value_projection: str = "after_sampling", value_dim: Union[int, str, None] = None,
+                 authors_switches: bool = False):
+    from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES
     from mssf_blocks.fusion import MSDFF, SFF
 
     if kind == "sff":
-        return SFF(list(image_channels), channels)
+        return SFF(list(image_channels), channels, **(OFFICIAL_SWITCHES["sff"] if authors_switches else {}))
     if value_dim == "voxel_channels":  # the narrow layout: the image projected to the voxel width first
         value_dim = channels
     elif value_dim is not None and (isinstance(value_dim, bool) or not isinstance(value_dim, int)):
         raise MSSFError(f"msdff_value_dim: expected None, an int or 'voxel_channels', got {value_dim!r}")
     return MSDFF(channels, list(image_channels), value_dim, num_heads=msdff_heads, num_levels=len(image_channels),
-                 num_points=msdff_points, value_projection=value_projection)
+                 num_points=msdff_points, value_projection=value_projection,
+                 **(OFFICIAL_SWITCHES["msdff"] if authors_switches else {}))
 

@@ -104,6 +104,12 @@ class SparseFusionBackbone(nn.Module):
             the authors' width), ``"voxel_channels"`` each block's voxel channels (the narrow layout),
             or an int.
         seg_hidden: hidden widths of the semantic-guided head (``None`` disables the head).
+        head_position: where the head reads the last fusion block's voxels: ``"after_fusion"`` (the
+            fused features before the block's residual blocks: the paper's eq. 12-13 and the authors'
+            ``SparseEncoderVoxelNeXtFuse``) or ``"after_residual"`` (the block's output); see
+            :class:`mssf_blocks.blocks.FusionBlock`.
+        authors_switches: build the fusion modules, query initialiser and projector with
+            ``mssf_blocks.compat.mssf_official.OFFICIAL_SWITCHES`` (the authors' forward).
         z_pad: extra empty z layers on top of the grid (OpenPCDet's ``+1`` so ``41`` z cells downsample
             ``41 -> 21 -> 11 -> 5 -> 2``).
     """
@@ -124,6 +130,8 @@ class SparseFusionBackbone(nn.Module):
         seg_hidden: Optional[Sequence[int]] = (256, 256),
         z_pad: int = 0,
         msdff_value_dim: Union[int, str, None] = None,
+        head_position: str = "after_fusion",
+        authors_switches: bool = False,
     ) -> None:
         super().__init__()
         _check_fusion_args(num_fusion_blocks, min(4, len(stages)), fusion, fusion_position)
@@ -157,18 +165,30 @@ class SparseFusionBackbone(nn.Module):
             if i < num_fusion_blocks:
                 from mssf_blocks.blocks import FusionBlock
                 from mssf_blocks.fusion import QueryInit
+                from mssf_blocks.heads import SemanticGuidedHead
+
+                head = None
+                if i == num_fusion_blocks - 1 and seg_hidden is not None:
+                    # the semantic-guided head runs inside the last fusion block (paper Sec. III-D)
+                    head = SemanticGuidedHead(spec.channels, hidden=tuple(seg_hidden))
+                from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES as SW
+                from mssf_blocks.geometry import VoxelCentroidProjector
 
                 query_init = None
                 if fusion == "msdff" and i == 0:
-                    query_init = QueryInit(spec.channels, image_channels[0], spec.channels, grid.point_cloud_range)
+                    query_init = QueryInit(spec.channels, image_channels[0], spec.channels, grid.point_cloud_range,
+                                           **(SW["query_init"] if authors_switches else {}))
                 stage = FusionBlock(
                     _make_fusion(fusion, spec.channels, image_channels, msdff_heads, msdff_points,
-                                 msdff_value_projection, msdff_value_dim),
+                                 msdff_value_projection, msdff_value_dim, authors_switches),
+                    projector=VoxelCentroidProjector(**SW["projector"]) if authors_switches else None,
                     downsample=down,
                     blocks=blocks,
                     position=fusion_position,
                     query_init=query_init,
                     downsample_stride=(_triple(spec.downsample.get("stride", 2)) if down is not None else None),
+                    semantic_head=head,
+                    head_position=head_position,
                 )
             else:
                 stage = _OrdinaryStage(down, blocks)
@@ -177,11 +197,12 @@ class SparseFusionBackbone(nn.Module):
             self.shapes.append(shape)
             self.channels.append(spec.channels)
             cin = spec.channels
-        self.seg_head = None
-        if num_fusion_blocks and seg_hidden is not None:
-            from mssf_blocks.heads import SemanticGuidedHead
+        self.head_position = head_position
 
-            self.seg_head = SemanticGuidedHead(self.channels[num_fusion_blocks - 1], hidden=tuple(seg_hidden))
+    @property
+    def seg_head(self):
+        """The semantic-guided head (held by the last fusion block), or ``None``."""
+        return self.stages[self.num_fusion_blocks - 1].semantic_head if self.num_fusion_blocks else None
 
     def _wrap(self, t, stride) -> SparseVoxels:
         return SparseVoxels.from_spconv(t, self.grid.voxel_size, self.grid.point_range_min, stride)
@@ -206,10 +227,10 @@ class SparseFusionBackbone(nn.Module):
         for i, stage in enumerate(self.stages):
             if i < self.num_fusion_blocks:
                 prev = self.strides[i - 1] if i else (1, 1, 1)
-                v = stage(self._wrap(x, prev), fusion_inputs)
-                if i == self.num_fusion_blocks - 1 and self.seg_head is not None:
-                    seg_voxels = v
-                    v, _, seg_logits = self.seg_head(v, return_logits=True)
+                if stage.semantic_head is not None:
+                    v, seg_voxels, seg_logits = stage(self._wrap(x, prev), fusion_inputs, return_logits=True)
+                else:
+                    v = stage(self._wrap(x, prev), fusion_inputs)
                 x = v.to_spconv()
             else:
                 x = stage(x)

@@ -68,6 +68,20 @@ def merge_sparse_bev_dense_reference(
     return bev
 
 
+class _SubMConv2dBias(spconv.SubMConv2d):
+    """``SubMConv2d`` with a bias that also runs in eval mode on the CPU: spconv 2.3 adds the bias
+    inside its inference kernel, which asserts on CPU tensors ("cpu don't support act and bias"); here
+    the convolution runs without it and the bias is added after (the same sum)."""
+
+    def forward(self, input, add_input=None):
+        if self.bias is None or input.features.is_cuda:
+            return super().forward(input, add_input)
+        out = self._conv_forward(self.training, input, self.weight, None, add_input, name=self.name,
+                                 sparse_unique_name=self._sparse_unique_name, act_type=self.act_type,
+                                 act_alpha=self.act_alpha, act_beta=self.act_beta)
+        return out.replace_feature(out.features + self.bias)
+
+
 class VoxelNeXtBackbone(SparseFusionBackbone):
     """VoxelNeXt: six residual stages (the paper doubles VoxelNeXt's 16/32/64/128/128/128 channels).
 
@@ -79,23 +93,39 @@ class VoxelNeXtBackbone(SparseFusionBackbone):
         grid: base voxel grid.
         channels: ``(stem, stage1, ..., stage6)``; default the paper's doubled ``(32, 32, 64, 128, 256, 256, 256)``.
         out_channels: sparse BEV channels after ``conv_out``.
+        authors_layout: the authors' ``SparseEncoderVoxelNeXtFuse``: ``conv_out`` a regular (not
+            submanifold) ``SparseConv2d``, then ``shared_conv`` (``SubMConv2d`` with bias, ``BN(eps=1e-5)``,
+            ReLU), z padded by one cell (their ``sparse_shape`` 41), and the fusion modules with their
+            forward (``authors_switches``); their checkpoints load through ``mssf_examples.authors_checkpoint``.
         **kwargs: fusion settings of :class:`SparseFusionBackbone`.
     """
 
-    def __init__(self, in_channels: int, grid: VoxelGrid, channels=(32, 32, 64, 128, 256, 256, 256), out_channels: int = 256, **kwargs):
+    def __init__(self, in_channels: int, grid: VoxelGrid, channels=(32, 32, 64, 128, 256, 256, 256), out_channels: int = 256,
+                 authors_layout: bool = False, **kwargs):
         channels = tuple(channels)
         if len(channels) != 7 or channels[4] != channels[5] or channels[5] != channels[6]:
             raise MSSFError(f"channels: expected 7 values (stem, stage1..6) with stages 4-6 equal, got {channels!r}")
         stages = [_StageSpec(channels[1], None, 2, True)] + [
             _StageSpec(channels[i], dict(stride=2, padding=1), 2, True) for i in range(2, 7)
         ]
+        if authors_layout:
+            kwargs = dict(kwargs, authors_switches=True, z_pad=1)
         super().__init__(in_channels, grid, channels[0], stages, **kwargs)
+        self.authors_layout = bool(authors_layout)
         self.bev_shape = self.shapes[3][1:]
+        conv = spconv.SparseConv2d if authors_layout else spconv.SubMConv2d
         self.conv_out = spconv.SparseSequential(
-            spconv.SubMConv2d(channels[4], out_channels, 3, padding=1, bias=False, indice_key="subm_bev"),
+            conv(channels[4], out_channels, 3, padding=1, bias=False, indice_key="subm_bev"),
             _bn1d(out_channels),
             nn.ReLU(),
         )
+        self.shared_conv = None
+        if authors_layout:
+            self.shared_conv = spconv.SparseSequential(
+                _SubMConv2dBias(out_channels, out_channels, 3, padding=1, bias=True, indice_key="subm_shared"),
+                nn.BatchNorm1d(out_channels, eps=1e-5, momentum=0.1),
+                nn.ReLU(),
+            )
         self.bev_channels = out_channels
 
     def forward(self, voxels: SparseVoxels, fusion_inputs=None) -> BackboneOutput:
@@ -107,5 +137,7 @@ class VoxelNeXtBackbone(SparseFusionBackbone):
         )
         with quiet():
             t = self.conv_out(spconv.SparseConvTensor(feats, coords, list(self.bev_shape), voxels.batch_size))
+            if self.shared_conv is not None:
+                t = self.shared_conv(t)
         out.sparse_bev = (t.features, t.indices)
         return out

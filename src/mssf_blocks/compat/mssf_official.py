@@ -44,8 +44,10 @@ Two parts:
   exact. ``image_size`` of :class:`~mssf_blocks.fusion.FusionInputs` must be their padded input shape
   (``batch_input_shape``) for the reference points to agree.
 
+MSSF-PP's ``conv_input`` branch, ``query + BEV`` query and concatenated BEV: the ``pillar_*`` switches
+with :class:`~mssf_blocks.pillar_stage.PillarFusionStage` and :mod:`mssf_blocks.compat.mssf_pp`.
 Not reproduced (documented in ``docs/differences.md``): their projection of points behind the camera
-(no depth test), MSSF-PP's ``query + BEV`` query and ``conv_input`` branch, their dense voxel table.
+(no depth test), their dense voxel table.
 
 Example:
     >>> import torch
@@ -91,10 +93,19 @@ OFFICIAL_SWITCHES: Dict[str, Dict] = {
     "msdff": {"norm_layer": None, "add_query": True, "output_dropout": 0.1},
     "sff": {"align_corners": True, "norm_layer": functools.partial(nn.BatchNorm1d, eps=1e-3, momentum=0.01)},
     "query_init": {"position": "centroid", "align_corners": True},
+    # the semantic head reads the fused voxels before the stage's residual blocks (also the default)
+    "fusion_block": {"head_position": "after_fusion"},
+    # MSSF-PP (mssf_blocks.pillar_stage): SECONDFuse's stage lifts conv_input(radar voxels) + BEV +
+    # HeightEmb (add raw_channels=C_point), adds BEV to the query and concatenates; the middle
+    # encoder PointPillarsScatterFuse's stage has no BEV term at all and concatenates
+    "pillar_lift": {"use_bev": True, "use_height_embedding": True},
+    "pillar_stage": {"merge": "concat", "bev_in_query": True},
+    "pillar_scatter_lift": {"use_bev": False, "use_height_embedding": False},
+    "pillar_scatter_stage": {"merge": "concat", "bev_in_query": False},
 }
 
 #: The module kinds a :class:`ModuleMap` can describe.
-KINDS = ("msdff", "sff", "query_init", "semantic_head", "height_embedding")
+KINDS = ("msdff", "sff", "query_init", "semantic_head", "height_embedding", "conv_input")
 
 
 @dataclass(frozen=True)
@@ -109,7 +120,9 @@ class ModuleMap:
             (``query_proj.0`` / ``.1`` -> ``QueryInit.linear`` / ``.norm``, columns permuted),
             ``"semantic_head"`` (``ForegroundSegmentationHead``: ``seg_cls_layer.<i>`` -> our
             ``SemanticGuidedHead.mlp.<i>``, its last Linear -> ``classifier``), ``"height_embedding"``
-            (MSSF-PP's ``nn.Embedding`` ``height_embeddings.weight`` -> ``HeightEmbedding.weight``).
+            (MSSF-PP's ``nn.Embedding`` ``height_embeddings.weight`` -> ``HeightEmbedding.weight``),
+            ``"conv_input"`` (MSSF-PP's raw-voxel ``SubMConv3d``, ``conv_input.0.weight`` ->
+            ``PillarLift.raw_conv.weight``; give ``ours`` as ``<lift>.raw_conv``).
         theirs: the module's prefix in their state dict (e.g. ``"pts_middle_encoder.query_proj"``).
         ours: the module's prefix in ours (``""`` for a bare module's own state dict).
         voxel_channels: ``"query_init"`` only: ``C_vox``, to split their ``[f_img | f_vox | p]`` columns.
@@ -137,6 +150,8 @@ class ModuleMap:
             return [(f"{first}0.{t}", f"linear.{t}") for t in _LIN] + [(f"{first}1.{t}", f"norm.{t}") for t in _BN]
         if self.kind == "height_embedding":
             return [("weight", "weight")]
+        if self.kind == "conv_input":
+            return [("0.weight", "weight")]
         # semantic head: Linear (no bias), BN, ReLU per hidden layer, then the classifier Linear (bias).
         pattern = re.compile(r"seg_cls_layer\.(\d+)\.")
         last = max((int(m.group(1)) for k in theirs_keys for m in [pattern.match(k)] if m), default=None)
