@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_floating, check_points, check_shape, check_triple
+from ._sanity import check_centroid_coverage, check_projection_coverage
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
 from .sparse import SparseVoxels
@@ -132,6 +133,9 @@ class VoxelCentroidProjector(nn.Module):
         batch_index = voxels.batch_index
         proj = project_points(centroid, batch_index, lidar2img, image_size, points_to_sensor, self.eps)
         uv, valid = proj.uv, proj.valid
+        # (warnings; they read data only where that costs no host synchronisation: _sanity's doc)
+        check_projection_coverage(uv, proj.depth, batch_index, voxels.batch_size, image_size, lidar2img, self.eps)
+        check_centroid_coverage(has_points, batch_index, points_batch, voxels.batch_size)
         ok_depth = proj.depth > self.eps
         if not self.half_pixel:  # u / W (project_points validated image_size)
             h, w = (int(x) for x in image_size)
