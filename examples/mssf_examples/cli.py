@@ -71,6 +71,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     batch_size = getattr(args, "batch_size", 4)
     if args.data_root is None:
         ap.error("--data-root: required for train")
+    _check_out(ap, args.out)
     if args.fusion_blocks > 4:
         ap.error(f"--fusion-blocks: expected 0..4 (0..3 for pointpillars), got {args.fusion_blocks}")
     if args.detector == "pointpillars" and args.fusion_blocks > 3:
@@ -264,8 +265,27 @@ def _eval(ap: argparse.ArgumentParser, args) -> int:
         ap.error(str(exc))
     config = dict(config, score_threshold=thr)
     out = args.out if args.out is not None else args.checkpoint.parent / f"eval_{args.split}"
+    _check_out(ap, out)
     _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint, progress=not args.no_progress)
     return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message of ``exc`` on one line (a ``DataLoader`` worker's re-raised error carries the worker's
+    traceback in its message: its last line is the error)."""
+    text = str(exc) or type(exc).__name__
+    if "Traceback" in text:
+        text = [line for line in text.splitlines() if line.strip()][-1]
+        head, sep, tail = text.partition(": ")
+        text = tail if sep and "Error" in head else text
+    if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or text}"
+    return " ".join(text.split())
+
+
+def _check_out(ap: argparse.ArgumentParser, out: Optional[Path]) -> None:
+    if out is not None and out.exists() and not out.is_dir():
+        ap.error(f"--out: expected a folder (new or existing), got {out}, an existing file")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -280,7 +300,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ok = False
     try:
         # errors name the sub-command (its own parser prints the usage)
-        code = _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+        try:
+            code = _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+        except (MSSFError, OSError) as exc:
+            # bad data found while reading it (a truncated .bin, an unknown class, a calib without P2, a
+            # folder that cannot be written): one line and exit status 2, as for a bad option
+            distributed.report_failure(exc)
+            args.parser.exit(2, f"{args.parser.prog}: error: {_one_line(exc)}\n")
         ok = True
         return code
     except Exception as exc:
