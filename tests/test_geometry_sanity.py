@@ -166,3 +166,18 @@ def test_channels_last_level_is_named():
         _inputs([torch.zeros(1, 120, 160, 4)])
     with pytest.raises(MSSFError, match=r"image_features\[1\].*channels-last"):
         _inputs([torch.zeros(1, 4, 120, 160), torch.zeros(1, 60, 80, 4)])
+
+
+def test_apply_image_augmentation_takes_the_4x4_lidar2img_the_projector_takes():
+    from mssf_blocks.geometry import apply_image_augmentation, image_augmentation_matrix
+
+    vox, pts, pb, l2i = scene()
+    l2i44 = torch.cat([l2i, torch.tensor([[[0.0, 0, 0, 1]]])], 1)  # (1, 4, 4)
+    a, size = image_augmentation_matrix(HW, resize=(240, 320), flip=True)
+    out44 = apply_image_augmentation(l2i44, a)
+    assert out44.shape == (1, 4, 4) and torch.equal(out44[:, 3], l2i44[:, 3])
+    # the same rows as the 3 x 4 matrix's (computed by hand here: A @ P in float64)
+    torch.testing.assert_close(out44[:, :3].double(), (a @ l2i[0].double())[None], rtol=0, atol=1e-4)
+    p34, _ = project(vox, pts, pb, apply_image_augmentation(l2i, a), size)
+    p44, _ = project(vox, pts, pb, out44, size)
+    assert torch.equal(p34.uv, p44.uv) and torch.equal(p34.valid, p44.valid)

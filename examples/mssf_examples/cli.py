@@ -143,15 +143,36 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     distributed.init_distributed(dist, device)
     model = distributed.wrap_model(model, device, dist, args.sync_bn)
 
+    # The augmentation draws: every process its own stream (rank 0's is a single process's), drawn in this
+    # process after the loader, so the seed alone fixes them. Their states and torch's CPU generator (any
+    # random op in the model) go into every checkpoint and a resumed run restores them: the same draws
+    # as an uninterrupted run. (The data order is a function of the seed: batch_order, sliced at start.)
+    aug_rng = None if augmentation.is_identity else torch.Generator().manual_seed(args.seed + 1_000_003 * dist.rank)
+    if start:
+        saved = resume["train_state"].get("rng_states") or []
+        if len(saved) == dist.world_size:
+            torch.set_rng_state(saved[dist.rank]["torch"])
+            if aug_rng is not None and saved[dist.rank].get("augment") is not None:
+                aug_rng.set_state(saved[dist.rank]["augment"])
+        elif aug_rng is not None:  # a checkpoint without them (older, or another number of processes)
+            aug_rng.manual_seed(args.seed + 1_000_003 * dist.rank + 7_919 * start)
+            if dist.is_main:
+                print(f"--resume: the checkpoint holds {len(saved)} random states for {dist.world_size} "
+                      "process(es): augmentations are drawn afresh from here", file=sys.stderr)
+
     def checkpoint(step: int, state: Dict) -> None:
+        mine = {"torch": torch.get_rng_state(), "augment": None if aug_rng is None else aug_rng.get_state()}
+        states = [mine]
+        if dist.enabled:  # (every process calls this at the same step)
+            states = [None] * dist.world_size
+            torch.distributed.all_gather_object(states, mine)
         if dist.is_main:
-            save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config), state, step)
+            save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config),
+                            dict(state, rng_states=states), step)
 
     batches = _loader(_Frames(ds, True), order, args.workers, collate, device)
-    if not augmentation.is_identity:  # drawn in this process, after the loader: the seed alone fixes the draws
-        # every process its own stream (rank 0's is a single process's); a resumed run draws afresh
-        batches = augment_batches(batches, recipe.feature_kinds, augmentation,
-                                  args.seed + 1_000_003 * dist.rank + 7_919 * start)
+    if aug_rng is not None:
+        batches = augment_batches(batches, recipe.feature_kinds, augmentation, args.seed, generator=aug_rng)
     log = train_detector(model, batches, steps, args.lr,
                          desc=f"train {args.detector}", progress=not args.no_progress and dist.is_main,
                          device=device, amp_dtype=run.amp_dtype, accumulate=args.accumulate, start_step=start,

@@ -117,8 +117,10 @@ def scale_batch(batch, scale: float):
 def _loader(frames: _Frames, batches: Sequence[Sequence[int]], workers: int, collate, device=None):
     # pinned host memory when the batches go to a GPU: the copies then overlap the computation
     pin = device is not None and torch.device(device).type == "cuda"
+    # its own generator: the loader's seed draw leaves torch's global one alone (a resumed run restores
+    # that from the checkpoint, and the draw would shift it by one)
     return torch.utils.data.DataLoader(frames, batch_sampler=batches, num_workers=workers, collate_fn=collate,
-                                       pin_memory=pin)
+                                       pin_memory=pin, generator=torch.Generator().manual_seed(0))
 
 
 

@@ -30,6 +30,8 @@ __all__ = ["set_geometry_checks", "geometry_checks_enabled"]
 _FORCED: Optional[bool] = None
 #: fewer in-image voxels than this: no corner / spot verdict (too few to tell)
 _MIN_VOXELS = 8
+#: fewer in-image projections than this: no top-left-quarter verdict (a small toy scene may sit there)
+_MIN_CORNER = 32
 
 _CAUSES = (
     "usual causes: image_size not the size lidar2img projects into (scale, or (W, H) swapped); lidar2img "
@@ -148,7 +150,7 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
             f"({float(lo[0]) * w:.1f}, {float(lo[1]) * h:.1f}): lidar2img is not a projection?"
             + _matrix_hint(lidar2img if lidar2img.dim() == 4 else lidar2img[:, None])
         ), stacklevel=2)
-    elif bool((hi <= 0.5).all()):
+    elif pts.shape[0] >= _MIN_CORNER and bool((hi <= 0.5).all()):
         warnings.warn(MSSFGeometryWarning(
             f"projection: all {pts.shape[0]} in-image voxel projections fall in the top-left quarter of "
             f"image_size={(h, w)} (u <= {float(hi[0]):.3f}, v <= {float(hi[1]):.3f}): is image_size "
