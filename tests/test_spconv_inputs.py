@@ -56,3 +56,39 @@ def test_one_visible_voxel_in_training_mode_is_our_error():
     with pytest.raises(MSSFError, match=r"exactly one of the 5 voxels is visible.*BatchNorm1d.*eval"):
         sff([torch.randn(1, 4, 8, 8)], proj)
     assert sff.eval()([torch.randn(1, 4, 8, 8)], proj).shape == (n, 6)  # eval: fine
+
+
+def _block(point_range_max=None):
+    from mssf_blocks import VoxelCentroidProjector
+    from mssf_blocks.blocks import FusionBlock
+
+    return FusionBlock(SFF([4], 4), voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0), in_stride=(1, 1, 1),
+                       projector=VoxelCentroidProjector(point_range_max=point_range_max))
+
+
+def test_spatial_shape_against_the_metric_grid_names_the_order():
+    from mssf_blocks.fusion import FusionInputs
+
+    # range 1.6 x 0.8 x 0.8 m over voxels (0.1, 0.1, 0.2): (D, H, W) = (4, 8, 16)
+    block = _block((1.6, 0.8, 0.8))
+    inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
+                          torch.zeros(0, dtype=torch.long))
+    coords = torch.tensor([[0, 1, 2, 3]], dtype=torch.int32)
+    wrong = SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    with pytest.raises(MSSFError, match=r"spatial_shape: expected \(D, H, W\) = \(4.0, 8.0, 16.0\).*got \(16, 8, 4\)"
+                                        r".*\(4, 8, 16\) would fit"):
+        block(wrong, inputs)
+    right = SparseVoxels(torch.ones(1, 4), coords, (4, 8, 16), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    block.eval()(right, inputs)
+
+
+def test_spconv_indices_outside_a_permuted_spatial_shape_are_named():
+    spconv = pytest.importorskip("spconv.pytorch")
+    from mssf_blocks.fusion import FusionInputs
+
+    inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
+                          torch.zeros(0, dtype=torch.long))
+    idx = torch.tensor([[0, 1, 2, 12], [0, 3, 7, 15]], dtype=torch.int32)  # x up to 15: W = 16
+    x = spconv.SparseConvTensor(torch.ones(2, 4), idx, [16, 8, 4], 1)  # (W, H, D) given
+    with pytest.raises(MSSFError, match=r"indices: expected .* inside spatial_shape \(16, 8, 4\).*\(4, 8, 16\)"):
+        _block()(x, inputs)

@@ -179,3 +179,54 @@ def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batc
             "the voxel grid and the points disagree; check voxel_size (x, y, z order), in_stride / the "
             "voxels' stride, point_range_min and points_batch"
         ), stacklevel=2)
+
+
+def check_grid(spatial_shape: Sequence[int], voxel_size: Sequence[float], point_range_min: Sequence[float],
+               stride: Sequence[int], point_range_max: Optional[Sequence[float]], name: str = "x") -> None:
+    """The sparse tensor's ``spatial_shape (D, H, W)`` against the metric grid: with ``point_range_max``
+    known, each axis must hold ``(max - min) / (voxel_size * stride)`` cells within one (the rounding
+    of strided convolutions). Numbers only, no data read; the message names a permuted axis order."""
+    if point_range_max is None:
+        return
+    extent = [(hi - lo) / (v * s) for hi, lo, v, s in zip(point_range_max[::-1], point_range_min[::-1],
+                                                             voxel_size[::-1], stride)]  # (z, y, x)
+    shape = tuple(int(v) for v in spatial_shape)
+
+    def fits(cand) -> bool:
+        return all(abs(c - e) <= 1.0 for c, e in zip(cand, extent))
+
+    if fits(shape):
+        return
+    import itertools
+
+    perm = next((p for p in itertools.permutations(shape) if p != shape and fits(p)), None)
+    hint = (f"; {perm} would fit: spatial_shape is (D, H, W) = (z, y, x) cells, given in another order?"
+            if perm is not None else "; check voxel_size (x, y, z order), in_stride / the tensor's stride and "
+            "the point range")
+    raise MSSFError(
+        f"{name}.spatial_shape: expected (D, H, W) = ({', '.join(f'{e:.1f}' for e in extent)}) cells within one "
+        f"(point range ({tuple(point_range_min)}, {tuple(point_range_max)}) over voxel_size {tuple(voxel_size)} "
+        f"x stride {tuple(stride)}), got {shape}{hint}"
+    )
+
+
+def check_indices_in_shape(indices: Tensor, spatial_shape: Sequence[int], name: str = "x") -> None:
+    """An spconv tensor's ``(batch, z, y, x)`` indices inside its ``spatial_shape`` (spconv drops the
+    rest without a word); data-reading, so gated like the coverage checks."""
+    if indices.shape[0] == 0 or not geometry_checks_enabled(indices):
+        return
+    shape = tuple(int(v) for v in spatial_shape)
+    top = [int(v) for v in indices[:, 1:].amax(0).tolist()]
+    low = int(indices[:, 1:].amin())
+    if low >= 0 and all(t < s for t, s in zip(top, shape)):
+        return
+    import itertools
+
+    need = tuple(t + 1 for t in top)
+    perm = next((p for p in [shape[::-1], *itertools.permutations(shape)]
+                 if p != shape and all(n <= s for n, s in zip(need, p))), None) if low >= 0 else None
+    raise MSSFError(
+        f"{name}.indices: expected (batch, z, y, x) inside spatial_shape {shape} (D, H, W), got z, y, x up to "
+        f"{tuple(top)} (min {low}); spconv would drop those voxels"
+        + (f"; they fit {perm}: spatial_shape given in (W, H, D) or another order?" if perm is not None else "")
+    )

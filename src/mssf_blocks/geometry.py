@@ -15,14 +15,14 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_floating, check_points, check_shape, check_triple
-from ._sanity import check_centroid_coverage, check_projection_coverage
+from ._sanity import check_centroid_coverage, check_projection_coverage, set_geometry_checks
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
 from .sparse import SparseVoxels
 
 __all__ = [
     "VoxelCentroidProjector", "CentroidProjection", "augmentation_matrix", "image_augmentation_matrix",
-    "apply_image_augmentation",
+    "apply_image_augmentation", "set_geometry_checks",
 ]
 
 
