@@ -54,10 +54,10 @@ def _other_layout(root: Path, spec) -> str:
     return ""
 
 
-def _check_point_files(ap: argparse.ArgumentParser, ds: KittiFormatDataset, spec, sample: int = 4) -> None:
+def _check_point_files(ap: argparse.ArgumentParser, ds: KittiFormatDataset, spec, sample: int = 1) -> None:
     """The first ``sample`` point files hold whole rows of ``spec``'s columns; when they hold rows of
     another ``--dataset``'s columns instead (VoD 7, TJ4D 8 float32 values a point), name that dataset.
-    Reads file sizes only."""
+    Reads file sizes only (a damaged file further on is named when it is loaded)."""
     from .cli_args import DATASETS
 
     sizes = []
