@@ -48,3 +48,29 @@ def test_errors_name_argument_expected_and_received():
         check_shape(torch.zeros(6, 4, dtype=torch.int32), "coords", ("N", 4), dims)
     with pytest.raises(MSSFError, match=r"uv: expected a 3-d tensor"):
         check_shape(torch.zeros(5, 2), "uv", ("N", "V", 2), dims)
+
+
+def test_assert_close_exact_for_int_and_bool():
+    a = torch.tensor([1, 2, 3], dtype=torch.int32)
+    assert_close(a, a.clone())
+    assert_close(a, a.long())  # same values, another integer dtype
+    with pytest.raises(AssertionError, match="exact"):
+        assert_close(a, torch.tensor([1, 2, 4], dtype=torch.int32))
+    m = torch.tensor([True, False])
+    assert_close(m, m.clone())
+    with pytest.raises(AssertionError, match="torch.bool"):
+        assert_close(m, ~m)
+
+
+def test_assert_close_tolerance_from_less_precise_dtype():
+    x64 = torch.ones(3, dtype=torch.float64)
+    x32 = (x64 + 3e-6).float()  # within float32's tolerance, far outside float64's
+    # float32 on either side: float32's tolerance (before: float64's when actual was float64)
+    assert_close(x32, x64)
+    assert_close(x64, x32)
+    with pytest.raises(AssertionError) as err:
+        assert_close(x64, (x64 + 1e-3).float())
+    assert "torch.float64" in str(err.value) and "torch.float32" in str(err.value)
+    # an explicit dtype still wins
+    with pytest.raises(AssertionError):
+        assert_close(x64, x32, dtype=torch.float64)

@@ -232,13 +232,16 @@ def augment_batch(batch: RadarCameraBatch, feature_kinds: Sequence[str], config:
 
 
 def augment_batches(batches: Iterable[RadarCameraBatch], feature_kinds: Sequence[str],
-                    config: AugmentationConfig, seed: int) -> Iterator[RadarCameraBatch]:
+                    config: AugmentationConfig, seed: int,
+                    generator: Optional[torch.Generator] = None) -> Iterator[RadarCameraBatch]:
     """:func:`augment_batch` over a stream of batches with one generator seeded by ``seed``.
 
     Run it in the main process after the ``DataLoader`` (not in its workers): the draws then depend only
-    on the seed and the batch order, whatever the number of workers.
+    on the seed and the batch order, whatever the number of workers. ``generator``: draw from this one
+    instead (``seed`` ignored); its state after ``k`` batches is what a resumed run restores (the
+    training CLI keeps it in its checkpoints), since the draws happen lazily, as batches are taken.
     """
-    g = torch.Generator().manual_seed(int(seed))
+    g = generator if generator is not None else torch.Generator().manual_seed(int(seed))
     for batch in batches:
         yield augment_batch(batch, feature_kinds, config, g)[0]
 

@@ -71,6 +71,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     batch_size = getattr(args, "batch_size", 4)
     if args.data_root is None:
         ap.error("--data-root: required for train")
+    _check_out(ap, args.out)
     if args.fusion_blocks > 4:
         ap.error(f"--fusion-blocks: expected 0..4 (0..3 for pointpillars), got {args.fusion_blocks}")
     if args.detector == "pointpillars" and args.fusion_blocks > 3:
@@ -142,15 +143,36 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     distributed.init_distributed(dist, device)
     model = distributed.wrap_model(model, device, dist, args.sync_bn)
 
+    # The augmentation draws: every process its own stream (rank 0's is a single process's), drawn in this
+    # process after the loader, so the seed alone fixes them. Their states and torch's CPU generator (any
+    # random op in the model) go into every checkpoint and a resumed run restores them: the same draws
+    # as an uninterrupted run. (The data order is a function of the seed: batch_order, sliced at start.)
+    aug_rng = None if augmentation.is_identity else torch.Generator().manual_seed(args.seed + 1_000_003 * dist.rank)
+    if start:
+        saved = resume["train_state"].get("rng_states") or []
+        if len(saved) == dist.world_size:
+            torch.set_rng_state(saved[dist.rank]["torch"])
+            if aug_rng is not None and saved[dist.rank].get("augment") is not None:
+                aug_rng.set_state(saved[dist.rank]["augment"])
+        elif aug_rng is not None:  # a checkpoint without them (older, or another number of processes)
+            aug_rng.manual_seed(args.seed + 1_000_003 * dist.rank + 7_919 * start)
+            if dist.is_main:
+                print(f"--resume: the checkpoint holds {len(saved)} random states for {dist.world_size} "
+                      "process(es): augmentations are drawn afresh from here", file=sys.stderr)
+
     def checkpoint(step: int, state: Dict) -> None:
+        mine = {"torch": torch.get_rng_state(), "augment": None if aug_rng is None else aug_rng.get_state()}
+        states = [mine]
+        if dist.enabled:  # (every process calls this at the same step)
+            states = [None] * dist.world_size
+            torch.distributed.all_gather_object(states, mine)
         if dist.is_main:
-            save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config), state, step)
+            save_checkpoint(args.out / "checkpoints" / f"step_{step:06d}.pt", model, _jsonable(config),
+                            dict(state, rng_states=states), step)
 
     batches = _loader(_Frames(ds, True), order, args.workers, collate, device)
-    if not augmentation.is_identity:  # drawn in this process, after the loader: the seed alone fixes the draws
-        # every process its own stream (rank 0's is a single process's); a resumed run draws afresh
-        batches = augment_batches(batches, recipe.feature_kinds, augmentation,
-                                  args.seed + 1_000_003 * dist.rank + 7_919 * start)
+    if aug_rng is not None:
+        batches = augment_batches(batches, recipe.feature_kinds, augmentation, args.seed, generator=aug_rng)
     log = train_detector(model, batches, steps, args.lr,
                          desc=f"train {args.detector}", progress=not args.no_progress and dist.is_main,
                          device=device, amp_dtype=run.amp_dtype, accumulate=args.accumulate, start_step=start,
@@ -264,8 +286,27 @@ def _eval(ap: argparse.ArgumentParser, args) -> int:
         ap.error(str(exc))
     config = dict(config, score_threshold=thr)
     out = args.out if args.out is not None else args.checkpoint.parent / f"eval_{args.split}"
+    _check_out(ap, out)
     _evaluate(model, config, ds, out, batch_size, args.workers, args.checkpoint, progress=not args.no_progress)
     return 0
+
+
+def _one_line(exc: BaseException) -> str:
+    """The message of ``exc`` on one line (a ``DataLoader`` worker's re-raised error carries the worker's
+    traceback in its message: its last line is the error)."""
+    text = str(exc) or type(exc).__name__
+    if "Traceback" in text:
+        text = [line for line in text.splitlines() if line.strip()][-1]
+        head, sep, tail = text.partition(": ")
+        text = tail if sep and "Error" in head else text
+    if isinstance(exc, OSError) and not isinstance(exc, FileNotFoundError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or text}"
+    return " ".join(text.split())
+
+
+def _check_out(ap: argparse.ArgumentParser, out: Optional[Path]) -> None:
+    if out is not None and out.exists() and not out.is_dir():
+        ap.error(f"--out: expected a folder (new or existing), got {out}, an existing file")
 
 
 def main(argv: Optional[Sequence[str]] = None) -> int:
@@ -284,7 +325,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     ok = False
     try:
         # errors name the sub-command (its own parser prints the usage)
-        code = _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+        try:
+            code = _train(args.parser, args) if args.command == "train" else _eval(args.parser, args)
+        except (MSSFError, OSError) as exc:
+            # bad data found while reading it (a truncated .bin, an unknown class, a calib without P2, a
+            # folder that cannot be written): one line and exit status 2, as for a bad option
+            distributed.report_failure(exc)
+            args.parser.exit(2, f"{args.parser.prog}: error: {_one_line(exc)}\n")
         ok = True
         return code
     except Exception as exc:

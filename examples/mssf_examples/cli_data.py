@@ -32,11 +32,55 @@ def _open_dataset(ap: argparse.ArgumentParser, root: Path, spec, sensor: Optiona
     if not root.is_dir():
         ap.error(f"--data-root: expected an existing dataset folder, got {root} (not found)")
     try:
-        return KittiFormatDataset(root, spec.point_format, sensor=sensor, split=None if split == "all" else split,
-                                  class_names=spec.class_names)
+        ds = KittiFormatDataset(root, spec.point_format, sensor=sensor, split=None if split == "all" else split,
+                                class_names=spec.class_names)
     except (FileNotFoundError, MSSFError) as exc:
-        ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}")
-    raise AssertionError("unreachable")  # pragma: no cover
+        ap.error(f"--data-root {root} (sensor {sensor!r}, split {split!r}): {exc}{_other_layout(root, spec)}")
+    _check_point_files(ap, ds, spec)
+    return ds
+
+
+def _other_layout(root: Path, spec) -> str:
+    """A hint when ``root`` has the layout of another ``--dataset`` (VoD: ``root/<sensor>/training``,
+    TJ4D: ``root/training``)."""
+    from .cli_args import DATASETS
+
+    for name, other in DATASETS.items():
+        if other is spec:
+            continue
+        base = root / other.default_sensor if other.default_sensor else root
+        if (base / "training" / "velodyne").is_dir() or (base / "velodyne").is_dir():
+            return f"; the folder has the layout of --dataset {name}"
+    return ""
+
+
+def _check_point_files(ap: argparse.ArgumentParser, ds: KittiFormatDataset, spec, sample: int = 1) -> None:
+    """The first ``sample`` point files hold whole rows of ``spec``'s columns; when they hold rows of
+    another ``--dataset``'s columns instead (VoD 7, TJ4D 8 float32 values a point), name that dataset.
+    Reads file sizes only (a damaged file further on is named when it is loaded)."""
+    from .cli_args import DATASETS
+
+    sizes = []
+    for fid in ds.frame_ids[:sample]:
+        path = ds.paths(fid).points
+        if not path.is_file():
+            return  # the loader names a missing file
+        nbytes = path.stat().st_size
+        if nbytes % 4:
+            ap.error(f"{path}: truncated or not a float32 point file ({nbytes} bytes, not a multiple of 4)")
+        sizes.append((path, nbytes // 4))
+    c = spec.point_format.num_channels
+    bad = [(p, n) for p, n in sizes if n % c]
+    if not bad:
+        return
+    path, n = bad[0]
+    for name, other in DATASETS.items():
+        c2 = other.point_format.num_channels
+        if other is not spec and c2 != c and all(m % c2 == 0 for _, m in sizes):
+            ap.error(f"--dataset: {path} holds {n} float32 values, rows of {c2} ({other.point_format.name}), "
+                     f"not of {c} ({spec.point_format.name}): a --dataset {name} tree? pass --dataset {name}")
+    ap.error(f"{path}: truncated or unreadable point file: {n} float32 values, not rows of {c} "
+             f"({spec.point_format.name}: {spec.point_format.channels})")
 
 
 class _Frames(torch.utils.data.Dataset):
@@ -73,8 +117,10 @@ def scale_batch(batch, scale: float):
 def _loader(frames: _Frames, batches: Sequence[Sequence[int]], workers: int, collate, device=None):
     # pinned host memory when the batches go to a GPU: the copies then overlap the computation
     pin = device is not None and torch.device(device).type == "cuda"
+    # its own generator: the loader's seed draw leaves torch's global one alone (a resumed run restores
+    # that from the checkpoint, and the draw would shift it by one)
     return torch.utils.data.DataLoader(frames, batch_sampler=batches, num_workers=workers, collate_fn=collate,
-                                       pin_memory=pin)
+                                       pin_memory=pin, generator=torch.Generator().manual_seed(0))
 
 
 

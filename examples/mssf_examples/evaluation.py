@@ -37,6 +37,9 @@ from .evaluation_exact import (
     range_region,
 )
 from .evaluation_kitti import as_objects
+from .kitti_boxes import camera_boxes_to_sensor
+from .kitti_calib import Calibration
+from .kitti_labels import KittiObjects
 from .evaluation_tj4d import TJ4D_LOOSE_IOU_THRESHOLDS, TJ4D_REGIONS, TJ4D_STRICT_IOU_THRESHOLDS, evaluate_tj4d
 from .evaluation_vod import VOD_REGIONS, evaluate_vod
 
@@ -91,7 +94,9 @@ def evaluate(
             :func:`~mssf_examples.kitti_io.read_labels`), or a dict of sensor-frame ``boxes (K, 7)``,
             ``scores (K,)``, ``labels (K,)`` (0-based into ``class_names``), converted to the camera
             frame with the frame's ``calib`` and ``image_size`` (from this dict or the GT dict).
-            ``"exact"``: the dict only.
+            ``"exact"``: either (a ``KittiObjects`` is converted to the sensor frame with the GT dict's
+            ``calib``, else to the camera-centred frame x forward, y left, z up). Dict labels that run
+            ``1..K`` (1-based, OpenPCDet's) are refused.
         ground_truths: one entry per frame: a ``KittiObjects`` (a ``label_2`` file) or a dict of
             sensor-frame ``boxes (G, 7)``, ``labels (G,)`` (outside ``[0, len(class_names))``: not
             evaluated), optional ``ignore (G,)`` bool (ignored rather than missed), and for the
@@ -129,7 +134,12 @@ def evaluate(
     if len(predictions) != len(ground_truths):
         raise MSSFError(f"predictions, ground_truths: expected one entry per frame in both, got "
                         f"{len(predictions)} and {len(ground_truths)}")
+    _check_zero_based(predictions, names)
     if protocol == "exact":
+        predictions = [_exact_entry(p, g, names, "predictions", i, True)
+                       for i, (p, g) in enumerate(zip(predictions, ground_truths))]
+        ground_truths = [_exact_entry(g, p, names, "ground_truths", i, False)
+                         for i, (p, g) in enumerate(zip(predictions, ground_truths))]
         regions = dict(DEFAULT_REGIONS if regions is None else regions)
         if not regions:
             raise MSSFError("regions: expected at least one region, got none")
@@ -155,6 +165,47 @@ def evaluate(
             mean[key] = sum(values) / len(values) if values else math.nan
         per_class["mAP"] = mean
     return results
+
+
+def _check_zero_based(predictions: Sequence, names: Sequence[str]) -> None:
+    """Prediction dicts whose labels run ``1..K`` with no ``0`` (OpenPCDet's 1-based convention) would
+    all be scored as the next class (and the last as none): refused, with the fix."""
+    labels = [p["labels"].detach().cpu().long() for p in predictions
+              if isinstance(p, Mapping) and isinstance(p.get("labels"), torch.Tensor) and p["labels"].numel()]
+    if not labels:
+        return
+    every = torch.cat([x.reshape(-1) for x in labels])
+    lo, hi = int(every.min()), int(every.max())
+    if lo >= 1 and hi == len(names):
+        raise MSSFError(f"predictions: labels run from {lo} to {hi} with {len(names)} classes {list(names)}: "
+                        "1-based (OpenPCDet's pred_labels)? evaluate takes 0-based labels: pass labels - 1")
+
+
+def _exact_entry(entry, other, names: Sequence[str], what: str, index: int, with_scores: bool):
+    """``"exact"`` takes sensor-frame dicts; a :class:`KittiObjects` (a label or prediction file, as the
+    other protocols take) is converted: with the frame's ``calib`` (in ``other``) to the sensor frame,
+    else to the camera-centred frame (x forward, y left, z up; IoUs do not depend on the frame)."""
+    if not isinstance(entry, KittiObjects):
+        return entry
+    name = f"{what}[{index}]"
+    if with_scores and entry.score is None and len(entry):
+        raise MSSFError(f"{name}: expected KITTI objects with a score column (16 fields), got none")
+    calib = other.get("calib") if isinstance(other, Mapping) else None
+    loc, hwl, ry = entry.location.double(), entry.dimensions.double(), entry.rotation_y.double()
+    if isinstance(calib, Calibration):
+        boxes = camera_boxes_to_sensor(loc, hwl, ry, calib)
+    else:  # camera (right, down, forward) -> (forward, left, up); centre of the box, not of its bottom
+        h, w, l = hwl.unbind(1) if len(entry) else (hwl[:, 0], hwl[:, 1], hwl[:, 2])
+        centre = torch.stack([loc[:, 2], -loc[:, 0], -(loc[:, 1] - h / 2)], 1)
+        yaw = torch.atan2(-torch.cos(ry), -torch.sin(ry))  # heading (cos ry, 0, -sin ry) in the new axes
+        boxes = torch.cat([centre, torch.stack([l, w, h, yaw], 1)], 1)
+    lower = [n.lower() for n in names]
+    labels = torch.tensor([lower.index(n.lower()) if n.lower() in lower else -1 for n in entry.names],
+                          dtype=torch.long)
+    out = {"boxes": boxes.reshape(-1, 7), "labels": labels}
+    if with_scores:
+        out["scores"] = (entry.score if entry.score is not None else torch.zeros(0)).double()
+    return out
 
 
 # ---------------------------------------------------------------------------------------------------

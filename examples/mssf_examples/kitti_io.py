@@ -40,7 +40,15 @@ from .kitti_boxes import (
     transform_points,
 )
 from .kitti_calib import Calibration, parse_calibration, read_calibration
-from .kitti_labels import KITTI_CLASSES, TJ4D_CLASSES, VOD_CLASSES, KittiObjects, parse_labels, read_labels
+from .kitti_labels import (
+    KITTI_CLASSES,
+    KNOWN_TYPES,
+    TJ4D_CLASSES,
+    VOD_CLASSES,
+    KittiObjects,
+    parse_labels,
+    read_labels,
+)
 from .kitti_points import (
     KITTI_LIDAR,
     TJ4D_RADAR,
@@ -286,6 +294,13 @@ class KittiFormatDataset:
                 raise FileNotFoundError(f"no label_2/ folder for frame {frame_id} (searched near {self.data_dir}); "
                                         "use with_labels=False for unlabelled splits")
             objects = read_labels(p.label)
+            unknown = [(k, n) for k, n in enumerate(objects.names, 1)
+                       if n.lower() not in KNOWN_TYPES and n not in self.class_names]
+            if unknown:
+                k, n = unknown[0]
+                raise MSSFError(f"{p.label}: line {k}: unknown object type {n!r} (the class names are "
+                                f"{list(self.class_names)}; other known types of KITTI, VoD and TJ4DRadSet are "
+                                "kept as not evaluated)")
             boxes = camera_boxes_to_sensor(objects.location, objects.dimensions, objects.rotation_y, calib)
             labels = torch.tensor([self.class_names.index(n) if n in self.class_names else -1
                                    for n in objects.names], dtype=torch.long)

@@ -16,12 +16,20 @@ from mssf_blocks.errors import MSSFError
 
 from .kitti_points import PathLike
 
-__all__ = ["VOD_CLASSES", "TJ4D_CLASSES", "KITTI_CLASSES", "KittiObjects", "parse_labels", "read_labels"]
+__all__ = ["VOD_CLASSES", "TJ4D_CLASSES", "KITTI_CLASSES", "KNOWN_TYPES", "KittiObjects", "parse_labels", "read_labels"]
 
 #: Evaluated classes (0-based labels in this order; any other type gets label -1).
 VOD_CLASSES: Tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
 TJ4D_CLASSES: Tuple[str, ...] = ("Car", "Pedestrian", "Cyclist", "Truck")
 KITTI_CLASSES: Tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")
+#: Object types (lower case) of KITTI, View-of-Delft and TJ4DRadSet label files; a type outside these
+#: and the dataset's class names is refused by the loader (a typo, another dataset's labels).
+KNOWN_TYPES = frozenset(t.lower() for t in (
+    "Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc", "DontCare",  # KITTI
+    "rider", "bicycle", "unused_bicycle", "bicycle_rack", "human_depiction", "moped_scooter", "motor",  # VoD
+    "ride_other", "ride_uncertain", "vehicle_other",
+    "Bus", "Motorcyclist", "Tricyclist",  # other radar datasets' road users
+))
 
 
 @dataclass(frozen=True)

@@ -88,7 +88,8 @@ def read_points(path: PathLike, point_format: PointFormat) -> Tensor:
     if data.size % c:
         raise MSSFError(
             f"{path}: expected a multiple of {c} float32 values ({point_format.name}: {point_format.channels}), "
-            f"got {data.size} values ({path.stat().st_size} bytes)"
+            f"got {data.size} values ({path.stat().st_size} bytes): truncated, damaged, or another dataset's "
+            "point format"
         )
     return torch.from_numpy(data.reshape(-1, c).astype(np.float32))
 

@@ -23,6 +23,7 @@ Call :func:`mssf_blocks.compat.spconv.enable_cpu_backward` before training a spc
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from pathlib import Path
 from typing import Callable, Dict, Iterable, List, Optional, Tuple, Union
@@ -183,6 +184,7 @@ def train_detector(
                     sums[name] = sums.get(name, 0) + v.detach().float() / accumulate
             scaler.unscale_(opt)
             torch.nn.utils.clip_grad_norm_(params, grad_clip)
+            lr_used = sched.get_last_lr()[0]  # (the rate this step used; sched.step() sets the next one)
             scaler.step(opt)
             scaler.update()
             sched.step()
@@ -195,7 +197,7 @@ def train_detector(
                 log(step, row)
             if checkpoint is not None and checkpoint_every and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
                 checkpoint(step + 1, train_state())
-            bar.set_postfix(loss=f"{row['loss']:.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
+            bar.set_postfix(loss=f"{row['loss']:.3f}", lr=f"{lr_used:.2e}")
             bar.update(1)
     finally:
         bar.close()
@@ -229,17 +231,37 @@ def save_checkpoint(path: PathLike, model: nn.Module, config: Dict, train_state:
 
     With ``train_state`` (:func:`train_detector`'s) and ``step`` (optimiser steps done) the file can
     resume the run (:func:`load_resume_state`). A ``DistributedDataParallel`` model is saved unwrapped.
-    Written to a temporary file and renamed, so a reader never sees half a checkpoint.
+    Written to a hidden temporary file (``.<name>.tmp``: a partial one never sorts after, or globs as,
+    the real checkpoints), flushed to the disk (``fsync``) and renamed, then the folder is synced: a
+    reader never sees half a checkpoint, also after a power loss.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     ckpt = {"format": CHECKPOINT_FORMAT, "model": unwrap_model(model).state_dict(), "config": config}
     if train_state is not None:
         ckpt.update(train_state=train_state, step=int(step))
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(ckpt, tmp)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        torch.save(ckpt, f)
+        f.flush()
+        os.fsync(f.fileno())
     tmp.replace(path)
+    _fsync_dir(path.parent)
     return path
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (POSIX; a no-op where folders cannot be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # pragma: no cover - e.g. Windows
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover - some file systems refuse fsync on a folder
+        pass
+    finally:
+        os.close(fd)
 
 
 def _load(path: PathLike) -> Dict:

@@ -150,6 +150,14 @@ def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: T
     if static or use_static_path():  # (no row gather: a mask, and masked BatchNorm statistics)
         return linear_norm_visible_static(linear, norm, x, visible)
     rows = visible.nonzero().squeeze(1)
+    if rows.numel() == 1 and norm.training and isinstance(norm, nn.modules.batchnorm._BatchNorm):
+        # (the count is on the host already: nonzero read it) BatchNorm's own error would blame its input
+        raise MSSFError(
+            f"projection: exactly one of the {x.shape[0]} voxels is visible in the image, and "
+            f"{type(norm).__name__} in training mode cannot compute batch statistics from one row; train "
+            "with more than one visible voxel per batch (a larger batch, or skip this frame), or put the "
+            "fusion block in eval mode"
+        )
     if rows.numel() == x.shape[0]:  # every voxel seen: no gather / scatter copies
         return norm(linear(x))
     return _linear_bn_rows(linear, norm, x[rows], rows, x.shape[0])

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from ._checks import check_triple, to_module_dtype
+from ._sanity import check_grid, check_indices_in_shape
 from ._fusion_utils import check_image_features
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
@@ -273,9 +274,11 @@ class FusionBlock(nn.Module):
                 )
             grid = (self.voxel_size, self.point_range_min)
             in_stride = self.in_stride
+            check_indices_in_shape(x.indices, x.spatial_shape)
         else:
             raise MSSFError(f"x: expected SparseVoxels or an spconv SparseConvTensor, got {type(x).__name__}")
         out_stride = self.output_stride(in_stride)
+        check_grid(x.spatial_shape, grid[0], grid[1], in_stride, self.projector.point_range_max)
 
         def as_spconv(t: Any) -> Any:
             return t.to_spconv() if isinstance(t, SparseVoxels) else t

@@ -55,6 +55,7 @@ from ._fusion_utils import (
     _to_sampling_dtype,
     check_image_features,
 )
+from ._sanity import check_level_sizes
 from .errors import MSSFError
 from .functional.geometry import normalize_lidar2img
 from .functional.sampling import bilinear_sample, camera_mean
@@ -140,6 +141,8 @@ class FusionInputs:
         levels = check_image_features(
             self.image_features, "image_features", batch_size=l2i.shape[0], num_cameras=l2i.shape[1]
         )
+        # Every level is the image over a stride, finest first; a channels-last level is named.
+        check_level_sizes(levels, self.image_size)
         # The levels know the image's aspect: a swapped (W, H) would silently move every sampling spot.
         h, w = check_image_size(self.image_size, levels[0].shape[-2:])
         object.__setattr__(self, "image_size", (h, w))

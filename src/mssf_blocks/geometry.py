@@ -15,13 +15,14 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_floating, check_points, check_shape, check_triple
+from ._sanity import check_centroid_coverage, check_projection_coverage, set_geometry_checks
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
 from .sparse import SparseVoxels
 
 __all__ = [
     "VoxelCentroidProjector", "CentroidProjection", "augmentation_matrix", "image_augmentation_matrix",
-    "apply_image_augmentation",
+    "apply_image_augmentation", "set_geometry_checks",
 ]
 
 
@@ -132,6 +133,9 @@ class VoxelCentroidProjector(nn.Module):
         batch_index = voxels.batch_index
         proj = project_points(centroid, batch_index, lidar2img, image_size, points_to_sensor, self.eps)
         uv, valid = proj.uv, proj.valid
+        # (warnings; they read data only where that costs no host synchronisation: _sanity's doc)
+        check_projection_coverage(uv, proj.depth, batch_index, voxels.batch_size, image_size, lidar2img, self.eps)
+        check_centroid_coverage(has_points, batch_index, points_batch, voxels.batch_size)
         ok_depth = proj.depth > self.eps
         if not self.half_pixel:  # u / W (project_points validated image_size)
             h, w = (int(x) for x in image_size)
@@ -253,16 +257,19 @@ def apply_image_augmentation(lidar2img: Tensor, matrix: Tensor) -> Tensor:
     """``lidar2img' = A @ lidar2img``: the projection into the augmented image (computed in float64).
 
     Args:
-        lidar2img: ``(B, V, 3, 4)`` or ``(B, 3, 4)``.
+        lidar2img: ``(B, V, 3, 4)`` or ``(B, 3, 4)``, or the same with 4 x 4 matrices (as the projector
+            takes them; the last row is kept).
         matrix: ``(3, 3)`` (every sample and camera), ``(B, 3, 3)`` (per sample) or ``(B, V, 3, 3)``
             pixel affine from :func:`image_augmentation_matrix`; its last row must be ``(0, 0, 1)``.
 
     Returns:
         ``lidar2img'`` of the shape and dtype of ``lidar2img``.
     """
-    if not isinstance(lidar2img, Tensor) or lidar2img.dim() not in (3, 4) or tuple(lidar2img.shape[-2:]) != (3, 4):
+    if not isinstance(lidar2img, Tensor) or lidar2img.dim() not in (3, 4) or tuple(lidar2img.shape[-2:]) not in (
+            (3, 4), (4, 4)):
         got = tuple(lidar2img.shape) if isinstance(lidar2img, Tensor) else type(lidar2img).__name__
-        raise MSSFError(f"lidar2img: expected shape (B, V, 3, 4) or (B, 3, 4), got {got}")
+        raise MSSFError(f"lidar2img: expected shape (B, V, 3, 4) or (B, 3, 4) (or 4 x 4, as the projector "
+                        f"takes), got {got}")
     check_floating(lidar2img, "lidar2img")
     if not isinstance(matrix, Tensor) or matrix.dim() < 2 or tuple(matrix.shape[-2:]) != (3, 3):
         got = tuple(matrix.shape) if isinstance(matrix, Tensor) else type(matrix).__name__
@@ -279,7 +286,9 @@ def apply_image_augmentation(lidar2img: Tensor, matrix: Tensor) -> Tensor:
         raise MSSFError(f"matrix: expected a pixel affine with last row (0, 0, 1), got {m[..., 2, :].tolist()}")
     if lidar2img.dim() == 4 and m.dim() == 3:
         m = m[:, None]
-    out = m.to(lidar2img.device) @ lidar2img.to(torch.float64)
+    out = m.to(lidar2img.device) @ lidar2img[..., :3, :].to(torch.float64)
+    if lidar2img.shape[-2] == 4:  # a 4 x 4 matrix (the projector reads its first three rows): keep the last
+        out = torch.cat([out, lidar2img[..., 3:, :].to(torch.float64)], dim=-2)
     return out.to(lidar2img.dtype)
 
 

@@ -27,6 +27,22 @@ from .errors import MSSFError
 __all__ = ["SparseVoxels"]
 
 
+def _permutation_hint(coords: Tensor, spatial_shape: Tuple[int, int, int]) -> str:
+    """Where the coordinates fit a permutation of ``spatial_shape`` (e.g. ``(W, H, D)`` given), say so."""
+    import itertools
+
+    if int(coords[:, 1:].amin()) < 0:
+        return ""
+    top = [int(v) + 1 for v in coords[:, 1:].amax(0).tolist()]  # (z, y, x) extents needed
+    candidates = [tuple(spatial_shape)[::-1]] + list(itertools.permutations(spatial_shape))  # (W, H, D) first
+    fits = [p for p in candidates
+            if p != tuple(spatial_shape) and all(t <= s for t, s in zip(top, p))]
+    if not fits:
+        return ""
+    return (f"; the coordinates fit spatial_shape={fits[0]}: spatial_shape is (D, H, W) = (z, y, x) cells, "
+            f"given in another axis order (e.g. (W, H, D))?")
+
+
 @dataclass(frozen=True, eq=False)
 class SparseVoxels:
     """Non-empty voxels of a batch of scenes.
@@ -82,11 +98,14 @@ class SparseVoxels:
         check_dtype(coords, "coords", (torch.int32,), hint=" (convert with coords.int())")
         if coords.numel():
             # one host synchronisation for the four range checks, not eight (a GPU stalls on each)
-            check_index_ranges(
-                [(coords[:, 0], "coords[:, 0] (batch index)", self.batch_size, "batch_size")]
-                + [(coords[:, a], f"coords[:, {a}] ({n} index)", self.spatial_shape[a - 1], f"spatial_shape[{a - 1}]")
-                   for a, n in zip((1, 2, 3), ("z", "y", "x"))]
-            )
+            try:
+                check_index_ranges(
+                    [(coords[:, 0], "coords[:, 0] (batch index)", self.batch_size, "batch_size")]
+                    + [(coords[:, a], f"coords[:, {a}] ({n} index)", self.spatial_shape[a - 1],
+                        f"spatial_shape[{a - 1}]") for a, n in zip((1, 2, 3), ("z", "y", "x"))]
+                )
+            except MSSFError as exc:  # (the error path only: one more read, to name a permuted spatial_shape)
+                raise MSSFError(f"{exc}{_permutation_hint(coords, self.spatial_shape)}") from None
 
     @staticmethod
     def _check_features(features: Tensor, n: int) -> None:
@@ -210,7 +229,9 @@ class SparseVoxels:
         the source's index cache (``indice_dict``, grid, benchmark settings), so later ``SubMConv3d`` /
         inverse convs with the same ``indice_key`` still find their indices.
         """
-        from .compat.spconv import quiet  # drops spconv's own torch.fx message (see there)
+        from .compat.spconv import check_spconv_input, quiet  # (quiet: spconv's own torch.fx message)
+
+        check_spconv_input(self.features, self.coords, self.spatial_shape, self.batch_size)
 
         if self.spconv_source is not None:
             with quiet():

@@ -28,11 +28,38 @@ def tolerance(dtype: torch.dtype) -> Tuple[float, float]:
     return TOLERANCES[dtype]
 
 
+def _precision_rank(dtype: torch.dtype) -> float:
+    """The relative tolerance of ``dtype``: larger is less precise."""
+    return tolerance(dtype)[0]
+
+
 def assert_close(actual: Tensor, expected: Tensor, dtype: torch.dtype | None = None, msg: str = "") -> None:
-    """``torch.testing.assert_close`` with the tolerance of ``dtype`` (default: ``actual.dtype``)."""
-    rtol, atol = tolerance(dtype or actual.dtype)
+    """``torch.testing.assert_close`` with the tolerance of the less precise of the two dtypes.
+
+    Integer and bool tensors (both of them) are compared exactly. With a floating tensor on either
+    side, the tolerance is that of ``dtype`` when given, else of the less precise floating dtype of
+    ``actual`` and ``expected`` (a float32 result against a float64 reference is held to float32's
+    tolerance, whichever side it is on); both are compared in float64, so neither is rounded to the
+    other's dtype first. The failure message names both dtypes and the tolerance used.
+    """
+    for name, x in (("actual", actual), ("expected", expected)):
+        if not isinstance(x, Tensor):
+            raise TypeError(f"assert_close: {name}: expected a torch.Tensor, got {type(x).__name__}")
+    pair = f"actual dtype {actual.dtype}, expected dtype {expected.dtype}"
+    floating = [x.dtype for x in (actual, expected) if x.is_floating_point()]
+    if dtype is None and not floating:  # int / bool on both sides: exact
+        rtol, atol, what = 0.0, 0.0, "exact (integer / bool)"
+        a, e = actual, expected.to(actual.dtype) if actual.dtype != expected.dtype else expected
+        if actual.dtype == torch.bool or expected.dtype == torch.bool:
+            a, e = actual.long(), expected.long()
+    else:
+        used = dtype if dtype is not None else max(floating, key=_precision_rank)
+        rtol, atol = tolerance(used)
+        what = f"tolerance of {used} (rtol={rtol}, atol={atol})"
+        a, e = actual.to(torch.float64), expected.to(torch.float64)
+    head = f"{msg}\n" if msg else ""
     torch.testing.assert_close(
-        actual, expected.to(actual.dtype), rtol=rtol, atol=atol, msg=(lambda m: f"{msg}\n{m}") if msg else None
+        a, e, rtol=rtol, atol=atol, msg=lambda m: f"{head}{m}\n({pair}; compared with the {what})"
     )
 
 

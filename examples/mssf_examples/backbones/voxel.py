@@ -15,6 +15,7 @@ from torch import nn
 
 import spconv.pytorch as spconv
 
+from mssf_blocks.compat.spconv import check_spconv_input
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.sparse import SparseVoxels
 
@@ -220,6 +221,9 @@ class SparseFusionBackbone(nn.Module):
             return self._forward_stages(voxels, fusion_inputs)
 
     def _forward_stages(self, voxels: SparseVoxels, fusion_inputs) -> BackboneOutput:
+        # our error before spconv's own (float64 features, int64 indices, no voxel, a permuted grid)
+        check_spconv_input(voxels.features, voxels.coords, voxels.spatial_shape, voxels.batch_size,
+                           expected_shape=self.grid.spatial_shape)
         x = spconv.SparseConvTensor(voxels.features, voxels.coords, list(self.input_shape), voxels.batch_size)
         x = self.conv_input(x)
         outs: List[SparseVoxels] = []

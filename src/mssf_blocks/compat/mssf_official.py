@@ -80,6 +80,7 @@ __all__ = [
     "ModuleMap",
     "mssf_v_module_maps",
     "official_to_ours",
+    "load_official",
     "ours_to_official",
 ]
 
@@ -184,13 +185,14 @@ def _permute_query_columns(weight: Tensor, voxel_channels: int, to_ours: bool, k
 
 
 def _convert(state_dict: Mapping[str, Tensor], maps: Sequence[ModuleMap], ignore: Sequence[str],
-             to_ours: bool) -> Dict[str, Tensor]:
+             to_ours: bool, strict: bool = True) -> Dict[str, Tensor]:
     if not all(isinstance(m, ModuleMap) for m in maps):
         raise MSSFError(f"maps: expected a sequence of ModuleMap, got {[type(m).__name__ for m in maps]}")
     src_of = (lambda m: m.theirs) if to_ours else (lambda m: m.ours)
     keys = list(state_dict)
     out: Dict[str, Tensor] = {}
     claimed = set()
+    absent: List[str] = []
     for m in maps:
         mine = [k for k in keys if _under(k, src_of(m))]
         suffixes = [k[len(src_of(m)) + 1:] if src_of(m) else k for k in mine]
@@ -205,13 +207,24 @@ def _convert(state_dict: Mapping[str, Tensor], maps: Sequence[ModuleMap], ignore
             src_sfx, dst_sfx = (theirs_sfx, ours_sfx) if to_ours else (ours_sfx, theirs_sfx)
             src = _join(src_of(m), src_sfx)
             if src not in state_dict:
-                continue  # e.g. an untracked BN counter; load_state_dict reports what is really missing
+                # a BN counter may be untracked; anything else a mapped module has must be there
+                if not src.endswith("num_batches_tracked") and not any(src == p or _under(src, p) for p in ignore):
+                    absent.append(src)
+                continue
             dst = _join(m.ours if to_ours else m.theirs, dst_sfx)
             value = state_dict[src]
             if m.kind == "query_init" and src_sfx.endswith("weight") and not src_sfx.startswith(("1.", "norm.")):
                 value = _permute_query_columns(value, m.voxel_channels, to_ours, src)
             out[dst] = value
             claimed.add(src)
+    if absent and strict:
+        side = "their (official)" if to_ours else "our"
+        shown = ", ".join(absent[:12]) + (f", ... ({len(absent)} in all)" if len(absent) > 12 else "")
+        raise MSSFError(
+            f"state_dict: {len(absent)} tensor(s) of a mapped module missing from the {side} state dict: "
+            f"{shown}. Loading would keep the module's initial values; pass their prefix in ignore=(...) "
+            "to skip them on purpose (or strict=False)"
+        )
     left = [k for k in keys if k not in claimed and not any(_under(k, p) for p in ignore)]
     if left:
         side = "their (official)" if to_ours else "our"
@@ -224,34 +237,39 @@ def _convert(state_dict: Mapping[str, Tensor], maps: Sequence[ModuleMap], ignore
 
 
 def official_to_ours(state_dict: Mapping[str, Tensor], maps: Sequence[ModuleMap],
-                     ignore: Sequence[str] = ()) -> Dict[str, Tensor]:
+                     ignore: Sequence[str] = (), strict: bool = True) -> Dict[str, Tensor]:
     """Their state dict -> ours: the tensors of every mapped module under our names.
 
     Args:
         state_dict: their (full or partial) state dict.
         maps: the modules to convert (:func:`mssf_v_module_maps` for MSSF-V).
-        ignore: prefixes of their keys to leave out (the rest of the detector, dead parameters).
+        ignore: prefixes of their keys to leave out (the rest of the detector, dead parameters), or
+            whose absence is allowed.
+        strict: ``True`` (default): a tensor of a mapped module that is missing from ``state_dict``
+            (other than a BN's ``num_batches_tracked``) and not under an ``ignore`` prefix is an error.
 
     Returns:
-        A new dict of our keys (values shared, except the permuted query-init weight); load it with
-        ``model.load_state_dict(..., strict=False)`` next to the weights of the rest of the model.
+        A new dict of our keys (values shared, except the permuted query-init weight). Load it with
+        :func:`load_official` (which also checks every key and shape against the module before copying
+        anything), or ``model.load_state_dict(...)`` next to the weights of the rest of the model.
 
     Raises:
         MSSFError: naming every key that no map claims and no ``ignore`` prefix covers (a key under a
-            mapped module that fits none of its tensors, e.g. a ``lateral_conv``, included).
+            mapped module that fits none of its tensors, e.g. a ``lateral_conv``, included), and with
+            ``strict`` every missing tensor of a mapped module.
     """
-    return _convert(state_dict, maps, ignore, to_ours=True)
+    return _convert(state_dict, maps, ignore, to_ours=True, strict=strict)
 
 
 def ours_to_official(state_dict: Mapping[str, Tensor], maps: Sequence[ModuleMap],
-                     ignore: Sequence[str] = ()) -> Dict[str, Tensor]:
+                     ignore: Sequence[str] = (), strict: bool = True) -> Dict[str, Tensor]:
     """Our state dict -> theirs (the inverse of :func:`official_to_ours`; ``ignore`` holds our prefixes).
 
     Raises:
         MSSFError: naming every key of ours that no map claims (e.g. ``norm.*`` of an MSDFF built with a
             norm, which their module does not have) and no ``ignore`` prefix covers.
     """
-    return _convert(state_dict, maps, ignore, to_ours=False)
+    return _convert(state_dict, maps, ignore, to_ours=False, strict=strict)
 
 
 def mssf_v_module_maps(
@@ -284,3 +302,6 @@ def mssf_v_module_maps(
     for loc, ours in (semantic_heads or {}).items():
         maps.append(ModuleMap("semantic_head", f"{encoder}.seg_heads.{loc}", ours))
     return maps, [f"{encoder}.voxel_fuse.img_transform"]
+
+
+from .mssf_official_load import load_official  # noqa: E402  (it builds on official_to_ours above)

@@ -30,7 +30,7 @@ from typing import Any, Iterator
 import torch
 from torch import Tensor
 
-__all__ = ["enable_cpu_backward", "quiet", "dense"]
+__all__ = ["enable_cpu_backward", "quiet", "dense", "check_spconv_input"]
 
 _PATCHED = False
 
@@ -38,6 +38,58 @@ _PATCHED = False
 _FX_LOGGER = "torch.fx._symbolic_trace"
 _FX_MESSAGE = "is_fx_tracing will return true"
 _INDEXING_MESSAGE = "Using a non-tuple sequence for multidimensional indexing"
+
+
+#: feature dtypes spconv's kernels handle (its CPU kernels get float64 wrong, and it has no integer path)
+_SPCONV_FEATURE_DTYPES = (torch.float32, torch.float16, torch.bfloat16)
+
+
+def check_spconv_input(features: Tensor, coords: Tensor, spatial_shape, batch_size: int,
+                       name: str = "voxels", expected_shape=None) -> None:
+    """Our error, before spconv runs, for what spconv would fail on with its own internal error.
+
+    Checks (shapes and dtypes only, no data read): ``features`` a floating ``(N, C)`` tensor in float32
+    / float16 / bfloat16 (not float64); ``coords`` an int32 ``(N, 4)`` tensor; ``N > 0`` (spconv cannot
+    run on zero voxels); and, with ``expected_shape`` (the network's ``(D, H, W)``), ``spatial_shape``
+    equal to it, naming the axis order when it is a permutation of it.
+
+    Raises:
+        MSSFError: naming ``name``'s field, what was expected and what was received.
+    """
+    from ..errors import MSSFError
+
+    if not isinstance(features, Tensor) or features.dim() != 2:
+        got = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
+        raise MSSFError(f"{name}.features: expected an (N, C) tensor for spconv, got {got}")
+    if features.dtype not in _SPCONV_FEATURE_DTYPES:
+        raise MSSFError(
+            f"{name}.features: expected dtype float32, float16 or bfloat16 for spconv, got {features.dtype}"
+            + (" (spconv's kernels do not handle float64: convert with .float())"
+               if features.dtype == torch.float64 else "")
+        )
+    if not isinstance(coords, Tensor) or coords.dim() != 2 or coords.shape[1] != 4:
+        got = tuple(coords.shape) if isinstance(coords, Tensor) else type(coords).__name__
+        raise MSSFError(f"{name}.coords: expected an (N, 4) (batch, z, y, x) tensor for spconv, got {got}")
+    if coords.dtype != torch.int32:
+        raise MSSFError(f"{name}.coords: expected dtype torch.int32 for spconv (its indices), got {coords.dtype}; "
+                        "convert with .int()")
+    if features.shape[0] != coords.shape[0]:
+        raise MSSFError(f"{name}: expected as many feature rows as coords rows, got {features.shape[0]} and "
+                        f"{coords.shape[0]}")
+    if features.shape[0] == 0:
+        raise MSSFError(f"{name}: expected at least one voxel for spconv, got 0 (an empty point cloud? skip "
+                        "the frame, or give it one voxel)")
+    shape = tuple(int(s) for s in spatial_shape)
+    if expected_shape is not None:
+        want = tuple(int(s) for s in expected_shape)
+        if shape != want:
+            order = ""
+            if sorted(shape) == sorted(want):
+                order = (f"; (D, H, W) = (z, y, x) order is expected: {shape} is {want} with its axes "
+                         f"permuted (e.g. (x, y, z) = (W, H, D) order)")
+            raise MSSFError(f"{name}.spatial_shape: expected the network's {want}, got {shape}{order}")
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise MSSFError(f"{name}.batch_size: expected a positive int, got {batch_size!r}")
 
 
 def _stream_or_null() -> int:

@@ -1,0 +1,232 @@
+"""Geometry sanity checks where the camera inputs enter (``FusionInputs``, the projector).
+
+Two kinds (``docs/conventions.md``, "Common mistakes"):
+
+* **shape consistency** (errors, read no data, always on): every image level's size is ``image_size``
+  over some stride within one level pixel, levels are finest first, and a channels-last (NHWC) level
+  is named as such.
+* **coverage** (warnings, read data): the fraction of a sample's voxels that project inside the image,
+  where the in-image ones fall (all in the top-left quarter, or all on one spot), the fraction of voxels
+  that hold any of the sample's points, an empty point list. They are warnings, not errors, because a
+  real frame can have no voxel in view (an empty road, a camera facing elsewhere); the message lists
+  the usual causes. They read tensor values, so they run only where that costs no host
+  synchronisation: tensors on the CPU, never while a graph is captured; on an accelerator only when
+  :func:`set_geometry_checks` turned them on.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from ._checks import is_tracing
+from .errors import MSSFError, MSSFGeometryWarning
+
+__all__ = ["set_geometry_checks", "geometry_checks_enabled"]
+
+_FORCED: Optional[bool] = None
+#: fewer in-image voxels than this: no corner / spot verdict (too few to tell)
+_MIN_VOXELS = 8
+#: fewer in-image projections than this: no top-left-quarter verdict (a small toy scene may sit there)
+_MIN_CORNER = 32
+
+_CAUSES = (
+    "usual causes: image_size not the size lidar2img projects into (scale, or (W, H) swapped); lidar2img "
+    "not a projection (a 4x4 lidar-to-camera transform or the intrinsics alone: it must be K @ [R | t]); "
+    "points_to_sensor in the wrong direction (it maps augmented points back to the sensor: the inverse of "
+    "augmentation_matrix); voxel_size given as (z, y, x) instead of (x, y, z); a wrong point_range_min or "
+    "in_stride"
+)
+
+
+def set_geometry_checks(enabled: Optional[bool]) -> None:
+    """``True``: run the coverage checks on every device (one host synchronisation per projection on an
+    accelerator); ``False``: never; ``None`` (default): on CPU tensors only."""
+    global _FORCED
+    if enabled is not None and not isinstance(enabled, bool):
+        raise MSSFError(f"enabled: expected True, False or None, got {enabled!r}")
+    _FORCED = enabled
+
+
+def geometry_checks_enabled(x: Tensor) -> bool:
+    """Whether the data-reading checks run for tensors on ``x``'s device."""
+    if _FORCED is False or is_tracing():
+        return False
+    return bool(_FORCED) or x.device.type == "cpu"
+
+
+def _fits(h: int, w: int, image_h: int, image_w: int) -> bool:
+    """Some stride ``s`` with ``|H / s - h| <= 1`` and ``|W / s - w| <= 1``."""
+    return max((h - 1) / image_h, (w - 1) / image_w) <= min((h + 1) / image_h, (w + 1) / image_w)
+
+
+def check_level_sizes(levels: Sequence[Tensor], image_size: Sequence[int], name: str = "image_features") -> None:
+    """Every level ``(B, V, C, H_l, W_l)`` is ``image_size`` over a stride (one level pixel of rounding),
+    and the levels are finest first; a channels-last level is named (shapes only, no data read)."""
+    if is_tracing():
+        return
+    try:
+        ih, iw = (int(v) for v in image_size)
+    except (TypeError, ValueError):
+        return  # check_image_size names it
+    if ih <= 0 or iw <= 0:
+        return
+    for l, level in enumerate(levels):
+        c, h, w = (int(v) for v in level.shape[-3:])
+        if _fits(h, w, ih, iw):
+            continue
+        if _fits(c, h, ih, iw) and w <= 4096:
+            raise MSSFError(
+                f"{name}[{l}]: shape {tuple(level.shape)} looks channels-last (NHWC: H={c}, W={h}, C={w} for "
+                f"image_size={(ih, iw)}); expected (B, C, H, W): pass level.permute(0, 3, 1, 2)"
+                + (" (or permute(0, 1, 4, 2, 3) for (B, V, H, W, C))" if level.dim() == 5 else "")
+            )
+        if l == 0:
+            return  # check_image_size explains level 0 (aspect, swapped (W, H))
+        raise MSSFError(
+            f"{name}[{l}]: expected (H_l, W_l) = image_size {(ih, iw)} over a stride within one pixel, got "
+            f"({h}, {w}); every level must come from the image of image_size"
+        )
+    sizes = [tuple(int(v) for v in level.shape[-2:]) for level in levels]
+    for l in range(1, len(sizes)):
+        if sizes[l][0] > sizes[l - 1][0] or sizes[l][1] > sizes[l - 1][1]:
+            raise MSSFError(
+                f"{name}: expected levels finest first (each level's (H, W) at most the previous one's), got "
+                f"sizes {sizes}; reversed (coarsest first)? pass them in order of increasing stride"
+            )
+
+
+def _matrix_hint(lidar2img: Tensor) -> str:
+    """What is wrong with a ``(B, V, 3, 4)`` matrix that makes no projection, if recognisable."""
+    m = lidar2img.detach().double()[..., :3, :3]
+    eye = torch.eye(3, dtype=m.dtype)
+    if bool((m @ m.transpose(-1, -2) - eye).abs().amax() < 1e-3):
+        return ("; lidar2img's 3x3 block is a rotation: a rigid lidar-to-camera transform, not a projection "
+                "(multiply by the camera intrinsics: K @ [R | t])")
+    t = lidar2img.detach().double()[..., :3, 3]
+    lower = m[..., 1, 0].abs() + m[..., 2, 0].abs() + m[..., 2, 1].abs()
+    if bool(((lower + t.abs().sum(-1)) < 1e-9).all()):
+        return ("; lidar2img looks like the intrinsics alone ([K | 0]: no rotation from the sensor's axes to "
+                "the camera's, no translation): multiply by the sensor-to-camera transform")
+    return ""
+
+
+def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, batch_size: int,
+                              image_size: Sequence[int], lidar2img: Tensor, eps: float) -> None:
+    """Warn per sample when no voxel lands in the image, or all of them in the top-left quarter or on
+    one spot (see the module doc); ``uv (N, V, 2)`` normalised, ``depth (N, V)``."""
+    if uv.shape[0] == 0 or not geometry_checks_enabled(uv):
+        return
+    h, w = (int(v) for v in image_size)
+    inside = (depth > eps) & (uv >= 0).all(-1) & (uv <= 1).all(-1)  # (N, V)
+    seen = inside.any(1)
+    n_all = torch.bincount(batch_index, minlength=batch_size)
+    n_in = torch.bincount(batch_index[seen], minlength=batch_size)
+    for b in (n_all > 0).logical_and(n_in == 0).nonzero().flatten().tolist():
+        l2i = lidar2img if lidar2img.dim() == 4 else lidar2img[:, None]
+        warnings.warn(MSSFGeometryWarning(
+            f"projection: none of sample {b}'s {int(n_all[b])} voxels projects inside the image "
+            f"(image_size={(h, w)}): the camera contributes nothing; {_CAUSES}{_matrix_hint(l2i[b:b + 1])}"
+        ), stacklevel=2)
+    front = (depth > eps) & torch.isfinite(uv).all(-1)
+    pix = uv * uv.new_tensor([w, h])  # pixel positions, half a pixel off at most
+    swapped = front & (pix >= 0).all(-1) & (pix[..., 0] <= h) & (pix[..., 1] <= w)
+    n_seen, n_swapped = int(inside.sum()), int(swapped.sum())
+    if h != w and n_swapped - n_seen >= _MIN_VOXELS and n_swapped > 1.2 * n_seen:
+        warnings.warn(MSSFGeometryWarning(
+            f"projection: {n_seen} voxel projections inside image_size={(h, w)} but {n_swapped} inside "
+            f"{(w, h)}: image_size (W, H) swapped? it is (H, W)"
+        ), stacklevel=2)
+    if int(seen.sum()) < _MIN_VOXELS:
+        return
+    pts = uv[inside]  # (K, 2) of every in-image (voxel, camera)
+    hi, lo = pts.amax(0), pts.amin(0)
+    if bool(((hi - lo) * uv.new_tensor([w, h]) < 2).all()):
+        warnings.warn(MSSFGeometryWarning(
+            f"projection: all {pts.shape[0]} in-image voxel projections fall within 2 pixels of one spot "
+            f"({float(lo[0]) * w:.1f}, {float(lo[1]) * h:.1f}): lidar2img is not a projection?"
+            + _matrix_hint(lidar2img if lidar2img.dim() == 4 else lidar2img[:, None])
+        ), stacklevel=2)
+    elif pts.shape[0] >= _MIN_CORNER and bool((hi <= 0.5).all()):
+        warnings.warn(MSSFGeometryWarning(
+            f"projection: all {pts.shape[0]} in-image voxel projections fall in the top-left quarter of "
+            f"image_size={(h, w)} (u <= {float(hi[0]):.3f}, v <= {float(hi[1]):.3f}): is image_size "
+            "larger than the image lidar2img projects into (e.g. twice its size)?"
+        ), stacklevel=2)
+
+
+def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batch: Tensor,
+                            batch_size: int) -> None:
+    """Warn when a sample has voxels and points but no voxel holds any of them (the voxel grid and
+    the points disagree), or when there are voxels and no points at all (centres are used)."""
+    if has_points.shape[0] == 0 or not geometry_checks_enabled(has_points):
+        return
+    if points_batch.shape[0] == 0:
+        warnings.warn(MSSFGeometryWarning(
+            f"points: empty, while there are {has_points.shape[0]} voxels: every voxel uses its centre "
+            "instead of a centroid; pass the raw points the voxels were built from"
+        ), stacklevel=2)
+        return
+    n_vox = torch.bincount(batch_index, minlength=batch_size)
+    n_pts = torch.bincount(points_batch.long().clamp(0, batch_size - 1), minlength=batch_size)
+    n_hold = torch.bincount(batch_index[has_points], minlength=batch_size)
+    for b in ((n_vox > 0) & (n_pts > 0) & (n_hold == 0)).nonzero().flatten().tolist():
+        warnings.warn(MSSFGeometryWarning(
+            f"centroids: none of sample {b}'s {int(n_vox[b])} voxels holds any of its {int(n_pts[b])} points: "
+            "the voxel grid and the points disagree; check voxel_size (x, y, z order), in_stride / the "
+            "voxels' stride, point_range_min and points_batch"
+        ), stacklevel=2)
+
+
+def check_grid(spatial_shape: Sequence[int], voxel_size: Sequence[float], point_range_min: Sequence[float],
+               stride: Sequence[int], point_range_max: Optional[Sequence[float]], name: str = "x") -> None:
+    """The sparse tensor's ``spatial_shape (D, H, W)`` against the metric grid: with ``point_range_max``
+    known, each axis must hold ``(max - min) / (voxel_size * stride)`` cells within one (the rounding
+    of strided convolutions). Numbers only, no data read; the message names a permuted axis order."""
+    if point_range_max is None:
+        return
+    extent = [(hi - lo) / (v * s) for hi, lo, v, s in zip(point_range_max[::-1], point_range_min[::-1],
+                                                             voxel_size[::-1], stride)]  # (z, y, x)
+    shape = tuple(int(v) for v in spatial_shape)
+
+    def fits(cand) -> bool:
+        return all(abs(c - e) <= 1.0 for c, e in zip(cand, extent))
+
+    if fits(shape):
+        return
+    import itertools
+
+    perm = next((p for p in itertools.permutations(shape) if p != shape and fits(p)), None)
+    hint = (f"; {perm} would fit: spatial_shape is (D, H, W) = (z, y, x) cells, given in another order?"
+            if perm is not None else "; check voxel_size (x, y, z order), in_stride / the tensor's stride and "
+            "the point range")
+    raise MSSFError(
+        f"{name}.spatial_shape: expected (D, H, W) = ({', '.join(f'{e:.1f}' for e in extent)}) cells within one "
+        f"(point range ({tuple(point_range_min)}, {tuple(point_range_max)}) over voxel_size {tuple(voxel_size)} "
+        f"x stride {tuple(stride)}), got {shape}{hint}"
+    )
+
+
+def check_indices_in_shape(indices: Tensor, spatial_shape: Sequence[int], name: str = "x") -> None:
+    """An spconv tensor's ``(batch, z, y, x)`` indices inside its ``spatial_shape`` (spconv drops the
+    rest without a word); data-reading, so gated like the coverage checks."""
+    if indices.shape[0] == 0 or not geometry_checks_enabled(indices):
+        return
+    shape = tuple(int(v) for v in spatial_shape)
+    top = [int(v) for v in indices[:, 1:].amax(0).tolist()]
+    low = int(indices[:, 1:].amin())
+    if low >= 0 and all(t < s for t, s in zip(top, shape)):
+        return
+    import itertools
+
+    need = tuple(t + 1 for t in top)
+    perm = next((p for p in [shape[::-1], *itertools.permutations(shape)]
+                 if p != shape and all(n <= s for n, s in zip(need, p))), None) if low >= 0 else None
+    raise MSSFError(
+        f"{name}.indices: expected (batch, z, y, x) inside spatial_shape {shape} (D, H, W), got z, y, x up to "
+        f"{tuple(top)} (min {low}); spconv would drop those voxels"
+        + (f"; they fit {perm}: spatial_shape given in (W, H, D) or another order?" if perm is not None else "")
+    )

@@ -1,0 +1,94 @@
+"""Issue 33, item 5: what spconv (or BatchNorm) would fail on with its own error gets ours first."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mssf_blocks import SparseVoxels
+from mssf_blocks.compat.spconv import check_spconv_input
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.fusion import SFF
+from mssf_blocks.geometry import CentroidProjection
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def voxels(n=3, dtype=torch.float32):
+    coords = torch.tensor([[0, 0, 1, 2], [0, 1, 2, 3], [0, 2, 3, 7]], dtype=torch.int32)[:n]
+    return SparseVoxels(torch.ones(n, 4, dtype=dtype), coords, (4, 8, 8), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+
+
+def test_float64_features_are_refused_before_spconv():
+    with pytest.raises(MSSFError, match=r"features: expected dtype float32.*got torch.float64.*\.float\(\)"):
+        voxels(dtype=torch.float64).to_spconv()
+
+
+def test_zero_voxels_are_refused_before_spconv():
+    with pytest.raises(MSSFError, match=r"at least one voxel for spconv, got 0"):
+        voxels(0).to_spconv()
+
+
+def test_int64_indices_are_refused_before_spconv():
+    v = voxels()
+    with pytest.raises(MSSFError, match=r"coords: expected dtype torch.int32.*int64.*\.int\(\)"):
+        check_spconv_input(v.features, v.coords.long(), v.spatial_shape, 1)
+
+
+def test_permuted_spatial_shape_is_named():
+    v = voxels()
+    with pytest.raises(MSSFError, match=r"expected the network's \(4, 8, 16\), got \(16, 8, 4\).*permuted"):
+        check_spconv_input(v.features, v.coords, (16, 8, 4), 1, expected_shape=(4, 8, 16))
+    # SparseVoxels: coordinates that fit only a permutation of the grid say so
+    coords = torch.tensor([[0, 1, 2, 12]], dtype=torch.int32)  # x = 12 needs W >= 13
+    with pytest.raises(MSSFError, match=r"x index.*fit spatial_shape=\(4, 8, 16\).*\(D, H, W\)"):
+        SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+
+
+def test_one_visible_voxel_in_training_mode_is_our_error():
+    sff = SFF([4], 6).train()
+    n = 5
+    valid = torch.zeros(n, 1, dtype=torch.bool)
+    valid[2] = True
+    proj = CentroidProjection(uv=torch.full((n, 1, 2), 0.5), depth=torch.ones(n, 1), valid=valid,
+                              centroid=torch.zeros(n, 3), has_points=torch.ones(n, dtype=torch.bool),
+                              batch_index=torch.zeros(n, dtype=torch.long))
+    with pytest.raises(MSSFError, match=r"exactly one of the 5 voxels is visible.*BatchNorm1d.*eval"):
+        sff([torch.randn(1, 4, 8, 8)], proj)
+    assert sff.eval()([torch.randn(1, 4, 8, 8)], proj).shape == (n, 6)  # eval: fine
+
+
+def _block(point_range_max=None):
+    from mssf_blocks import VoxelCentroidProjector
+    from mssf_blocks.blocks import FusionBlock
+
+    return FusionBlock(SFF([4], 4), voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0), in_stride=(1, 1, 1),
+                       projector=VoxelCentroidProjector(point_range_max=point_range_max))
+
+
+def test_spatial_shape_against_the_metric_grid_names_the_order():
+    from mssf_blocks.fusion import FusionInputs
+
+    # range 1.6 x 0.8 x 0.8 m over voxels (0.1, 0.1, 0.2): (D, H, W) = (4, 8, 16)
+    block = _block((1.6, 0.8, 0.8))
+    inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
+                          torch.zeros(0, dtype=torch.long))
+    coords = torch.tensor([[0, 1, 2, 3]], dtype=torch.int32)
+    wrong = SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    with pytest.raises(MSSFError, match=r"spatial_shape: expected \(D, H, W\) = \(4.0, 8.0, 16.0\).*got \(16, 8, 4\)"
+                                        r".*\(4, 8, 16\) would fit"):
+        block(wrong, inputs)
+    right = SparseVoxels(torch.ones(1, 4), coords, (4, 8, 16), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    block.eval()(right, inputs)
+
+
+def test_spconv_indices_outside_a_permuted_spatial_shape_are_named():
+    spconv = pytest.importorskip("spconv.pytorch")
+    from mssf_blocks.fusion import FusionInputs
+
+    inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
+                          torch.zeros(0, dtype=torch.long))
+    idx = torch.tensor([[0, 1, 2, 12], [0, 3, 7, 15]], dtype=torch.int32)  # x up to 15: W = 16
+    x = spconv.SparseConvTensor(torch.ones(2, 4), idx, [16, 8, 4], 1)  # (W, H, D) given
+    with pytest.raises(MSSFError, match=r"indices: expected .* inside spatial_shape \(16, 8, 4\).*\(4, 8, 16\)"):
+        _block()(x, inputs)
