@@ -19,9 +19,10 @@ def voxels(n=3, dtype=torch.float32):
     return SparseVoxels(torch.ones(n, 4, dtype=dtype), coords, (4, 8, 8), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
 
 
-def test_float64_features_are_refused_before_spconv():
-    with pytest.raises(MSSFError, match=r"features: expected dtype float32.*got torch.float64.*\.float\(\)"):
-        voxels(dtype=torch.float64).to_spconv()
+def test_integer_features_are_refused_before_spconv():
+    v = voxels()
+    with pytest.raises(MSSFError, match=r"features: expected a floating dtype.*got torch.int64.*\.float\(\)"):
+        check_spconv_input(v.features.long(), v.coords, v.spatial_shape, 1)
 
 
 def test_zero_voxels_are_refused_before_spconv():

@@ -178,7 +178,9 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
     stage_keys = {}
     for enc, maps, ignore in stages:
         keys = [k for k in theirs if k.startswith(enc + ".") and k not in ignored and k not in renamed]
-        converted = official_to_ours({k: theirs[k] for k in keys}, maps, ignore)
+        # strict=False: what a stage lacks is counted below, against the whole model (report.missing),
+        # after the unknown tensors of a wrong layout are named
+        converted = official_to_ours({k: theirs[k] for k in keys}, maps, ignore, strict=False)
         for m in maps:  # the name pairs (the converter's rules, per module)
             mine = [k for k in keys if k.startswith(m.theirs + ".")]
             rules = dict(m.rules([k[len(m.theirs) + 1:] for k in mine]))

@@ -40,16 +40,17 @@ _FX_MESSAGE = "is_fx_tracing will return true"
 _INDEXING_MESSAGE = "Using a non-tuple sequence for multidimensional indexing"
 
 
-#: feature dtypes spconv's kernels handle (its CPU kernels get float64 wrong, and it has no integer path)
-_SPCONV_FEATURE_DTYPES = (torch.float32, torch.float16, torch.bfloat16)
+#: feature dtypes spconv's kernels handle (no integer path; float64 runs on the CPU, checked against a dense
+#: conv3d in tests/test_spconv_dense_reference.py and the float64 parity tests of the authors' stages)
+_SPCONV_FEATURE_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 
 
 def check_spconv_input(features: Tensor, coords: Tensor, spatial_shape, batch_size: int,
                        name: str = "voxels", expected_shape=None) -> None:
     """Our error, before spconv runs, for what spconv would fail on with its own internal error.
 
-    Checks (shapes and dtypes only, no data read): ``features`` a floating ``(N, C)`` tensor in float32
-    / float16 / bfloat16 (not float64); ``coords`` an int32 ``(N, 4)`` tensor; ``N > 0`` (spconv cannot
+    Checks (shapes and dtypes only, no data read): ``features`` a floating ``(N, C)`` tensor (float32,
+    float64, float16 or bfloat16); ``coords`` an int32 ``(N, 4)`` tensor; ``N > 0`` (spconv cannot
     run on zero voxels); and, with ``expected_shape`` (the network's ``(D, H, W)``), ``spatial_shape``
     equal to it, naming the axis order when it is a permutation of it.
 
@@ -63,9 +64,8 @@ def check_spconv_input(features: Tensor, coords: Tensor, spatial_shape, batch_si
         raise MSSFError(f"{name}.features: expected an (N, C) tensor for spconv, got {got}")
     if features.dtype not in _SPCONV_FEATURE_DTYPES:
         raise MSSFError(
-            f"{name}.features: expected dtype float32, float16 or bfloat16 for spconv, got {features.dtype}"
-            + (" (spconv's kernels do not handle float64: convert with .float())"
-               if features.dtype == torch.float64 else "")
+            f"{name}.features: expected a floating dtype (float32, float64, float16 or bfloat16) for spconv, "
+            f"got {features.dtype}; convert with .float()"
         )
     if not isinstance(coords, Tensor) or coords.dim() != 2 or coords.shape[1] != 4:
         got = tuple(coords.shape) if isinstance(coords, Tensor) else type(coords).__name__
