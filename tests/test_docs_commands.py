@@ -60,6 +60,9 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
     ("docs/index.md", 'pip install "mssf-blocks[plot]"'): _NOT_PUBLISHED,
     ("README.md", "make demo"): "6-10 minutes; tests/examples/test_train_demo.py runs the demo script with --quick "
                                 "(and docs/demo.md's --quick line runs here)",
+    ("docs/real-data.md", 'pip install "vod-tudelft==1.0.3" numba'):
+        "installs from the package registry (network; changes the environment); `make test` installs vod-tudelft --no-deps and numba, and "
+        "tests/examples/test_evaluation_vod_kit.py loads the kit's evaluation modules by path (no k3d)",
     ("docs/index.md", "make demo"): "as README.md's `make demo`",
     ("README.md", "make test"): "the suite this test is part of",
     ("docs/index.md", "make test"): "the suite this test is part of",
