@@ -192,13 +192,18 @@ def substitute(text: str, tmp: Path, replace: Optional[Dict[str, str]] = None) -
 
 
 def run_command(command: Command, clone: Path, replace: Optional[Dict[str, str]] = None,
-                timeout: float = 300) -> subprocess.CompletedProcess:
-    """Run ``command`` in ``clone`` (see the module docstring); raises ``AssertionError`` naming the doc
-    line, the command as run and its output's tail when it exits non-zero."""
+                timeout: float = 300, path_first: Sequence[Path] = (), pythonpath: Optional[Path] = None
+                ) -> subprocess.CompletedProcess:
+    """Run ``command`` in ``clone`` (see the module docstring; the placeholders' trees are expected beside
+    it, ``path_first`` goes before this interpreter's ``bin/`` on ``PATH``, ``pythonpath`` is the only
+    ``PYTHONPATH``); raises ``AssertionError`` naming the doc line, the command as run and its output's
+    tail when it exits non-zero."""
     text = substitute(command.text, clone.parent, replace)
-    bindir = str(Path(sys.executable).parent)
-    env = dict(os.environ, PATH=bindir + os.pathsep + os.environ.get("PATH", ""), OMP_NUM_THREADS="1")
+    bindirs = [str(p) for p in path_first] + [str(Path(sys.executable).parent)]
+    env = dict(os.environ, PATH=os.pathsep.join(bindirs + [os.environ.get("PATH", "")]), OMP_NUM_THREADS="1")
     env.pop("PYTHONPATH", None)
+    if pythonpath is not None:
+        env["PYTHONPATH"] = str(pythonpath)
     r = subprocess.run(["bash", "-e", "-o", "pipefail", "-c", text], cwd=clone, env=env, capture_output=True,
                        text=True, timeout=timeout)
     if r.returncode != 0:
