@@ -183,11 +183,17 @@ def test_documented_commands_run(page, clone, request):
     assert ran
 
 
-def test_a_broken_command_fails(clone):
-    """The runner fails, naming the doc line, on a deliberately broken copy of a documented command (an
-    option misspelt, as a renamed CLI option would leave it), and passes on the original."""
-    good = next(c for c in ALL_COMMANDS if c.text == "mssf train --help")
-    run_command(good, clone)
-    broken = Command(good.file, good.line, "mssf train --data-rot /data/view_of_delft --help-me")
-    with pytest.raises(AssertionError, match=rf"{good.file}:{good.line}: the documented command failed"):
+def test_a_broken_command_fails(clone, tmp_path):
+    """A deliberately broken copy of README.md (its training line with an option misspelt, as a renamed
+    CLI option would leave it): the runner fails on it, naming the copy's line (the original line runs in
+    ``test_documented_commands_run[README.md]``)."""
+    readme = (clone / "README.md").read_text(encoding="utf-8")
+    line = "mssf train --dataset vod --data-root /data/view_of_delft --out outputs/vod"
+    assert readme.count(line) == 1
+    (tmp_path / "README.md").write_text(readme.replace(line, line.replace("--data-root", "--data-rot")))
+    broken = next(c for c in shell_commands(tmp_path / "README.md", root=tmp_path) if "--data-rot" in c.text)
+    original = next(c for c in ALL_COMMANDS if c.key == ("README.md", line))
+    assert broken.line == original.line
+    with pytest.raises(AssertionError, match=rf"README.md:{original.line}: the documented command failed"
+                                             r"(.|\n)*unrecognized arguments: --data-rot"):
         run_command(broken, clone)
