@@ -21,6 +21,8 @@ command is gone.
 
 from __future__ import annotations
 
+import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Dict, Tuple
@@ -195,6 +197,12 @@ def test_classification_catches_a_new_command(tmp_path):
 
 @pytest.fixture(scope="module")
 def clone(tmp_path_factory):
+    bindir = Path(sys.executable).parent
+    if shutil.which("mssf", path=str(bindir)) is None:  # the docs assume an install (README, "Install")
+        msg = f"no `mssf` script beside {sys.executable}: the documented commands need pip install -e \".[examples]\""
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
     return make_clone(tmp_path_factory.mktemp("docs_commands"))
 
 
