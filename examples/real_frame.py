@@ -7,7 +7,8 @@ pyramid (average-pooled RGB at strides 4, 8, 16; no learned weights) with ``SFF`
 ``mssf_blocks.fusion``, prints what it computed and writes a PNG: the image with radar points coloured
 by depth, labelled 2D boxes, projected 3D boxes and voxel centroids per stride, plus a bird's-eye view.
 
-Usage::
+Needs the ``examples`` and ``plot`` extras (``pip install -e ".[examples,plot]"`` from a clone: matplotlib
+draws the figure; without it the script says so and exits). Usage::
 
     python examples/real_frame.py --data-root ../shared/realdata/vod --frame 00549 --out /tmp/real_frame
 
@@ -277,6 +278,11 @@ def main(argv: Sequence[str] | None = None) -> None:
     parser.add_argument("--sensor", default="radar", help="radar, radar_3frames or radar_5frames")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    try:  # before any work: the figure needs matplotlib, which the examples extra does not install
+        import matplotlib  # noqa: F401
+    except ImportError:
+        sys.exit("examples/real_frame.py draws its figure with matplotlib, which is not installed: "
+                 "pip install \"mssf-blocks[plot]\" (from a clone: pip install -e \".[examples,plot]\")")
     run(args.data_root, args.frame, args.out, args.sensor, args.seed)
 
 

@@ -102,13 +102,25 @@ def test_onnx_export_of_fusion_block_runs_in_onnxruntime(tmp_path):
     pytest.importorskip("onnxscript")
     block = FusionBlock(SFF([8, 8], 16)).eval()
     vox, inputs, _ = _scene(COUNTS[0], 0)
+    # the names docs/deployment.md passes (2 levels here): without them the exporter's are unstable
+    input_names = ["voxel_features", "voxel_coords", "image_level_0", "image_level_1", "lidar2img", "points",
+                   "points_batch"]
     program = torch.onnx.export(block, (vox, inputs), dynamic_shapes=(VOXELS, INPUTS), dynamo=True,
-                                opset_version=18, verbose=False)
+                                opset_version=18, verbose=False, input_names=input_names,
+                                output_names=["fused_features", "fused_coords"])
     path = tmp_path / "block.onnx"
     program.save(str(path))
     import onnx
 
     model = onnx.load(str(path))
+
+    def dims(v):
+        return [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
+
+    assert [(v.name, dims(v)) for v in model.graph.input] == [
+        ("voxel_features", ["N", 16]), ("voxel_coords", ["N", 4]), ("image_level_0", [1, 8, 24, 32]),
+        ("image_level_1", [1, 8, 12, 16]), ("lidar2img", [1, 3, 4]), ("points", ["P", 3]), ("points_batch", ["P"])]
+    assert [(v.name, dims(v)) for v in model.graph.output] == [("fused_features", ["N", 16]), ("fused_coords", ["N", 4])]
     assert "GridSample" in {node.op_type for node in model.graph.node}  # what TensorRT needs (opset >= 16)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     names = [i.name for i in session.get_inputs()]

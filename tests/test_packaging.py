@@ -3,7 +3,9 @@
 Both are built (PEP 517, setuptools, no network) from a copy of the source tree. Checks:
 
 * wheel: ``mssf_blocks`` and ``mssf_examples`` (every module of both), nothing else; unpacked
-  outside the repository, ``python -m mssf_examples --help`` runs from it; the ``examples`` extra
+  outside the repository, ``python -m mssf_examples --help`` runs from it; ``pip install`` of it writes the
+  ``mssf`` console script, which runs the same CLI, and the README's ``mssf train`` / ``mssf eval`` lines run
+  with it on a generated View-of-Delft tree; the ``examples`` extra
   lists exactly the third-party packages ``mssf_examples`` imports beyond the core dependencies;
 * sdist: every file of the source tree (tests with conftest.py and sub-folders, docs, examples,
   benchmarks, Makefile, mkdocs.yml), and pytest collects the suite from the unpacked sdist with no error.
@@ -118,6 +120,62 @@ def test_installed_wheel_runs_the_cli_outside_the_repository(built, tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "usage: python -m mssf_examples" in r.stdout and "{train,eval,convert-authors}" in r.stdout
+
+
+def test_wheel_installs_the_mssf_console_script(built, tmp_path):
+    """``pip install`` of the wheel (offline, no dependencies) writes an ``mssf`` script that runs the
+    same CLI as ``python -m mssf_examples`` (the README's install paths promise the command)."""
+    _, _, _, wheel = built
+    with zipfile.ZipFile(wheel) as z:
+        ep = z.read(next(n for n in z.namelist() if n.endswith(".dist-info/entry_points.txt"))).decode()
+    assert re.search(r"^\[console_scripts\]\s*^mssf = mssf_examples\.__main__:entry$", ep, re.M), ep
+    target = tmp_path / "target"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
+                        "--target", str(target), str(wheel)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    script = target / "bin" / "mssf"
+    assert script.is_file(), sorted(p.name for p in target.iterdir())
+    pytest.importorskip("spconv")
+    env = dict(os.environ, PYTHONPATH=str(target))
+    r = subprocess.run([str(script), "--help"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "{train,eval}" in r.stdout
+    r = subprocess.run([str(script), "train", "--dataset", "nope"], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 2 and "--dataset" in r.stderr, r.stderr  # argparse's error, through the script
+
+
+def test_readme_train_and_eval_run_from_the_installed_wheel(built, tmp_path):
+    """The README's "On your own data" commands, as printed (``/data/view_of_delft`` -> a generated VoD
+    tree; the training run shortened as tests/test_docs_commands.py shortens it), with the wheel's ``mssf``
+    script and packages only (installed with ``--target``, run outside the repository)."""
+    pytest.importorskip("spconv")
+    sys.path.insert(0, str(REPO / "tests"))
+    from doc_commands import ALL_COMMANDS, run_command, write_vod_and_tj4d_trees
+    from test_docs_commands import SHORTENED
+
+    _, _, _, wheel = built
+    target = tmp_path / "target"
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index",
+                        "--target", str(target), str(wheel)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    write_vod_and_tj4d_trees(tmp_path / "data")
+    work = tmp_path / "work"
+    work.mkdir()
+    readme = [c for c in ALL_COMMANDS if c.file == "README.md" and c.text.startswith("mssf ")]
+    assert [c.text.split()[1] for c in readme] == ["train", "eval"], [c.text for c in readme]
+    for c in readme:
+        r = run_command(c, work, SHORTENED.get(c.key, ({}, ""))[0], path_first=[target / "bin"], pythonpath=target)
+    import json
+
+    val = work / "outputs" / "vod" / "val"
+    assert json.loads((val / "metrics.json").read_text())["protocol"] == "vod"
+    assert sorted(p.stem for p in (val / "predictions").iterdir()) == ["00104", "00105"]  # the val frames
+    # and it was the wheel's code that ran, not the repository's editable install
+    env = dict(os.environ, PYTHONPATH=str(target))
+    r = subprocess.run([sys.executable, "-c", "import mssf_examples.cli as c; print(c.__file__)"], cwd=work, env=env,
+                       capture_output=True, text=True)
+    assert Path(r.stdout.strip()).resolve().is_relative_to(target.resolve()), r.stdout + r.stderr
 
 
 def test_sdist_is_the_whole_source_tree(built):

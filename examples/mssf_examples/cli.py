@@ -1,10 +1,11 @@
 """Train and evaluate the MSSF example detectors on a View-of-Delft or TJ4DRadSet download.
 
-Run from the repository root (``examples/`` must be on the import path)::
+After ``pip install -e ".[examples]"`` (or the wheel), as ``mssf`` or ``python -m mssf_examples``; with no
+install, from the repository root, ``PYTHONPATH=src:examples python -m mssf_examples``::
 
-    PYTHONPATH=examples python -m mssf_examples train --dataset vod --data-root /data/view_of_delft \\
+    mssf train --dataset vod --data-root /data/view_of_delft \\
         --detector pointpillars --out outputs/vod_pointpillars
-    PYTHONPATH=examples python -m mssf_examples eval --checkpoint outputs/vod_pointpillars/checkpoint.pt \\
+    mssf eval --checkpoint outputs/vod_pointpillars/checkpoint.pt \\
         --data-root /data/view_of_delft --split val --out outputs/vod_pointpillars/val
 
 ``train`` reads the ``--split`` frames with :class:`~mssf_examples.kitti_io.KittiFormatDataset`, trains

@@ -1,7 +1,7 @@
 """Thread defaults of the demo, the training / evaluation CLI and the test suite, in one place.
 
 These are machine-dependent choices; ``benchmarks/threads.py`` measured them (numbers in
-``docs/performance.md``, "Threads under load"). Imports nothing, so that a script can read it before
+``docs/performance-history.md``, "Threads under load"). Imports nothing, so that a script can read it before
 torch is imported.
 
 On a 2-core machine (torch 2.13 CPU, libgomp), demo image pre-training steps took:

@@ -96,3 +96,17 @@ def test_real_frame_missing_root_is_a_clear_error(tmp_path):
     spec.loader.exec_module(mod)
     with pytest.raises(SystemExit, match="not found"):
         mod.run(tmp_path / "missing", "00549", tmp_path / "out")
+
+
+def test_real_frame_without_matplotlib_names_the_extra(tmp_path, monkeypatch):
+    """The figure needs matplotlib (the ``plot`` extra, not ``examples``): without it the script says so
+    before reading any frame, instead of failing with a traceback after the work."""
+    spec = importlib.util.spec_from_file_location("real_frame_example_nompl", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
+    ran = []
+    monkeypatch.setattr(mod, "run", lambda *a, **k: ran.append(a))
+    with pytest.raises(SystemExit, match=r"matplotlib.*mssf-blocks\[plot\]"):
+        mod.main(["--data-root", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert not ran
