@@ -11,9 +11,12 @@ Import it from a config (mmengine runs ``custom_imports`` before building anythi
             num_fusion_blocks=2, image_channels=[256, 256, 256, 256]),
         ...)
 
-Importing registers :class:`MSSFSparseEncoder` when mmdet3d is importable and does nothing otherwise
-(:func:`register_mmdet3d_modules` returns whether it registered). The encoder itself is a plain
-``nn.Module`` and needs neither mmdet3d nor mmengine.
+Importing this module imports ``mmdet3d.registry`` (to register) and registers :class:`MSSFSparseEncoder`
+and :class:`~mssf_blocks.integrations.mmdet3d_pillars.MSSFPillarEncoder`; when mmcv's compiled ops are
+installed it also imports ``mmdet3d.models`` and registers
+:class:`~mssf_blocks.integrations.mmdet3d_detector.MSSFDetector`. Without mmdet3d it does nothing
+(:func:`register_mmdet3d_modules` returns whether it registered). The encoders are plain ``nn.Module`` s
+and need neither mmdet3d nor mmengine.
 """
 
 from __future__ import annotations
@@ -25,8 +28,9 @@ from torch import Tensor, nn
 from ..errors import MSSFError
 from . import _backbones
 from .mmdet3d import fusion_inputs_from_mmdet3d
+from .mmdet3d_pillars import MSSFPillarEncoder
 
-__all__ = ["MSSFSparseEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
+__all__ = ["MSSFSparseEncoder", "MSSFPillarEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
 
 
 class MSSFSparseEncoder(nn.Module):
@@ -89,6 +93,7 @@ class MSSFSparseEncoder(nn.Module):
             )
         self.sparse_shape = list(self.net.input_shape)
         self.in_channels = int(in_channels)
+        self.image_channels = None if image_channels is None else [int(c) for c in image_channels]
         self.image_aug = image_aug
         self.return_middle_feats = bool(return_middle_feats)
         self.last_output = None  # the backbone output of the latest forward (for seg_loss)
@@ -151,8 +156,19 @@ class MSSFSparseEncoder(nn.Module):
                                                  [g.to(centroids) for g in boxes], origin="bottom")
 
 
-#: name -> class, registered by :func:`register_mmdet3d_modules`
-MMDET3D_MODULES = {"MSSFSparseEncoder": MSSFSparseEncoder}
+#: name -> class, registered by :func:`register_mmdet3d_modules` (``MSSFDetector`` is added there when
+#: ``mmdet3d.models`` imports, i.e. with mmcv's compiled ops)
+MMDET3D_MODULES = {"MSSFSparseEncoder": MSSFSparseEncoder, "MSSFPillarEncoder": MSSFPillarEncoder}
+
+
+def _detector() -> dict:
+    try:
+        import mmcv._ext  # noqa: F401  (mmdet3d.models needs mmcv's compiled ops)
+    except ImportError:
+        return {}
+    from .mmdet3d_detector import MSSFDetector
+
+    return {"MSSFDetector": MSSFDetector}
 
 
 def register_mmdet3d_modules(registry: Any = None) -> bool:
@@ -166,7 +182,7 @@ def register_mmdet3d_modules(registry: Any = None) -> bool:
             from mmdet3d.registry import MODELS as registry
         except ImportError:
             return False
-    for name, cls in MMDET3D_MODULES.items():
+    for name, cls in {**MMDET3D_MODULES, **_detector()}.items():
         existing = registry.module_dict.get(name)
         if existing is cls:
             continue
