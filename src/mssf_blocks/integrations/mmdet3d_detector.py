@@ -127,7 +127,8 @@ class MSSFDetector(MVXTwoStageDetector):
         fusion = dict(points=points, img_features=img_feats, batch_input_metas=batch_input_metas) \
             if self.num_fusion_blocks else {}
         if self._consumes_points:
-            x = self.pts_middle_encoder(points, **fusion) if fusion else self.pts_middle_encoder(points)
+            x = self.pts_middle_encoder(points, img_features=img_feats, batch_input_metas=batch_input_metas) \
+                if fusion else self.pts_middle_encoder(points)
         else:
             if voxel_dict is None:
                 raise MSSFError("voxels: MSSFSparseEncoder needs voxels; set Det3DDataPreprocessor(voxel=True, voxel_layer=...)")
