@@ -27,7 +27,7 @@ from mssf_blocks import MSSFError  # noqa: E402
 from mssf_blocks.integrations import mmdet3d_plugin  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-CONFIG = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d" / "mssf_second_vod_radar.py"
+CONFIG = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d" / "mssf_second_vod.py"
 SMALL = dict(voxel_size=[0.8, 0.8, 0.125], sparse_shape=[41, 64, 64], image_channels=[8, 8], msdff_heads=2,
              msdff_points=2, seg_hidden=[16])
 
