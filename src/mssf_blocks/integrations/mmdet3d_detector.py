@@ -124,6 +124,11 @@ class MSSFDetector(MVXTwoStageDetector):
                          batch_input_metas: Optional[List[dict]] = None) -> Sequence[Tensor]:
         if points is None:
             raise MSSFError("points: the batch has no 'points' (Pack3DDetInputs keys=['points', ...])")
+        cin = int(self.pts_middle_encoder.in_channels)
+        bad = [(i, tuple(p.shape)) for i, p in enumerate(points) if p.dim() != 2 or p.shape[1] != cin]
+        if bad:
+            raise MSSFError(f"points: expected (P, {cin}) per sample (pts_middle_encoder.in_channels; the pipeline's "
+                            f"LoadPointsFromFile use_dim), got {bad[:3]}")
         fusion = dict(points=points, img_features=img_feats, batch_input_metas=batch_input_metas) \
             if self.num_fusion_blocks else {}
         if self._consumes_points:
