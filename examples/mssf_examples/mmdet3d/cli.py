@@ -1,8 +1,9 @@
 """``python -m mssf_examples.mmdet3d infos|train|test``: mmdet3d training without the repository's ``tools/``.
 
 * ``infos --root DATA --sensor radar_5frames [--splits train val]``: the info files (:mod:`.infos`);
-* ``train CONFIG [--work-dir DIR] [--resume [CKPT]] [--cfg-options k=v ...]``: ``Runner.from_cfg(cfg).train()``;
-* ``test CONFIG CHECKPOINT [--work-dir DIR] [--cfg-options k=v ...]``: ``Runner.test()`` with the checkpoint.
+* ``train CONFIG [--work-dir DIR] [--data-root DIR] [--image-scale W H] [--resume [CKPT]] [--cfg-options k=v ...]``:
+  ``Runner.from_cfg(cfg).train()``;
+* ``test CONFIG CHECKPOINT [same options less --resume]``: ``Runner.test()`` with the checkpoint.
 
 What mmdet3d's ``tools/train.py`` / ``tools/test.py`` do on one machine, less launchers and AMP.
 """
@@ -10,6 +11,8 @@ What mmdet3d's ``tools/train.py`` / ``tools/test.py`` do on one machine, less la
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
 from typing import List, Optional
 
@@ -32,6 +35,8 @@ def _parser() -> argparse.ArgumentParser:
             s.add_argument("--resume", nargs="?", const="auto", default=None,
                            help="resume from the latest checkpoint of the work dir, or from the given one")
         s.add_argument("--data-root", default=None, help="the dataset folder holding the info files (overrides the config's)")
+        s.add_argument("--image-scale", nargs=2, type=int, default=None, metavar=("W", "H"),
+                       help="the network's image size (every pipeline's Resize; default the config's)")
         s.add_argument("--cfg-options", nargs="+", default=None, metavar="KEY=VALUE",
                        help="override config values (mmengine DictAction syntax)")
     return p
@@ -85,7 +90,15 @@ def main(argv: Optional[List[str]] = None) -> int:
     from mmengine.runner import Runner
 
     cfg = load_config(args.config, args.work_dir, args.cfg_options, args.data_root)
+    if args.image_scale is not None:
+        set_image_scale(cfg, args.image_scale)
     init_default_scope(cfg.get("default_scope", "mmdet3d"))
+    if args.command == "test" or getattr(args, "resume", None) is not None:
+        # mmengine 0.10.7's checkpoints hold its message hub (HistoryBuffer, numpy values), which torch >= 2.6's
+        # weights-only torch.load refuses (mmengine does not pass weights_only); load them fully, as torch < 2.6 did
+        os.environ.setdefault("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+        print("python -m mssf_examples.mmdet3d: loading the checkpoint with torch.load(weights_only=False) "
+              "(mmengine 0.10.7 checkpoints); load only checkpoints you trust", file=sys.stderr)
     if args.command == "train":
         if args.resume == "auto":
             cfg.resume, cfg.load_from = True, None
