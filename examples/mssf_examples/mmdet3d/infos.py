@@ -81,7 +81,7 @@ def frame_info(dataset: KittiFormatDataset, frame_id: str, with_labels: bool = T
             })
     label_text = paths.label.read_text() if with_labels and paths.label is not None else ""
     return {
-        "sample_idx": int(frame_id),
+        "sample_idx": int(frame_id) if str(frame_id).isdigit() else str(frame_id),  # mmengine re-numbers it
         "frame_id": str(frame_id),
         "lidar_points": {"num_pts_feats": int(frame.raw_points.shape[1]), "lidar_path": paths.points.name,
                          "Tr_velo_to_cam": tr},
