@@ -3,7 +3,7 @@
 PointPillars' fusion blocks act inside the 2D backbone (paper, "Extend to Pillar"): the BEV map of a
 block is lifted into the radar points' voxels, fused with the image and summed back. The whole
 PointPillars BEV path therefore sits behind one middle encoder that takes the points themselves
-(``consumes_points = True``): :class:`~mssf_blocks.integrations.mmdet3d_detector.MSSFDetector` passes
+(``consumes_points = True``): ``MSSFDetector`` (``mssf_examples.mmdet3d.detector``) passes
 the per-sample points instead of voxels (``Det3DDataPreprocessor(voxel=False)``, no
 ``pts_voxel_encoder``) and hands the output to ``pts_bbox_head`` directly (no ``pts_backbone`` /
 ``pts_neck``: the deblocks are mmdet3d's ``SECONDFPN``). The layers are those of

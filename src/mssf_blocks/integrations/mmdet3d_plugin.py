@@ -12,10 +12,9 @@ Import it from a config (mmengine runs ``custom_imports`` before building anythi
         ...)
 
 Importing this module imports ``mmdet3d.registry`` (to register) and registers :class:`MSSFSparseEncoder`
-and :class:`~mssf_blocks.integrations.mmdet3d_pillars.MSSFPillarEncoder`; when mmcv's compiled ops are
-installed it also imports ``mmdet3d.models`` and registers
-:class:`~mssf_blocks.integrations.mmdet3d_detector.MSSFDetector`. Without mmdet3d it does nothing
-(:func:`register_mmdet3d_modules` returns whether it registered). The encoders are plain ``nn.Module`` s
+and :class:`~mssf_blocks.integrations.mmdet3d_pillars.MSSFPillarEncoder`; without mmdet3d it does nothing
+(:func:`register_mmdet3d_modules` returns whether it registered). The detector that calls them with the
+camera inputs, ``MSSFDetector``, is registered by ``mssf_examples.mmdet3d.plugin``. The encoders are plain ``nn.Module`` s
 and need neither mmdet3d nor mmengine.
 """
 
@@ -156,19 +155,8 @@ class MSSFSparseEncoder(nn.Module):
                                                  [g.to(centroids) for g in boxes], origin="bottom")
 
 
-#: name -> class, registered by :func:`register_mmdet3d_modules` (``MSSFDetector`` is added there when
-#: ``mmdet3d.models`` imports, i.e. with mmcv's compiled ops)
+#: name -> class, registered by :func:`register_mmdet3d_modules`
 MMDET3D_MODULES = {"MSSFSparseEncoder": MSSFSparseEncoder, "MSSFPillarEncoder": MSSFPillarEncoder}
-
-
-def _detector() -> dict:
-    try:
-        import mmcv._ext  # noqa: F401  (mmdet3d.models needs mmcv's compiled ops)
-    except ImportError:
-        return {}
-    from .mmdet3d_detector import MSSFDetector
-
-    return {"MSSFDetector": MSSFDetector}
 
 
 def register_mmdet3d_modules(registry: Any = None) -> bool:
@@ -182,7 +170,7 @@ def register_mmdet3d_modules(registry: Any = None) -> bool:
             from mmdet3d.registry import MODELS as registry
         except ImportError:
             return False
-    for name, cls in {**MMDET3D_MODULES, **_detector()}.items():
+    for name, cls in MMDET3D_MODULES.items():
         existing = registry.module_dict.get(name)
         if existing is cls:
             continue

@@ -1,7 +1,8 @@
 """``MSSFDetector``: an mmdet3d MVX detector whose middle encoder is an MSSF fusion backbone.
 
-Registered in ``mmdet3d.registry.MODELS`` by :mod:`mssf_blocks.integrations.mmdet3d_plugin` when
-``mmdet3d.models`` imports (it needs mmcv's compiled ops). This module imports mmdet3d at import time.
+Registered in ``mmdet3d.registry.MODELS`` by :mod:`mssf_examples.mmdet3d.plugin` (the encoders it runs
+are the library's, registered by :mod:`mssf_blocks.integrations.mmdet3d_plugin`). This module imports
+``mmdet3d.models`` at import time (mmcv's compiled ops).
 
 What it changes against ``MVXTwoStageDetector``:
 
@@ -26,7 +27,7 @@ from torch import Tensor
 
 from mmdet3d.models.detectors.mvx_two_stage import MVXTwoStageDetector
 
-from ..errors import MSSFError
+from mssf_blocks.errors import MSSFError
 
 __all__ = ["MSSFDetector"]
 
