@@ -17,14 +17,20 @@ $(STAMP): pyproject.toml
 	# The official VoD evaluation kit, for the oracle test only; --no-deps: its visualisation extras
 	# (k3d, ...) are never used by vod.evaluation, which needs numba (in the dev extra) and numpy.
 	$(PY) -m pip install --quiet --no-deps "vod-tudelft==1.0.3"
-	# test-only (tests/integrations): mmdet3d's registry. --no-deps because the wheels' own requirements
-	# pull mmcv's compiled build and opencv-python; the registry needs only these (about a minute, measured).
-	$(PY) -m pip install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0
+	# test-only (tests/integrations): the real mmdetection3d 1.4.0 with mmcv 2.1.0's compiled CPU ops
+	# (../shared/wheels, README there says how it was built; without it the mmcv-lite fallback keeps the
+	# registry tests running and the training tests skip). --no-deps because the wheels' own requirements
+	# pull opencv-python with GUI libraries, open3d and numpy < 2; what import, train and val need follows.
+	$(PY) -m pip install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 nuscenes-devkit lyft_dataset_sdk
+	$(PY) -m pip install --quiet --no-deps $(firstword $(wildcard ../shared/wheels/mmcv-2.1.0-*.whl) mmcv-lite==2.1.0)
 	$(PY) -m pip install --quiet addict yapf termcolor rich opencv-python-headless
 	# test-only (tests/integrations): what OpenPCDet (../shared/thirdparty, unpacked by the tests) imports at
 	# module level; av2 and kornia --no-deps (their own requirements pull CUDA builds and are not imported).
 	$(PY) -m pip install --quiet scipy scikit-image easydict pyyaml SharedArray pyquaternion tensorboardX numba pandas pyarrow universal_pathlib
 	$(PY) -m pip install --quiet --no-deps av2==0.3.6 kornia==0.6.8
+	# test-only (tests/integrations): what mmdet3d's models, datasets and evaluation import at module level
+	$(PY) -m pip install --quiet scipy shapely terminaltables pycocotools tqdm matplotlib six pyquaternion \
+	    networkx plyfile scikit-image trimesh pandas scikit-learn cachetools
 	touch $(STAMP)
 
 demo: $(STAMP)

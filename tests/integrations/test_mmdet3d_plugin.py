@@ -1,12 +1,11 @@
 """The mmdet3d plugin: registration with the real ``mmdet3d.registry.MODELS``, a config file, forward/backward.
 
 The config is loaded with ``mmengine.Config.fromfile`` (which runs its ``custom_imports``, as
-``tools/train.py`` does) and the middle encoder built with ``MODELS.build``. mmdet3d 1.4 / mmdet /
-mmcv-lite are installed without their compiled ops (the Makefile's test step): ``mmdet3d.registry``
-imports, but ``mmdet3d.models`` (the registry's import location, pulled in on the first lookup)
-needs ``mmcv._ext``. The tests therefore mark that location as imported before building; what is
-looked up and built is then exactly what the plugin registered, through mmengine's own
-``build_from_cfg``. The batch is built as mmdet3d builds it: ``Det3DDataPreprocessor``'s hard
+``tools/train.py`` does) and the middle encoder built with ``MODELS.build``. These tests also run with
+mmcv-lite (no compiled ops: ``mmdet3d.registry`` imports, ``mmdet3d.models``, the registry's import
+location pulled in on the first lookup, does not), so they mark that location as imported before
+building; what is looked up and built is then exactly what the plugin registered, through mmengine's
+own ``build_from_cfg``. Whole detectors trained in the real framework: ``test_mmdet3d_train.py``. The batch is built as mmdet3d builds it: ``Det3DDataPreprocessor``'s hard
 voxelization (coors ``(batch, z, y, x)``), ``HardSimpleVFE`` means, metainfo with ``lidar2img`` and
 the ``RandomFlip3D`` / ``GlobalRotScaleTrans`` keys, image levels ``(B*V, C, H, W)``.
 """
@@ -27,7 +26,7 @@ from mssf_blocks import MSSFError  # noqa: E402
 from mssf_blocks.integrations import mmdet3d_plugin  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-CONFIG = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d" / "mssf_second_vod_radar.py"
+CONFIG = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d" / "mssf_second_vod.py"
 SMALL = dict(voxel_size=[0.8, 0.8, 0.125], sparse_shape=[41, 64, 64], image_channels=[8, 8], msdff_heads=2,
              msdff_points=2, seg_hidden=[16])
 

@@ -11,9 +11,11 @@ Import it from a config (mmengine runs ``custom_imports`` before building anythi
             num_fusion_blocks=2, image_channels=[256, 256, 256, 256]),
         ...)
 
-Importing registers :class:`MSSFSparseEncoder` when mmdet3d is importable and does nothing otherwise
-(:func:`register_mmdet3d_modules` returns whether it registered). The encoder itself is a plain
-``nn.Module`` and needs neither mmdet3d nor mmengine.
+Importing this module imports ``mmdet3d.registry`` (to register) and registers :class:`MSSFSparseEncoder`
+and :class:`~mssf_blocks.integrations.mmdet3d_pillars.MSSFPillarEncoder`; without mmdet3d it does nothing
+(:func:`register_mmdet3d_modules` returns whether it registered). The detector that calls them with the
+camera inputs, ``MSSFDetector``, is registered by ``mssf_examples.mmdet3d.plugin``. The encoders are plain ``nn.Module`` s
+and need neither mmdet3d nor mmengine.
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ from torch import Tensor, nn
 from ..errors import MSSFError
 from . import _backbones
 from .mmdet3d import fusion_inputs_from_mmdet3d
+from .mmdet3d_pillars import MSSFPillarEncoder
 
-__all__ = ["MSSFSparseEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
+__all__ = ["MSSFSparseEncoder", "MSSFPillarEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
 
 
 class MSSFSparseEncoder(nn.Module):
@@ -89,6 +92,7 @@ class MSSFSparseEncoder(nn.Module):
             )
         self.sparse_shape = list(self.net.input_shape)
         self.in_channels = int(in_channels)
+        self.image_channels = None if image_channels is None else [int(c) for c in image_channels]
         self.image_aug = image_aug
         self.return_middle_feats = bool(return_middle_feats)
         self.last_output = None  # the backbone output of the latest forward (for seg_loss)
@@ -152,7 +156,7 @@ class MSSFSparseEncoder(nn.Module):
 
 
 #: name -> class, registered by :func:`register_mmdet3d_modules`
-MMDET3D_MODULES = {"MSSFSparseEncoder": MSSFSparseEncoder}
+MMDET3D_MODULES = {"MSSFSparseEncoder": MSSFSparseEncoder, "MSSFPillarEncoder": MSSFPillarEncoder}
 
 
 def register_mmdet3d_modules(registry: Any = None) -> bool:

@@ -1,0 +1,5 @@
+"""mmdetection3d 1.x support of the examples: ``MSSFDetector`` (:mod:`.detector`), View-of-Delft info files (:mod:`.infos`), ``VoDDataset``
+(:mod:`.dataset`), ``VoDMetric`` (:mod:`.metric`), their registration (:mod:`.plugin`) and the
+``python -m mssf_examples.mmdet3d infos|train|test`` entry (:mod:`.cli`). Only :mod:`.infos` works
+without mmdet3d; the others import it (docs/frameworks.md, "mmdetection3d").
+"""

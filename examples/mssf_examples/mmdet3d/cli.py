@@ -1,0 +1,111 @@
+"""``python -m mssf_examples.mmdet3d infos|train|test``: mmdet3d training without the repository's ``tools/``.
+
+* ``infos --root DATA --sensor radar_5frames [--splits train val]``: the info files (:mod:`.infos`);
+* ``train CONFIG [--work-dir DIR] [--data-root DIR] [--image-scale W H] [--resume [CKPT]] [--cfg-options k=v ...]``:
+  ``Runner.from_cfg(cfg).train()``;
+* ``test CONFIG CHECKPOINT [same options less --resume]``: ``Runner.test()`` with the checkpoint.
+
+What mmdet3d's ``tools/train.py`` / ``tools/test.py`` do on one machine, less launchers and AMP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m mssf_examples.mmdet3d", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    i = sub.add_parser("infos", help="write vod_infos_<split>.pkl from the VoD release")
+    i.add_argument("--root", required=True, help="the VoD release root (holding radar, radar_5frames, lidar)")
+    i.add_argument("--sensor", default="radar_5frames", help="radar folder (default radar_5frames)")
+    i.add_argument("--splits", nargs="+", default=["train", "val"], help="split files (default train val)")
+    i.add_argument("--out-dir", default=None, help="default <root>/<sensor>")
+    for name in ("train", "test"):
+        s = sub.add_parser(name, help=f"{name} a config with mmengine's Runner")
+        s.add_argument("config")
+        if name == "test":
+            s.add_argument("checkpoint")
+        s.add_argument("--work-dir", default=None, help="default work_dirs/<config name>")
+        if name == "train":
+            s.add_argument("--resume", nargs="?", const="auto", default=None,
+                           help="resume from the latest checkpoint of the work dir, or from the given one")
+        s.add_argument("--data-root", default=None, help="the dataset folder holding the info files (overrides the config's)")
+        s.add_argument("--image-scale", nargs=2, type=int, default=None, metavar=("W", "H"),
+                       help="the network's image size (every pipeline's Resize; default the config's)")
+        s.add_argument("--cfg-options", nargs="+", default=None, metavar="KEY=VALUE",
+                       help="override config values (mmengine DictAction syntax)")
+    return p
+
+
+def set_data_root(cfg, data_root: str) -> None:
+    """Point every dataloader and ``VoDMetric`` at ``data_root`` (the folder holding the info files)."""
+    root = str(data_root).rstrip("/") + "/"
+    for key in ("train_dataloader", "val_dataloader", "test_dataloader"):
+        if cfg.get(key) is not None:
+            cfg[key].dataset.data_root = root
+    for key in ("val_evaluator", "test_evaluator"):
+        ev = cfg.get(key)
+        if ev is not None and ev.get("type") == "VoDMetric":
+            ev.ann_file = root + Path(ev.ann_file).name
+
+
+def set_image_scale(cfg, scale) -> None:
+    """Set the ``Resize`` scale of every pipeline (the network's image size)."""
+    for key in ("train_dataloader", "val_dataloader", "test_dataloader"):
+        if cfg.get(key) is not None:
+            for step in cfg[key].dataset.pipeline:
+                if step.get("type") == "Resize":
+                    step.scale = tuple(scale)
+
+
+def load_config(config: str, work_dir: Optional[str] = None, cfg_options: Optional[List[str]] = None,
+                data_root: Optional[str] = None):
+    from mmengine.config import Config, DictAction
+
+    cfg = Config.fromfile(config)
+    if cfg_options:
+        ns = argparse.Namespace()
+        DictAction(option_strings=["--cfg-options"], dest="cfg_options")(None, ns, cfg_options)
+        cfg.merge_from_dict(ns.cfg_options)
+    if data_root is not None:
+        set_data_root(cfg, data_root)
+    cfg.work_dir = work_dir or cfg.get("work_dir") or str(Path("work_dirs") / Path(config).stem)
+    return cfg
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command == "infos":
+        from .infos import create_vod_infos
+
+        for split, path in create_vod_infos(args.root, args.sensor, args.splits, args.out_dir).items():
+            print(f"{split}: {path}")
+        return 0
+    from mmengine.registry import init_default_scope
+    from mmengine.runner import Runner
+
+    cfg = load_config(args.config, args.work_dir, args.cfg_options, args.data_root)
+    if args.image_scale is not None:
+        set_image_scale(cfg, args.image_scale)
+    init_default_scope(cfg.get("default_scope", "mmdet3d"))
+    if args.command == "test" or getattr(args, "resume", None) is not None:
+        # mmengine 0.10.7's checkpoints hold its message hub (HistoryBuffer, numpy values), which torch >= 2.6's
+        # weights-only torch.load refuses (mmengine does not pass weights_only); load them fully, as torch < 2.6 did
+        os.environ.setdefault("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+        print("python -m mssf_examples.mmdet3d: loading the checkpoint with torch.load(weights_only=False) "
+              "(mmengine 0.10.7 checkpoints); load only checkpoints you trust", file=sys.stderr)
+    if args.command == "train":
+        if args.resume == "auto":
+            cfg.resume, cfg.load_from = True, None
+        elif args.resume is not None:
+            cfg.resume, cfg.load_from = True, args.resume
+        Runner.from_cfg(cfg).train()
+    else:
+        cfg.load_from = args.checkpoint
+        Runner.from_cfg(cfg).test()
+    return 0

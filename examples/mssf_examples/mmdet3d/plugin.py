@@ -1,0 +1,24 @@
+"""Registers the mmdet3d pieces of the examples: ``MSSFDetector`` (MODELS), ``VoDDataset`` (DATASETS),
+``VoDMetric`` (METRICS), and through :mod:`mssf_blocks.integrations.mmdet3d_plugin` the MSSF encoders (MODELS).
+
+Name it in a config's ``custom_imports`` (the shipped configs under ``examples/configs/mmdet3d`` do).
+Needs mmdet3d with mmcv's compiled ops.
+"""
+
+from __future__ import annotations
+
+from mmdet3d.registry import DATASETS, METRICS, MODELS
+
+from mssf_blocks.integrations import mmdet3d_plugin
+
+from .dataset import VoDDataset
+from .detector import MSSFDetector
+from .metric import VoDMetric
+
+__all__ = ["MSSFDetector", "VoDDataset", "VoDMetric"]
+
+if not mmdet3d_plugin.REGISTERED:
+    raise ImportError("mssf_blocks.integrations.mmdet3d_plugin did not register (mmdet3d not importable)")
+for _registry, _cls in ((MODELS, MSSFDetector), (DATASETS, VoDDataset), (METRICS, VoDMetric)):
+    if _registry.module_dict.get(_cls.__name__) is not _cls:
+        _registry.register_module(name=_cls.__name__, module=_cls, force=True)

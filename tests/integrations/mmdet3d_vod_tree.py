@@ -1,0 +1,45 @@
+"""A View-of-Delft release tree of generated scenes (``radar_5frames``, ``.jpg`` images) and its mmdet3d
+info files, for the mmdet3d training tests. No licensed frames are used."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+CONFIGS = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d"
+SENSOR = "radar_5frames"
+
+
+def require_mmdet3d():
+    """Skip without mmdet3d and mmcv's compiled ops; under ``CI=true`` fail instead (the Makefile installs them)."""
+    try:
+        import mmcv._ext  # noqa: F401
+        import mmdet3d.models  # noqa: F401
+        import spconv  # noqa: F401
+    except ImportError as exc:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"CI=true but mmdet3d / mmcv's compiled ops / spconv do not import ({exc}); "
+                        "make test installs ../shared/wheels/mmcv-2.1.0-*.whl", pytrace=False)
+        pytest.skip(f"mmdet3d with mmcv's compiled ops not installed ({exc})")
+
+
+def write_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 7):
+    """``root/radar_5frames`` with ``train`` + ``val`` generated frames (jpg) and ``vod_infos_{train,val}.pkl``.
+    Returns the data root (``root/radar_5frames``)."""
+    from PIL import Image
+
+    from mssf_examples.kitti_export import write_vod_tree
+    from mssf_examples.mmdet3d.infos import create_vod_infos
+    from mssf_examples.scenes import SceneConfig, SyntheticDataset
+
+    cfg = SceneConfig(image_size=image_size, point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
+    scenes = {"train": [SyntheticDataset("train", train, cfg, seed=seed)[i] for i in range(train)],
+              "val": [SyntheticDataset("val", val, cfg, seed=seed)[i] for i in range(val)]}
+    write_vod_tree(root, scenes, sensor=SENSOR)
+    for png in (root / SENSOR / "training" / "image_2").glob("*.png"):  # the release's images are jpg
+        Image.open(png).convert("RGB").save(png.with_suffix(".jpg"), quality=95)
+        png.unlink()
+    create_vod_infos(root, SENSOR, ("train", "val"))
+    return root / SENSOR
