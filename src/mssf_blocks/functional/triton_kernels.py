@@ -56,7 +56,8 @@ def forward_kernel(
     Q, S,
     loc_sq, loc_sm, loc_sl, loc_sp, loc_sc,
     wt_sq, wt_sm, wt_sl, wt_sp,
-    M: tl.constexpr, D: tl.constexpr, L: tl.constexpr, P: tl.constexpr,
+    L, P,
+    M: tl.constexpr, D: tl.constexpr,
     BLOCK_Q: tl.constexpr, BLOCK_D: tl.constexpr,
 ):
     pid_q = tl.program_id(0)
@@ -69,12 +70,12 @@ def forward_kernel(
     img = tl.load(index_ptr + qs, mask=qmask, other=0).to(tl.int64)
     acc = tl.zeros((BLOCK_Q, BLOCK_D), dtype=tl.float32)
     head_off = m * D
-    for lvl in tl.static_range(L):
+    for lvl in range(L):
         h_l = tl.load(shapes_ptr + 2 * lvl)
         w_l = tl.load(shapes_ptr + 2 * lvl + 1)
         start = tl.load(starts_ptr + lvl).to(tl.int64)
         row_base = img * S + start
-        for pt in tl.static_range(P):
+        for pt in range(P):
             loc_off = q64 * loc_sq + m * loc_sm + lvl * loc_sl + pt * loc_sp
             u = tl.load(loc_ptr + loc_off, mask=qmask, other=0.0).to(tl.float32)
             v = tl.load(loc_ptr + loc_off + loc_sc, mask=qmask, other=0.0).to(tl.float32)
@@ -108,7 +109,8 @@ def backward_kernel(
     Q, S,
     loc_sq, loc_sm, loc_sl, loc_sp, loc_sc,
     wt_sq, wt_sm, wt_sl, wt_sp,
-    M: tl.constexpr, D: tl.constexpr, L: tl.constexpr, P: tl.constexpr,
+    L, P,
+    M: tl.constexpr, D: tl.constexpr,
     BLOCK_Q: tl.constexpr, BLOCK_D: tl.constexpr, VALUE_GRAD: tl.constexpr,
 ):
     """Gradients of :func:`forward_kernel`; ``grad_loc (Q, M, L, P, 2)`` and ``grad_wt (Q, M, L, P)``
@@ -125,12 +127,12 @@ def backward_kernel(
     g_offs = ((q64 * M + m) * D)[:, None] + cols[None, :]
     g = tl.load(grad_out_ptr + g_offs, mask=qmask[:, None] & col_mask[None, :], other=0.0).to(tl.float32)
     head_off = m * D
-    for lvl in tl.static_range(L):
+    for lvl in range(L):
         h_l = tl.load(shapes_ptr + 2 * lvl)
         w_l = tl.load(shapes_ptr + 2 * lvl + 1)
         start = tl.load(starts_ptr + lvl).to(tl.int64)
         row_base = img * S + start
-        for pt in tl.static_range(P):
+        for pt in range(P):
             loc_off = q64 * loc_sq + m * loc_sm + lvl * loc_sl + pt * loc_sp
             u = tl.load(loc_ptr + loc_off, mask=qmask, other=0.0).to(tl.float32)
             v = tl.load(loc_ptr + loc_off + loc_sc, mask=qmask, other=0.0).to(tl.float32)
@@ -172,17 +174,22 @@ def backward_kernel(
 # launch
 # ---------------------------------------------------------------------------------------------------
 def launch_config(d: int, backward: bool) -> Tuple[int, int, int]:
-    """``(BLOCK_Q, BLOCK_D, num_warps)`` for ``d`` channels per head.
+    """``(BLOCK_Q, BLOCK_D, num_warps)`` for ``d`` channels per head (``d <= MAX_HEAD_DIM``).
 
-    Chosen so that no variant spills registers on sm_80 or sm_90 (checked by the ahead-of-time compile
-    test, which compiles every ``d`` in ``(32, 64, 128, 256)``): the ``(BLOCK_Q, BLOCK_D)`` float32
-    accumulator and the corner loads of the same size are kept at 16-32 elements per thread.
-    Not yet timed on a GPU (``benchmarks/gpu_check.py``).
+    1,024 elements of the ``(BLOCK_Q, BLOCK_D)`` tile over 8 warps (4 per thread): measured with
+    ``tests/functional/triton_aot.py`` (``ptxas -v`` of the sm_80 compile, float32), the forward at
+    d = 32 used 128 registers and the backward 224, no spills; 8 elements per thread (4 warps) took
+    the forward to 239 registers and spilled the backward (52 bytes); 16 per thread (block 64 x 32,
+    4 warps) spilled both (1.2 / 1.7 KB). The compile test asserts no spill for every variant on
+    sm_80 and sm_90. Not yet timed on a GPU (``benchmarks/gpu_check.py``).
     """
     block_d = triton.next_power_of_2(max(int(d), 1))
-    elems = 2048 if backward else 4096  # (BLOCK_Q * BLOCK_D) per program
-    block_q = max(1, min(64, elems // block_d))
-    return block_q, block_d, 4
+    block_q = max(1, min(64, 1024 // block_d))
+    return block_q, block_d, 8
+
+
+#: Widest head the kernels take (wider heads are served by the grid path, see the op).
+MAX_HEAD_DIM = 256
 
 
 def _flat_args(loc: Tensor, wt: Tensor):
@@ -206,7 +213,7 @@ def deform_sample_forward(
     grid = (triton.cdiv(q, bq), m)
     forward_kernel[grid](
         value, shapes, starts, image_index, locations, weights, out, q, s, *_flat_args(locations, weights),
-        M=m, D=d, L=num_levels, P=p, BLOCK_Q=bq, BLOCK_D=bd, num_warps=warps, enable_fp_fusion=FP_FUSION,
+        num_levels, p, M=m, D=d, BLOCK_Q=bq, BLOCK_D=bd, num_warps=warps, enable_fp_fusion=FP_FUSION,
     )
     return out
 
@@ -229,7 +236,7 @@ def deform_sample_backward(
             value, shapes, starts, image_index, locations, weights, grad_out.contiguous(),
             grad_value if value_grad else grad_wt, grad_loc, grad_wt, q, value.shape[1],
             *_flat_args(locations, weights),
-            M=m, D=d, L=num_levels, P=p, BLOCK_Q=bq, BLOCK_D=bd, VALUE_GRAD=value_grad, num_warps=warps,
+            num_levels, p, M=m, D=d, BLOCK_Q=bq, BLOCK_D=bd, VALUE_GRAD=value_grad, num_warps=warps,
             enable_fp_fusion=FP_FUSION,
         )
     return (
