@@ -26,15 +26,15 @@ from ._fusion_utils import (
 )
 from ._static import use_static_path
 from .errors import MSSFError
-from .functional.deform_project import ms_deform_sample_project
 from .functional.plan_costs import msdff_auto_method
+from .functional.sampling_op import sample_project_unchecked
 from .functional.sampling import camera_mean, ms_deform_sample
 from .functional.static import grid_sample_static
 from .geometry import CentroidProjection
 
 __all__ = ["MSDFF"]
 
-_METHODS = ("auto", "reference", "fast", "grid")
+_METHODS = ("auto", "reference", "fast", "grid", "touched", "triton")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
@@ -86,6 +86,11 @@ class MSDFF(nn.Module):
             ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path
             (``"reference"`` becomes ``"grid"`` while a graph is captured: it sizes per-image lists by the
             data).
+            ``"touched"`` / ``"triton"``: force that backend of the sampling op
+            (:func:`~mssf_blocks.functional.sampling_op.deform_sample_project`; ``"auto"`` lets the op
+            pick the device's, ``plan_costs.SAMPLING_BACKENDS``; ``$MSSF_SAMPLING_BACKEND`` forces one
+            for ``"auto"``); ``"triton"`` needs CUDA tensors (or the interpreter) and becomes
+            ``"grid"`` while a graph is captured.
         value_projection: the order used by ``method`` ``"fast"`` / ``"reference"``:
             ``"after_sampling"`` (default; sample the raw channels per head, then project; cost
             ``O(N * M * L * P * C)``, independent of the image size) or ``"before_sampling"``
@@ -269,9 +274,13 @@ class MSDFF(nn.Module):
         uv = uv.to(dtype)
         static = use_static_path()
         method = self.method
-        if method == "auto" or (static and method == "reference"):
+        if method == "auto" or (static and method in ("reference", "triton")):
             method = msdff_auto_method(uv.device.type, static)
-        static = static or method == "grid"  # (the grid plan never synchronises with the device)
+            method = "sample_op" if method == "touched" else method  # (the op picks the device's backend)
+            method = "sample_op" if method == "grid" and not static else method
+        # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
+        # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
+        static = static or method in ("grid", "triton") or (method == "sample_op" and uv.device.type != "cpu")
         with _autocast_off(uv.device.type):
             # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
             # depend on the query only, so they are computed per voxel and gathered.
@@ -309,16 +318,16 @@ class MSDFF(nn.Module):
             w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
             b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
             raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-            if method == "grid":
+            if method == "grid" and static:
                 # Project every pixel (all heads in one GEMM), then grid_sample per head.
                 values = [F.linear(r[:, 0].permute(0, 2, 3, 1), w_heads.flatten(0, 1), b_heads.flatten())
                           .unflatten(-1, w_heads.shape[:2]).permute(0, 3, 4, 1, 2) for r in raw]  # (I, M, d, H, W)
                 heads = grid_sample_static(values, image_index, locations, weights)
-            elif method == "touched":
-                # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
-                # of project-all / project-touched / sample-touched-then-project (exact, bias included).
-                heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
-                                                 method="touched")
+            elif method in ("sample_op", "touched", "triton"):
+                # The sampling op: the device's backend (functional/sampling_op.py; CPU: per level the
+                # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.
+                heads = sample_project_unchecked(raw, image_index, locations, weights, w_heads, b_heads,
+                                                 "auto" if method == "sample_op" else method)
             elif self.value_projection == "after_sampling":
                 sampled, mass = ms_deform_sample(
                     raw, image_index, locations, weights, method=method, return_mass=True

@@ -174,7 +174,8 @@ def backward_kernel(
 # launch
 # ---------------------------------------------------------------------------------------------------
 def launch_config(d: int, backward: bool) -> Tuple[int, int, int]:
-    """``(BLOCK_Q, BLOCK_D, num_warps)`` for ``d`` channels per head (``d <= MAX_HEAD_DIM``).
+    """``(BLOCK_Q, BLOCK_D, num_warps)`` for ``d`` channels per head (``d <= 256``, the op's
+    ``TRITON_MAX_HEAD_DIM``).
 
     1,024 elements of the ``(BLOCK_Q, BLOCK_D)`` tile over 8 warps (4 per thread): measured with
     ``tests/functional/triton_aot.py`` (``ptxas -v`` of the sm_80 compile, float32), the forward at
@@ -186,10 +187,6 @@ def launch_config(d: int, backward: bool) -> Tuple[int, int, int]:
     block_d = triton.next_power_of_2(max(int(d), 1))
     block_q = max(1, min(64, 1024 // block_d))
     return block_q, block_d, 8
-
-
-#: Widest head the kernels take (wider heads are served by the grid path, see the op).
-MAX_HEAD_DIM = 256
 
 
 def _flat_args(loc: Tensor, wt: Tensor):
