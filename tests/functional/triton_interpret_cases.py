@@ -180,3 +180,16 @@ def test_msdff_triton_matches_the_float64_module_reference():
     out = mod32(query.float(), [lvl.float() for lvl in levels], make_projection(uv.float(), valid, batch_index))
     torch.testing.assert_close(out.to(F64), ref.detach(), atol=1e-4, rtol=1e-4)
     assert out[0].abs().max() == 0  # seen by no camera: exact zeros
+
+
+def test_gpu_check_sampling_stage_runs_the_kernels_and_matches_the_grid_path():
+    """benchmarks/_sampling_stage.py's Triton code path (toy sizes), as the GPU run will take it."""
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    from _sampling_stage import sampling_benchmark
+
+    rows = sampling_benchmark(torch.device("cpu"), smoke=True, repeats=1)
+    assert [r["dtype"] for r in rows] == ["float32", "bfloat16"]
+    assert rows[0]["triton_max_abs_diff"] < 1e-5 and rows[1]["triton_max_abs_diff"] < 5e-2
+    assert all(r["triton_fwd_bwd_ms"] > 0 for r in rows)
