@@ -38,6 +38,19 @@ _METHODS = ("auto", "reference", "fast", "grid", "touched", "triton")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
+def _compiling_only() -> bool:
+    """``torch.compile`` (dynamo) is capturing, not an exporter: the sampling op is one opaque node there
+    (the device's backend, e.g. the CPU plans, instead of the static grid plan), while exports (torch.export,
+    ONNX, tracing) keep the grid plan of standard operators."""
+    compiler = getattr(torch, "compiler", None)
+    if compiler is None or not compiler.is_compiling():
+        return False
+    if hasattr(compiler, "is_exporting") and compiler.is_exporting():
+        return False
+    onnx = getattr(torch, "onnx", None)
+    return not (onnx is not None and onnx.is_in_onnx_export())
+
+
 class MSDFF(nn.Module):
     """Multi-scale deformable feature fusion (paper eq. 9-10), Deformable-DETR cross-attention.
 
@@ -277,7 +290,7 @@ class MSDFF(nn.Module):
         if method == "auto" or (static and method in ("reference", "triton")):
             method = msdff_auto_method(uv.device.type, static)
             method = "sample_op" if method == "touched" else method  # (the op picks the device's backend)
-            method = "sample_op" if method == "grid" and not static else method
+            method = "sample_op" if method == "grid" and (not static or _compiling_only()) else method
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
         static = static or method in ("grid", "triton") or (method == "sample_op" and uv.device.type != "cpu")

@@ -50,6 +50,7 @@ ENV_VAR = "MSSF_SAMPLING_BACKEND"
 #: Widest head ``d`` the Triton kernels take (their compile test covers up to it; wider: the grid path).
 TRITON_MAX_HEAD_DIM = 256
 _TRITON_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
+_HAS_TRITON = importlib.util.find_spec("triton") is not None  # (looked up once: no import of triton)
 _TRITON_FAILURE: List[str] = []  # the cause, once a launch failed on a GPU (the grid path serves since)
 
 
@@ -66,7 +67,7 @@ def _triton_unusable(device_type: str, dtype: torch.dtype, head_dim: int) -> Opt
         return f"the kernels take {[str(t) for t in _TRITON_DTYPES]}, got {dtype}"
     if head_dim > TRITON_MAX_HEAD_DIM:
         return f"the kernels take heads of at most {TRITON_MAX_HEAD_DIM} channels, got d = {head_dim}"
-    if importlib.util.find_spec("triton") is None:
+    if not _HAS_TRITON:
         return "triton is not installed"
     return None
 
