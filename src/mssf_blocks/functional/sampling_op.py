@@ -50,7 +50,10 @@ ENV_VAR = "MSSF_SAMPLING_BACKEND"
 #: Widest head ``d`` the Triton kernels take (their compile test covers up to it; wider: the grid path).
 TRITON_MAX_HEAD_DIM = 256
 _TRITON_DTYPES = (torch.float32, torch.bfloat16, torch.float16)
-_HAS_TRITON = importlib.util.find_spec("triton") is not None  # (looked up once: no import of triton)
+try:  # (looked up once, at import: no import of triton, and nothing to trace under torch.compile)
+    _HAS_TRITON = importlib.util.find_spec("triton") is not None
+except (ImportError, ValueError):  # e.g. an import hook that blocks it
+    _HAS_TRITON = False
 _TRITON_FAILURE: List[str] = []  # the cause, once a launch failed on a GPU (the grid path serves since)
 
 
