@@ -11,7 +11,8 @@ named in the report. Then, each stage timed and bounded so the whole finishes in
 on one modern GPU (8 when nothing needs installing):
 
 1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests
-   of ``tests/test_fusion.py``, ``tests/test_msdff.py`` and ``tests/functional/test_sampling.py``; the
+   of ``tests/test_fusion.py``, ``tests/test_msdff.py``, ``tests/functional/test_sampling.py`` and the
+   sampling op's Triton-vs-grid check (``tests/functional/test_sampling_op.py``); the
    ``device`` fixture adds ``cuda``), the host-synchronisation count, the pinned-memory test, the
    distributed/CLI option tests (``-k "cuda or sync or pin or runtime or env"``) - pass/fail counts and
    the failures' names;
@@ -148,6 +149,7 @@ def run_tests(smoke: bool) -> Dict[str, object]:
     """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode)."""
     files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/test_msdff.py",
                                                            "tests/functional/test_sampling.py",
+                                                           "tests/functional/test_sampling_op.py",
                                                            "tests/examples/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
     cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]

@@ -189,3 +189,28 @@ def test_op_compiles_fullgraph_dynamic_and_exports():
     ep = torch.export.export(M(), (*values, *rest))
     assert "mssf_blocks.deform_sample_project" in str(ep.graph)
     torch.testing.assert_close(ep.module()(*values, *rest), naive_project(values, *rest), atol=1e-12, rtol=1e-10)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="a CUDA GPU (benchmarks/gpu_check.py runs this)")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_triton_backend_on_cuda_matches_the_grid_backend(dtype):
+    """The compiled kernels on a GPU: output and every gradient against the grid backend on the same
+    device (float64 grid for the reference), no fallback warning."""
+    dev = torch.device("cuda")
+    args = inputs(seed=6, q=300, m=8, d=32, c=16, sizes=((40, 60), (20, 30), (10, 15), (5, 8)), p=4)
+    rounded = [[v.to(dtype).to(F64) for v in args[0]], args[1], *(t.to(dtype).to(F64) for t in args[2:])]
+    ref_args = with_grad([[v.to(dev) for v in rounded[0]], *(t.to(dev) for t in rounded[1:])])
+    ref = torch.ops.mssf_blocks.deform_sample_project(*ref_args, "grid")
+    grad = torch.randn(ref.shape, dtype=F64, generator=torch.Generator().manual_seed(8)).to(dev)
+    ref.backward(grad)
+    targs = with_grad([[v.to(dev, dtype) for v in args[0]], args[1].to(dev), *(t.to(dev, dtype) for t in args[2:])])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = deform_sample_project(*targs, backend="triton")
+        out.backward(grad.to(dtype))
+    rel = 1e-5 if dtype == torch.float32 else 3e-2  # (bf16: rounded outputs and gradients)
+    for name, got, want in [("out", out, ref), *zip(["values"] * 4 + ["locations", "weights", "proj_weight", "proj_bias"],
+                                                    [v.grad for v in targs[0]] + [t.grad for t in targs[2:]],
+                                                    [v.grad for v in ref_args[0]] + [t.grad for t in ref_args[2:]])]:
+        err = (got.double() - want.detach()).abs().max().item()
+        assert err <= rel * want.abs().max().item() + 1e-6, (name, err)

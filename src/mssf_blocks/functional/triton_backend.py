@@ -11,6 +11,7 @@ through the projection. No input validation: the op checks at its entry.
 
 from __future__ import annotations
 
+import functools
 from typing import List, Optional, Tuple
 
 import torch
@@ -19,14 +20,22 @@ from torch import Tensor
 from . import triton_kernels as tk
 
 
-def _level_table(levels: List[Tensor], device: torch.device) -> Tuple[Tensor, Tensor, List[int]]:
-    sizes = [(int(v.shape[-2]), int(v.shape[-1])) for v in levels]
+@functools.lru_cache(maxsize=64)
+def _level_tensors(sizes: Tuple[Tuple[int, int], ...], device: torch.device) -> Tuple[Tensor, Tensor]:
+    """``(L, 2)`` sizes and ``(L,)`` start rows on ``device``, made once per level layout (a host-to-device
+    copy per call would synchronise the host with the device)."""
     starts, acc = [], 0
     for h, w in sizes:
         starts.append(acc)
         acc += h * w
-    shapes = torch.tensor(sizes, dtype=torch.int32, device=device)
-    return shapes, torch.tensor(starts, dtype=torch.int32, device=device), [h * w for h, w in sizes]
+    return (torch.tensor(sizes, dtype=torch.int32, device=device),
+            torch.tensor(starts, dtype=torch.int32, device=device))
+
+
+def _level_table(levels: List[Tensor], device: torch.device) -> Tuple[Tensor, Tensor, List[int]]:
+    sizes = tuple((int(v.shape[-2]), int(v.shape[-1])) for v in levels)
+    shapes, starts = _level_tensors(sizes, device)
+    return shapes, starts, [h * w for h, w in sizes]
 
 
 def _project(levels: List[Tensor], proj_weight: Tensor, proj_bias: Tensor) -> Tuple[Tensor, Tensor]:
