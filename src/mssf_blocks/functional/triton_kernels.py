@@ -202,6 +202,7 @@ def deform_sample_forward(
     ``weights (Q, M, L, P)`` with any strides. No validation (the op checks at its entry)."""
     q, m, num_levels, p, _ = locations.shape
     num_images, s, _, d = value.shape
+    value = value.contiguous()  # (a no-op for the op's buffer; the kernels read (I, S, M, d) rows)
     out = value.new_empty(q, m, d)
     if q == 0:
         return out
@@ -209,7 +210,7 @@ def deform_sample_forward(
     bq = block_q or bq
     grid = (triton.cdiv(q, bq), m)
     forward_kernel[grid](
-        value, shapes, starts, image_index, locations, weights, out, q, s, *_flat_args(locations, weights),
+        value, shapes, starts, image_index.contiguous(), locations, weights, out, q, s, *_flat_args(locations, weights),
         num_levels, p, M=m, D=d, BLOCK_Q=bq, BLOCK_D=bd, num_warps=warps, enable_fp_fusion=FP_FUSION,
     )
     return out
@@ -222,6 +223,7 @@ def deform_sample_backward(
     """``(grad_value or None, grad_locations, grad_weights)``, each in its input's dtype."""
     q, m, num_levels, p, _ = locations.shape
     d = value.shape[-1]
+    value = value.contiguous()
     grad_loc = torch.zeros(q, m, num_levels, p, 2, device=value.device, dtype=torch.float32)
     grad_wt = torch.zeros(q, m, num_levels, p, device=value.device, dtype=torch.float32)
     grad_value = torch.zeros(value.shape, device=value.device, dtype=torch.float32) if value_grad else None
@@ -230,7 +232,7 @@ def deform_sample_backward(
         bq = block_q or bq
         grid = (triton.cdiv(q, bq), m)
         backward_kernel[grid](
-            value, shapes, starts, image_index, locations, weights, grad_out.contiguous(),
+            value, shapes, starts, image_index.contiguous(), locations, weights, grad_out.contiguous(),
             grad_value if value_grad else grad_wt, grad_loc, grad_wt, q, value.shape[1],
             *_flat_args(locations, weights),
             num_levels, p, M=m, D=d, BLOCK_Q=bq, BLOCK_D=bd, VALUE_GRAD=value_grad, num_warps=warps,
