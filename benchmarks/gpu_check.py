@@ -7,11 +7,12 @@ Run on a GPU machine from the repository root (``make gpu-check``)::
 From a bare machine it first makes sure the packages it needs import (torch with CUDA, einops,
 numpy, pytest, spconv for the GPU's CUDA version, tqdm, pillow): missing ones are installed with pip
 (``spconv-cu1xx`` matching ``torch.version.cuda``), or, with ``--skip-install`` or when pip fails,
-named in the report. Then, each stage timed and bounded so the whole finishes in under 8 minutes
-on one modern GPU:
+named in the report. Then, each stage timed and bounded so the whole finishes in under 10 minutes
+on one modern GPU (8 when nothing needs installing):
 
 1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests
-   of ``tests/test_fusion.py``, ``tests/test_msdff.py`` and ``tests/functional/test_sampling.py``; the
+   of ``tests/test_fusion.py``, ``tests/test_msdff.py``, ``tests/functional/test_sampling.py`` and the
+   sampling op's Triton-vs-grid check (``tests/functional/test_sampling_op.py``); the
    ``device`` fixture adds ``cuda``), the host-synchronisation count, the pinned-memory test, the
    distributed/CLI option tests (``-k "cuda or sync or pin or runtime or env"``) - pass/fail counts and
    the failures' names;
@@ -21,6 +22,10 @@ on one modern GPU:
    DETR's) against ours (``method="auto"``), forward and forward+backward, float32 and bfloat16
    autocast, N = 2,500 / 8,000 / 40,000 voxels; CUDA-event timing (median of repeats after a
    warm-up), peak memory (``torch.cuda.max_memory_allocated``), the output difference;
+2b. the sampling core at VoD shapes (N = 2,500 / 8,000 / 20,000, 4-5 FPN levels of 1936 x 1216, 8 heads,
+   4 points, d = 32 and 256, float32 and bfloat16): the sampling op's Triton kernels, the grid path and
+   mmcv's ``MultiScaleDeformableAttnFunction`` where its compiled ops import; forward, forward +
+   backward, peak memory, outputs against the grid path's (``benchmarks/_sampling_stage.py``);
 3. one training step (forward + backward + AdamW step) of each example detector (VoD paper preset,
    n = 2 MSDFF blocks) on a VoD-sized synthetic frame (2,500 radar points, 1216 x 1936 image): median
    step time, peak memory; and the same step under bf16 and fp16 autocast (whether spconv's CUDA
@@ -47,11 +52,12 @@ from pathlib import Path
 from typing import Dict, List, Optional
 
 from _gpu_stages import detector_steps, msdff_benchmark  # benchmarks/ (the script's folder) is on sys.path
+from _sampling_stage import sampling_benchmark
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: What each stage may take on a GPU (seconds); the whole stays under 8 minutes.
-BUDGET_S = {"install": 150, "tests": 150, "msdff": 120, "detectors": 60}
+#: What each stage may take on a GPU (seconds); the whole stays under 10 minutes (8 without installs).
+BUDGET_S = {"install": 150, "tests": 150, "msdff": 120, "detectors": 60, "sampling": 90}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -143,6 +149,7 @@ def run_tests(smoke: bool) -> Dict[str, object]:
     """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode)."""
     files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/test_msdff.py",
                                                            "tests/functional/test_sampling.py",
+                                                           "tests/functional/test_sampling_op.py",
                                                            "tests/examples/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
     cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
@@ -191,6 +198,12 @@ def markdown(result: Dict[str, object]) -> str:
                   _table(result["msdff"], ["N", "precision", "fwd_ref_ms", "fwd_ours_ms", "fwd_ratio", "fwd_bwd_ref_ms",
                                            "fwd_bwd_ours_ms", "fwd_bwd_ratio", "fwd_bwd_ref_MiB", "fwd_bwd_ours_MiB",
                                            "max_abs_diff"]), ""]
+    if result.get("sampling"):
+        parts += ["## Sampling core: Triton op, grid path, mmcv's op (fwd+bwd ratio > 1: Triton faster)", "",
+                  _table(result["sampling"], ["levels", "d", "dtype", "N", "grid_fwd_ms", "triton_fwd_ms", "mmcv_fwd_ms",
+                                              "grid_fwd_bwd_ms", "triton_fwd_bwd_ms", "mmcv_fwd_bwd_ms",
+                                              "fwd_bwd_ratio_grid_over_triton", "grid_MiB", "triton_MiB", "mmcv_MiB",
+                                              "triton_max_abs_diff", "mmcv_max_abs_diff"]), ""]
     if result.get("detectors"):
         parts += ["## One training step per detector (n = 2 MSDFF blocks)", "",
                   _table(result["detectors"], ["detector", "step_ms", "peak_MiB", "loss_finite", "bf16_step_ms",
@@ -244,6 +257,8 @@ def main(argv=None) -> int:
         print(f"  {result['tests']['summary']}", flush=True)
     print("2/3 MSDFF benchmark", flush=True)
     result["msdff"] = msdff_benchmark(device, args.smoke, repeats)
+    print("2b/3 sampling core: Triton op / grid path / mmcv", flush=True)
+    result["sampling"] = sampling_benchmark(device, args.smoke, repeats, BUDGET_S["sampling"])
     if "spconv" in missing:
         result["detectors"] = [dict(detector="all", error=packages["spconv"])]
     else:

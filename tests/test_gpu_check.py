@@ -35,7 +35,10 @@ def test_gpu_check_smoke_on_the_cpu(tmp_path):
     pp = result["detectors"][-1]  # PointPillars (pure torch) also steps under CPU autocast
     assert pp["bf16_step_ms"] > 0 and pp["bf16_loss_finite"] and pp["fp16_step_ms"] > 0 and pp["fp16_loss_finite"]
     assert result["detectors"][0]["bf16_step_ms"] == "n/a (spconv CPU)"
+    assert [(r["N"], r["dtype"]) for r in result["sampling"]] == [(50, "float32"), (50, "bfloat16")]
+    assert all(r["grid_fwd_ms"] > 0 and r["grid_fwd_bwd_ms"] > 0 for r in result["sampling"])
     md = (tmp_path / "gpu_check.md").read_text()
+    assert "## Sampling core" in md
     assert "## MSDFF" in md and "## One training step per detector" in md and "pointpillars" in md
 
 

@@ -24,18 +24,32 @@ from ._fusion_utils import (
     _to_sampling_dtype,
     check_image_features,
 )
+from ._msdff_pairs import Pairs, reduce_cameras, select_pairs
 from ._static import use_static_path
 from .errors import MSSFError
-from .functional.deform_project import ms_deform_sample_project
 from .functional.plan_costs import msdff_auto_method
-from .functional.sampling import camera_mean, ms_deform_sample
+from .functional.sampling_op import sample_project_unchecked
+from .functional.sampling import ms_deform_sample
 from .functional.static import grid_sample_static
 from .geometry import CentroidProjection
 
 __all__ = ["MSDFF"]
 
-_METHODS = ("auto", "reference", "fast", "grid")
+_METHODS = ("auto", "reference", "fast", "grid", "touched", "triton")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
+
+
+def _compiling_only() -> bool:
+    """``torch.compile`` (dynamo) is capturing, not an exporter: the sampling op is one opaque node there
+    (the device's backend, e.g. the CPU plans, instead of the static grid plan), while exports (torch.export,
+    ONNX, tracing) keep the grid plan of standard operators."""
+    compiler = getattr(torch, "compiler", None)
+    if compiler is None or not compiler.is_compiling():
+        return False
+    if hasattr(compiler, "is_exporting") and compiler.is_exporting():
+        return False
+    onnx = getattr(torch, "onnx", None)
+    return not (onnx is not None and onnx.is_in_onnx_export())
 
 
 class MSDFF(nn.Module):
@@ -86,6 +100,11 @@ class MSDFF(nn.Module):
             ``value_projection`` with ``ms_deform_sample``'s embedding-bag / ``grid_sample`` path
             (``"reference"`` becomes ``"grid"`` while a graph is captured: it sizes per-image lists by the
             data).
+            ``"touched"`` / ``"triton"``: force that backend of the sampling op
+            (:func:`~mssf_blocks.functional.sampling_op.deform_sample_project`; ``"auto"`` lets the op
+            pick the device's, ``plan_costs.SAMPLING_BACKENDS``; ``$MSSF_SAMPLING_BACKEND`` forces one
+            for ``"auto"``); ``"triton"`` needs CUDA tensors (or the interpreter) and becomes
+            ``"grid"`` while a graph is captured.
         value_projection: the order used by ``method`` ``"fast"`` / ``"reference"``:
             ``"after_sampling"`` (default; sample the raw channels per head, then project; cost
             ``O(N * M * L * P * C)``, independent of the image size) or ``"before_sampling"``
@@ -260,95 +279,76 @@ class MSDFF(nn.Module):
         n = uv.shape[0]
         check_shape(query, "query", (n, self.embed_dim))
         check_floating(query, "query")
-        m, e, c = self.num_heads, self.value_dim, self.value_channels
 
         # The sampling runs in float32 (float64 for a float64 module), autocast or not: lower-precision
         # levels are read as float32 and the locations are never rounded to half precision.
         dtype = _sampling_dtype(self.value_proj.weight)
         levels = [_to_sampling_dtype(lvl, dtype, f"image_features[{i}]", "MSDFF") for i, lvl in enumerate(levels)]
         uv = uv.to(dtype)
-        static = use_static_path()
-        method = self.method
-        if method == "auto" or (static and method == "reference"):
-            method = msdff_auto_method(uv.device.type, static)
-        static = static or method == "grid"  # (the grid plan never synchronises with the device)
+        method, static = self._plan(uv.device.type)
         with _autocast_off(uv.device.type):
-            # One attention query per (voxel, camera) pair where the voxel is valid; offsets and weights
-            # depend on the query only, so they are computed per voxel and gathered.
             sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
-            if static:
-                # Static shapes: a query for every (voxel, camera) pair, invalid ones at uv = -1 (finite;
-                # masked out by camera_mean, no gradient), no gather of the valid pairs.
-                one_each, seen = False, None
-                uv = torch.where(valid[..., None], uv, uv.new_full((), -1.0))
-                if v == 1:
-                    locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
-                else:
-                    locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
-                    locations = (locations[:, None] + uv[:, :, None, None, None, :]).flatten(0, 1)
-                    weights = weights[:, None].expand((n, v) + weights.shape[1:]).flatten(0, 1)
-                image_index = (batch_index[:, None] * v + torch.arange(v, device=uv.device)).reshape(-1)
-            elif v == 1 and bool(valid.all()):
-                one_each, seen = True, None  # one camera that sees every voxel: no gathers or scatters
-                locations, weights = self.sampling_locations_and_weights(query, uv[:, 0], sizes)
-                image_index = batch_index
-            elif v == 1:
-                # One camera that misses some voxels (the usual case: the radar sees wider than the
-                # camera): the seen voxels' queries only, their uv in the locations' GEMM as in the case
-                # above, and the output projection on those rows, scattered once at the end.
-                one_each, seen = False, valid[:, 0].nonzero().squeeze(1)  # (the rows of the seen voxels)
-                locations, weights = self.sampling_locations_and_weights(query[seen], uv[seen, 0], sizes)
-                image_index = batch_index[seen]
-            else:
-                one_each, seen = False, None
-                n_idx, v_idx = valid.nonzero(as_tuple=True)
-                locations, weights = self.sampling_locations_and_weights(query, uv.new_zeros(n, 2), sizes)
-                locations = locations[n_idx] + uv[n_idx, v_idx][:, None, None, None, :]
-                weights = weights[n_idx]
-                image_index = batch_index[n_idx] * v + v_idx
-            w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
-            b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
-            raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-            if method == "grid":
-                # Project every pixel (all heads in one GEMM), then grid_sample per head.
-                values = [F.linear(r[:, 0].permute(0, 2, 3, 1), w_heads.flatten(0, 1), b_heads.flatten())
-                          .unflatten(-1, w_heads.shape[:2]).permute(0, 3, 4, 1, 2) for r in raw]  # (I, M, d, H, W)
-                heads = grid_sample_static(values, image_index, locations, weights)
-            elif method == "touched":
-                # Either order, restricted to the pixels some bilinear corner reads: per level the cheapest
-                # of project-all / project-touched / sample-touched-then-project (exact, bias included).
-                heads = ms_deform_sample_project(raw, image_index, locations, weights, w_heads, b_heads,
-                                                 method="touched")
-            elif self.value_projection == "after_sampling":
-                sampled, mass = ms_deform_sample(
-                    raw, image_index, locations, weights, method=method, return_mass=True
-                )  # (Q, M, C), (Q, M)
-                # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
-                # contributes only where the bilinear corners were inside the image (zero padding).
-                heads = torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
-            else:
-                values = []
-                for lvl in levels:
-                    h, w = lvl.shape[-2:]
-                    projected = F.linear(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1), w_heads.reshape(e, c),
-                                         b_heads.reshape(e))  # (I, H, W, E)
-                    values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
-                heads = ms_deform_sample(values, image_index, locations, weights, method=method)
-            if one_each or seen is not None:
-                attended = heads.reshape(-1, e)
-            elif static:
-                attended = camera_mean(heads.reshape(n, v, e), valid)
-            else:
-                per_camera = heads.new_zeros(n, v, e).index_put((n_idx, v_idx), heads.reshape(-1, e))
-                attended = camera_mean(per_camera, valid)
+            pairs = select_pairs(self.sampling_locations_and_weights, query, uv, valid, batch_index, sizes, static)
+            heads = self._sample(method, static, levels, pairs, dtype)  # (Q, M, d)
+            attended = reduce_cameras(heads, pairs, valid)
         attended = attended.to(self.output_proj.weight.dtype)
-        if seen is not None:  # (the seen voxels' rows only)
-            f_img = _linear_bn_rows(self.output_proj, self.norm, attended, seen, n)
+        if pairs.seen is not None:  # (the seen voxels' rows only)
+            f_img = _linear_bn_rows(self.output_proj, self.norm, attended, pairs.seen, n)
         else:
             f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
         if self.output_dropout:
             f_img = F.dropout(f_img, self.output_dropout, self.training)
         return query.to(f_img.dtype) + f_img if self.add_query else f_img
+
+    def _plan(self, device_type: str) -> Tuple[str, bool]:
+        """``(method, static)``: the sampling method (``"auto"`` resolved) and whether the queries take the
+        static layout (every (voxel, camera) pair, no host synchronisation)."""
+        static = use_static_path()
+        method = self.method
+        if method == "auto" or (static and method in ("reference", "triton")):
+            method = msdff_auto_method(device_type, static)
+            method = "sample_op" if method == "touched" else method  # (the op picks the device's backend)
+            # Under torch.compile the op is one opaque node, except for CPU training: there its backward would
+            # recompute the CPU plans' forward (measured 2.3x eager with aot_eager), so the grid plan stays.
+            opaque = _compiling_only() and (device_type != "cpu" or not torch.is_grad_enabled())
+            method = "sample_op" if method == "grid" and (not static or opaque) else method
+        # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
+        # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
+        static = static or method in ("grid", "triton") or (method == "sample_op" and device_type != "cpu")
+        return method, static
+
+    def _sample(self, method: str, static: bool, levels: Sequence[Tensor], pairs: Pairs, dtype: torch.dtype) -> Tensor:
+        """``(Q, M, d)`` heads of the queries ``pairs``, by ``method`` (resolved: not ``"auto"``)."""
+        b, v, c = levels[0].shape[:3]
+        m, e = self.num_heads, self.value_dim
+        image_index, locations, weights = pairs.image_index, pairs.locations, pairs.weights
+        w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
+        b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
+        raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
+        if method == "grid" and static:
+            # Project every pixel (all heads in one GEMM), then grid_sample per head.
+            values = [F.linear(r[:, 0].permute(0, 2, 3, 1), w_heads.flatten(0, 1), b_heads.flatten())
+                      .unflatten(-1, w_heads.shape[:2]).permute(0, 3, 4, 1, 2) for r in raw]  # (I, M, d, H, W)
+            return grid_sample_static(values, image_index, locations, weights)
+        if method in ("sample_op", "touched", "triton"):
+            # The sampling op: the device's backend (functional/sampling_op.py; CPU: per level the
+            # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.
+            return sample_project_unchecked(raw, image_index, locations, weights, w_heads, b_heads,
+                                            "auto" if method == "sample_op" else method)
+        if self.value_projection == "after_sampling":
+            sampled, mass = ms_deform_sample(
+                raw, image_index, locations, weights, method=method, return_mass=True
+            )  # (Q, M, C), (Q, M)
+            # value_proj after sampling: head m uses rows [m*d, (m+1)*d) of the projection; its bias
+            # contributes only where the bilinear corners were inside the image (zero padding).
+            return torch.einsum("qmc,mdc->qmd", sampled, w_heads) + mass[..., None] * b_heads
+        values = []
+        for lvl in levels:
+            h, w = lvl.shape[-2:]
+            projected = F.linear(lvl.reshape(b * v, c, h, w).permute(0, 2, 3, 1), w_heads.reshape(e, c),
+                                 b_heads.reshape(e))  # (I, H, W, E)
+            values.append(projected.view(b * v, h, w, m, self.head_dim).permute(0, 3, 4, 1, 2))
+        return ms_deform_sample(values, image_index, locations, weights, method=method)
 
     def extra_repr(self) -> str:
         return (

@@ -12,6 +12,7 @@ from .heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import bev_shape_for, pillar_lift, voxelize_points, voxels_to_bev, voxels_to_bev_sparse
 from .deform_project import ms_deform_sample_project
 from .sampling import bilinear_sample, camera_mean, ms_deform_sample, ms_deform_sample_reference
+from .sampling_op import deform_sample_project
 
 __all__ = [
     "Projection",
@@ -25,6 +26,7 @@ __all__ = [
     "ms_deform_sample",
     "ms_deform_sample_reference",
     "ms_deform_sample_project",
+    "deform_sample_project",
     "points_in_boxes",
     "sigmoid_focal_loss",
     "voxel_foreground_labels",

@@ -64,6 +64,19 @@ _BILINEAR_AUTO = {"cpu": "gather"}
 _STATIC = "grid"  # the plan of every other device and of graph capture
 
 
+# ---------------------------------------------------------------------------------------------------
+# Backend of the sampling op (functional/sampling_op.py) per device
+# ---------------------------------------------------------------------------------------------------
+# "touched": the CPU plans above (measured: benchmarks/msdff.py). "triton": the Triton kernels
+# (functional/triton_kernels.py), where triton imports and the inputs suit them (float32 / bfloat16 /
+# float16, heads of at most 256 channels), else the fallback; checked numerically and compiled for
+# sm_80 / sm_90 on a CPU (tests/functional/test_triton_kernels.py), NOT YET TIMED on a GPU: the choice
+# waits for benchmarks/gpu_check.py (`make gpu-check`: Triton op vs grid path vs mmcv's op). "grid":
+# project every pixel, F.grid_sample per level (every other device, and the fallback).
+SAMPLING_BACKENDS = {"cpu": "touched", "cuda": "triton"}
+SAMPLING_FALLBACK = "grid"
+
+
 def msdff_auto_method(device_type: str, static: bool) -> str:
     """MSDFF's plan for ``method="auto"`` on ``device_type`` (``"touched"`` or ``"grid"``)."""
     return _STATIC if static else _MSDFF_AUTO.get(device_type, _STATIC)
