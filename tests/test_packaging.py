@@ -145,7 +145,7 @@ def test_wheel_installs_the_mssf_console_script(built, tmp_path):
     env = dict(os.environ, PYTHONPATH=str(target))
     r = subprocess.run([str(script), "--help"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "{train,eval}" in r.stdout
+    assert "{train,eval,convert-authors}" in r.stdout
     r = subprocess.run([str(script), "train", "--dataset", "nope"], cwd=tmp_path, env=env, capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 2 and "--dataset" in r.stderr, r.stderr  # argparse's error, through the script
