@@ -63,8 +63,9 @@ def _has_custom_op() -> bool:
 
 
 def _has_compiler_is_compiling() -> bool:
-    # torch.compile(dynamic=True) keeps one graph for every voxel count only where dynamo understands the
-    # public torch.compiler API the static path is written with; older dynamo recompiles per size
+    # torch.compile(fullgraph=True, dynamic=True) of the blocks: torch 2.1's dynamo cannot trace their input
+    # checks (dict.setdefault on the named sizes) and breaks the graph there (the blocks still run, in
+    # pieces). Detected by the public torch.compiler.is_compiling, which came with a dynamo that can.
     compiler = getattr(torch, "compiler", None)
     return compiler is not None and hasattr(compiler, "is_compiling")
 
@@ -92,8 +93,8 @@ FEATURES: Dict[str, Tuple[str, str, Callable[[], bool]]] = {
                               "dataclasses (pytree key paths)", _has_export_dynamic_shapes),
     "onnx_dynamo": ("2.5", "torch.onnx.export(dynamo=True)", _has_onnx_dynamo),
     "custom_op": ("2.4", "torch.library.custom_op / register_fake (ops registered with torch)", _has_custom_op),
-    "compile_dynamic": ("2.3", "torch.compile(dynamic=True) with one graph for every voxel count "
-                        "(torch.compiler.is_compiling)", _has_compiler_is_compiling),
+    "compile_dynamic": ("2.3", "torch.compile(fullgraph=True, dynamic=True) of the blocks (one graph for "
+                        "every voxel count)", _has_compiler_is_compiling),
     "cpu_float16_autocast": ("2.5", "float16 autocast on the CPU (older CPU autocast takes only bfloat16)",
                              _has_cpu_float16_autocast),
 }
