@@ -38,7 +38,7 @@ def test_gpu_check_smoke_on_the_cpu(tmp_path):
     assert pp["bf16_step_ms"] > 0 and pp["bf16_loss_finite"]
     if _compat.has("cpu_float16_autocast"):
         assert pp["fp16_step_ms"] > 0 and pp["fp16_loss_finite"]
-    else:  # torch < 2.5: the report says why there is no float16 row
+    else:  # torch 2.1: the report says why there is no float16 row
         assert pp["fp16_step_ms"] == f"n/a ({_compat.missing('cpu_float16_autocast')})"
     assert result["detectors"][0]["bf16_step_ms"] == "n/a (spconv CPU)"
     md = (tmp_path / "gpu_check.md").read_text()

@@ -7,7 +7,8 @@ Code elsewhere calls the functions below instead of the torch API that moved bet
 Features a newer torch adds are detected (by the API, not by the version string, so a backport or a
 nightly is judged by what it has). :func:`require` turns a missing one into an :class:`MSSFError` naming
 the feature, the torch it needs and the torch installed; tests of these features skip with that message
-(:func:`missing`). The versions in :data:`FEATURES` are the first torch release with the API.
+(:func:`missing`). The versions in :data:`FEATURES` are the first torch release with the API, or for
+graph capture of the blocks the oldest torch it is tested on (``_CAPTURE_VERIFIED``).
 """
 
 from __future__ import annotations
@@ -46,10 +47,18 @@ def _has_pytree_keys() -> bool:
     return register is not None and "flatten_with_keys_fn" in inspect.signature(register).parameters
 
 
+#: the oldest torch on which dynamo captures the blocks whole (torch.compile fullgraph, torch.export):
+#: tested on 2.13 and the newest; torch 2.3.1 cannot trace their input checks (dict.setdefault on the named
+#: sizes) nor build a FusionInputs in the graph, 2.1 neither; the releases in between are not tested
+_CAPTURE_VERIFIED = (2, 13)
+
+
 def _has_export_dynamic_shapes() -> bool:
-    # torch.export.Dim (2.2) and key paths for the library's dataclasses in the input spec (2.3)
+    # torch.export.Dim (2.2), pytree key paths for the library's dataclasses (2.3), and a dynamo that
+    # captures the blocks (see _CAPTURE_VERIFIED)
     export = getattr(torch, "export", None)
-    return export is not None and hasattr(export, "Dim") and _has_pytree_keys()
+    return (export is not None and hasattr(export, "Dim") and _has_pytree_keys()
+            and TORCH_VERSION >= _CAPTURE_VERIFIED)
 
 
 def _has_onnx_dynamo() -> bool:
@@ -62,12 +71,11 @@ def _has_custom_op() -> bool:
     return library is not None and hasattr(library, "custom_op") and hasattr(library, "register_fake")
 
 
-def _has_compiler_is_compiling() -> bool:
-    # torch.compile(fullgraph=True, dynamic=True) of the blocks: torch 2.1's dynamo cannot trace their input
-    # checks (dict.setdefault on the named sizes) and breaks the graph there (the blocks still run, in
-    # pieces). Detected by the public torch.compiler.is_compiling, which came with a dynamo that can.
+def _has_fullgraph_capture() -> bool:
+    # torch.compile(fullgraph=True, dynamic=True) of the blocks; on older torch it still runs them, with
+    # graph breaks at the input checks (see _CAPTURE_VERIFIED)
     compiler = getattr(torch, "compiler", None)
-    return compiler is not None and hasattr(compiler, "is_compiling")
+    return compiler is not None and hasattr(compiler, "is_compiling") and TORCH_VERSION >= _CAPTURE_VERIFIED
 
 
 _CPU_FLOAT16_AUTOCAST: Optional[bool] = None
@@ -75,7 +83,7 @@ _CPU_FLOAT16_AUTOCAST: Optional[bool] = None
 
 def _has_cpu_float16_autocast() -> bool:
     global _CPU_FLOAT16_AUTOCAST
-    if _CPU_FLOAT16_AUTOCAST is None:  # torch < 2.5 warns, then raises on entering the context
+    if _CPU_FLOAT16_AUTOCAST is None:  # torch 2.1 warns, then raises on entering the context
         import warnings
 
         try:
@@ -89,13 +97,13 @@ def _has_cpu_float16_autocast() -> bool:
 
 
 FEATURES: Dict[str, Tuple[str, str, Callable[[], bool]]] = {
-    "export_dynamic_shapes": ("2.3", "torch.export with dynamic shapes (torch.export.Dim) of the library's "
+    "export_dynamic_shapes": ("2.13", "torch.export with dynamic shapes (torch.export.Dim) of the library's "
                               "dataclasses (pytree key paths)", _has_export_dynamic_shapes),
     "onnx_dynamo": ("2.5", "torch.onnx.export(dynamo=True)", _has_onnx_dynamo),
     "custom_op": ("2.4", "torch.library.custom_op / register_fake (ops registered with torch)", _has_custom_op),
-    "compile_dynamic": ("2.3", "torch.compile(fullgraph=True, dynamic=True) of the blocks (one graph for "
-                        "every voxel count)", _has_compiler_is_compiling),
-    "cpu_float16_autocast": ("2.5", "float16 autocast on the CPU (older CPU autocast takes only bfloat16)",
+    "compile_dynamic": ("2.13", "torch.compile(fullgraph=True, dynamic=True) of the blocks (one graph for "
+                        "every voxel count)", _has_fullgraph_capture),
+    "cpu_float16_autocast": ("2.3", "float16 autocast on the CPU (older CPU autocast takes only bfloat16)",
                              _has_cpu_float16_autocast),
 }
 
@@ -173,7 +181,7 @@ def autocast_off(device_type: str):
 def grad_scaler(device_type: str, enabled: bool = True) -> Any:
     """A loss scaler for float16 training on ``device_type``: ``torch.amp.GradScaler(device_type)`` from
     torch 2.3; before it ``torch.cuda.amp.GradScaler`` (which is also the disabled no-op scaler elsewhere).
-    An enabled scaler off CUDA on an older torch is refused (float16 CPU autocast needs torch 2.5 anyway)."""
+    An enabled scaler off CUDA on an older torch is refused (float16 CPU autocast needs torch 2.3 anyway)."""
     amp = getattr(torch, "amp", None)
     if amp is not None and hasattr(amp, "GradScaler"):
         return amp.GradScaler(device_type, enabled=enabled)
@@ -187,7 +195,7 @@ def register_pytree_node(cls: type, flatten: Callable, unflatten: Callable, *, s
                          flatten_with_keys: Callable, to_dumpable: Callable, from_dumpable: Callable) -> None:
     """Register ``cls`` with torch's pytree (no-op when it is registered). ``register_pytree_node`` with
     key paths from torch 2.3; 2.2 without ``flatten_with_keys_fn``; 2.1 the private ``_register_pytree_node``
-    (no serialized name: torch.export of these inputs needs 2.3, :data:`FEATURES`)."""
+    (no serialized name: torch.export of these inputs needs a newer torch, :data:`FEATURES`)."""
     from torch.utils import _pytree as pytree
 
     if cls in pytree.SUPPORTED_NODES:
