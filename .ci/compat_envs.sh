@@ -2,13 +2,14 @@
 # The declared floors, tested (docs/compatibility.md): after `make test` (the pinned torch), the core and
 # framework-integration tests on the floor torch and on the newest torch on the registry, and the core
 # blocks' forward and backward (+ import) on every Python version pyproject.toml declares.
-# Each environment is a venv under $COMPAT_DIR (default .venv-compat/, git-ignored), reused when its
-# stamp matches; the library is taken from src/ (PYTHONPATH), as the suite itself does.
+# Each environment is a venv under $COMPAT_DIR, reused while its package list (stamp) is unchanged: they
+# hold only third-party packages (the library is taken from src/ via PYTHONPATH), so the default lies in
+# the user's cache, shared by every clone: only the first run installs (about 10 GB; docs/compatibility.md).
 # Prints one line of test counts per environment and fails when any environment has a failure.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
-COMPAT_DIR=${COMPAT_DIR:-$ROOT/.venv-compat}
+COMPAT_DIR=${COMPAT_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/mssf-blocks/compat-envs}
 # this machine's pip config caps torch (/etc/xdg/pip/constraints.txt); the newest release lies above it
 export PIP_CONSTRAINT=/dev/null PIP_DISABLE_PIP_VERSION_CHECK=1
 export OMP_NUM_THREADS=1 PYTHONPATH="$ROOT/src" PYTHONDONTWRITEBYTECODE=1
