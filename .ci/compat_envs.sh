@@ -18,12 +18,14 @@ FLOOR_TORCH="torch==2.1.2"   # the newest torch with mmcv 2.1.0 wheels (mmdetect
 NEWEST_TORCH="torch"         # whatever is newest on the registry (CUDA builds: they run on the CPU)
 # the core and framework-integration tests (everything but the example detectors, docs and packaging)
 CORE_TESTS=(tests/functional tests/integrations tests/test_audit_inputs.py tests/test_blocks.py
-            tests/test_compat_spconv.py tests/test_compat_torch.py tests/test_compile.py tests/test_diagnostics.py tests/test_export.py
+            tests/test_compat_spconv.py tests/test_compat_torch.py tests/test_compile.py tests/test_diagnostics.py
+            tests/test_export.py
             tests/test_fusion.py tests/test_geometry.py tests/test_heads.py tests/test_lift.py tests/test_msdff.py
             tests/test_mssf_official.py tests/test_precision.py tests/test_sparse.py tests/test_static_path.py
             tests/test_testing.py)
 # per Python version: import + forward / backward / gradcheck of the core blocks
-PY_TESTS=(tests/test_compat_torch.py tests/test_fusion.py tests/test_msdff.py tests/test_lift.py tests/test_heads.py tests/test_geometry.py)
+PY_TESTS=(tests/test_compat_torch.py tests/test_fusion.py tests/test_msdff.py tests/test_lift.py tests/test_heads.py
+          tests/test_geometry.py)
 TEST_DEPS=(einops pytest hypothesis)
 FRAMEWORK_DEPS=(shapely pyyaml easydict "spconv>=2.3" tqdm pillow addict yapf termcolor rich)
 
