@@ -75,3 +75,10 @@ demo-augmentation: $(STAMP)
 .PHONY: gpu-check
 gpu-check: $(STAMP)
 	$(PY) benchmarks/gpu_check.py --out outputs/gpu_check
+
+# The declared floors, tested (docs/compatibility.md): the core and integration tests on the floor torch
+# (2.1.2) and the newest torch on the registry, the core blocks on every declared Python; counts per
+# environment. Environments in ~/.cache/mssf-blocks/compat-envs (about 15 GB), reused while unchanged. .ci/run runs it.
+.PHONY: test-compat
+test-compat:
+	bash .ci/compat_envs.sh

@@ -137,6 +137,7 @@ class _null:
 def detector_steps(device, smoke: bool, repeats: int) -> List[Dict[str, object]]:
     import torch
 
+    from mssf_blocks import _compat
     from mssf_examples.data import RadarCameraBatch
     from mssf_examples.detectors import DETECTOR_NAMES, build_detector
     from mssf_examples.presets import TINY, VOD
@@ -186,6 +187,9 @@ def detector_steps(device, smoke: bool, repeats: int) -> List[Dict[str, object]]
                 break
             if device.type == "cpu" and name != "pointpillars":
                 row[f"{tag}_step_ms"] = "n/a (spconv CPU)"
+                continue
+            if device.type == "cpu" and dtype == torch.float16 and _compat.missing("cpu_float16_autocast"):
+                row[f"{tag}_step_ms"] = f"n/a ({_compat.missing('cpu_float16_autocast')})"
                 continue
             try:
                 row[f"{tag}_step_ms"] = time_it(lambda: step(dtype), repeats) * 1e3

@@ -32,6 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import measure, print_table, write_json  # noqa: E402
 
 from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels, static_path  # noqa: E402
+from mssf_blocks import _compat  # noqa: E402
 from mssf_blocks.geometry import CentroidProjection  # noqa: E402
 
 RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)
@@ -101,6 +102,7 @@ def main() -> None:
                     help="of SFF, MSDFF, 'FusionBlock(MSDFF)' (each costs two inductor compiles, ~5 min each here)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    _compat.require("compile_dynamic", "benchmarks/compile.py")
     torch.set_num_threads(args.threads)
     frames = [_frame(n, seed=i) for i, n in enumerate(args.voxels)]
     rows = []

@@ -15,6 +15,7 @@ import torch.nn.functional as F
 
 spconv = pytest.importorskip("spconv.pytorch")
 
+from mssf_blocks import _compat  # noqa: E402
 from mssf_blocks.compat.spconv import dense, enable_cpu_backward, quiet  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
@@ -105,6 +106,9 @@ def test_spconv_prints_both_messages_without_quiet():
     """The control: the two messages this module silences do appear on a raw spconv run."""
     text = _run(_RAW.format(ctx="torch.no_grad()"))
     assert "ran (1, 8, 4, 4, 4)" in text
+    if FX_MESSAGE not in text and INDEXING_MESSAGE not in text and _compat.TORCH_VERSION < (2, 13):
+        pytest.skip(f"torch {torch.__version__} prints neither message (they come from newer torch; "
+                    f"seen on the pinned 2.13 and newer): nothing for quiet() to drop here")
     assert FX_MESSAGE in text and INDEXING_MESSAGE in text
 
 

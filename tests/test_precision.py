@@ -11,6 +11,7 @@ image where a location rounded to bfloat16 would read other pixels.
 import pytest
 import torch
 
+from mssf_blocks import _compat
 from mssf_blocks.blocks import FusionBlock
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
@@ -21,6 +22,10 @@ from mssf_blocks.sparse import SparseVoxels
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 LOW = [torch.bfloat16, torch.float16]
+# float16 CPU autocast needs a newer torch than the library's floor (mssf_blocks._compat); skipped there
+_NO_CPU_F16 = _compat.missing("cpu_float16_autocast")
+AMP = [torch.bfloat16, pytest.param(torch.float16, marks=pytest.mark.skipif(_NO_CPU_F16 is not None,
+                                                                            reason=str(_NO_CPU_F16)))]
 
 
 def projection(uv, valid=None):
@@ -68,7 +73,7 @@ def test_msdff_locations_and_weights_stay_float32_under_autocast():
 
 
 @pytest.mark.parametrize("value_dim", VALUE_DIMS)
-@pytest.mark.parametrize("amp_dtype", LOW)
+@pytest.mark.parametrize("amp_dtype", AMP)
 def test_msdff_and_sff_under_autocast_match_float32(amp_dtype, value_dim):
     feats, proj, query, msdff, sff = setup(value_dim=value_dim)
     ref_m = msdff(query, feats, proj)

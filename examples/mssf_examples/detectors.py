@@ -11,12 +11,12 @@ mode it returns per-sample detections.
 
 from __future__ import annotations
 
-import contextlib
 from typing import Dict, List, Optional, Sequence
 
 import torch
 from torch import Tensor, nn
 
+from mssf_blocks._compat import autocast_off
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.fusion import FusionInputs
@@ -287,9 +287,7 @@ def _float32(x):
 
 
 def _autocast_disabled(device_type: str):
-    if torch.is_autocast_enabled(device_type):
-        return torch.autocast(device_type, enabled=False)
-    return contextlib.nullcontext()
+    return autocast_off(device_type)  # (torch-version dependent: mssf_blocks._compat)
 
 
 def build_detector(

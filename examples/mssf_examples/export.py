@@ -31,6 +31,7 @@ from typing import Dict, List, Sequence, Tuple, Union
 import torch
 from torch import Tensor, nn
 
+from mssf_blocks._compat import require
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.fusion import FusionInputs
 from mssf_blocks.sparse import SparseVoxels
@@ -99,6 +100,7 @@ def graph_inputs(detector: nn.Module, batch: RadarCameraBatch) -> Tuple:
 def graph_dynamic_shapes(detector: nn.Module, num_image_inputs: int = 1) -> Tuple:
     """``dynamic_shapes`` for ``torch.export`` / ``torch.onnx.export`` matching :func:`graph_inputs`:
     the point, kept-point, pillar and lift-voxel counts are dynamic; batch, cameras and image sizes static."""
+    require("export_dynamic_shapes", "graph_dynamic_shapes")  # (torch-version dependent: mssf_blocks._compat)
     from torch.export import Dim
 
     p, pk, n_p = Dim("P", min=2), Dim("P_k", min=2), Dim("N_p", min=2)

@@ -13,13 +13,13 @@ data and run once at capture time on the (symbolic) shapes. See ``docs/conventio
 
 from __future__ import annotations
 
-import contextlib
 import functools
 from typing import Any, Callable, Mapping, MutableMapping, Sequence, TypeVar, Union
 
 import torch
 from torch import Tensor
 
+from . import _compat
 from .errors import MSSFError
 
 Dim = Union[int, str, None]
@@ -30,22 +30,17 @@ def is_tracing() -> bool:
     """Whether a graph is being captured: ``torch.compile`` / ``torch.export`` (dynamo or non-strict),
     ``torch.jit.trace`` or the ONNX exporters. Value checks are skipped then; the fusion modules also take
     their static-shape path (``docs/deployment.md``)."""
-    compiler = getattr(torch, "compiler", None)
-    if compiler is not None:
-        # (is_compiling is constant-folded by dynamo, so this costs nothing in a compiled graph)
-        if compiler.is_compiling() or (hasattr(compiler, "is_exporting") and compiler.is_exporting()):
-            return True
+    # (is_compiling is constant-folded by dynamo, so this costs nothing in a compiled graph)
+    if _compat.is_compiling() or _compat.is_exporting():
+        return True
     if torch.jit.is_tracing():
         return True
     onnx = getattr(torch, "onnx", None)
     return bool(onnx is not None and onnx.is_in_onnx_export())
 
 
-try:  # (private, hence guarded) FakeTensors carry no data: torch.export builds its inputs' dataclasses
-    from torch._subclasses.fake_tensor import is_fake as _is_fake  # from them before is_exporting() is set
-except ImportError:  # pragma: no cover - depends on the torch version
-    def _is_fake(x: Any) -> bool:
-        return False
+# FakeTensors carry no data: torch.export builds its inputs' dataclasses from them before is_exporting()
+_is_fake = _compat.is_fake
 
 
 def _has_no_data(x: Any) -> bool:
@@ -152,12 +147,7 @@ def check_dtype(x: Tensor, name: str, dtypes: Sequence[torch.dtype], hint: str =
 
 def autocast_on(device_type: str) -> bool:
     """Whether ``torch.autocast`` is enabled for ``device_type`` (``"cpu"``, ``"cuda"``, ...)."""
-    try:
-        return bool(torch.is_autocast_enabled(device_type))
-    except TypeError:  # torch < 2.4 has no device argument
-        if device_type == "cpu":
-            return bool(torch.is_autocast_cpu_enabled())
-        return bool(torch.is_autocast_enabled())
+    return _compat.autocast_enabled(device_type)
 
 
 def autocast_off(device_type: str):
@@ -166,7 +156,7 @@ def autocast_off(device_type: str):
     Geometry (projection, centroids, sampling locations) runs inside it: autocast would round its
     matrix products to bfloat16 / float16, pixels off by several pixels at 50 m.
     """
-    return torch.autocast(device_type, enabled=False) if autocast_on(device_type) else contextlib.nullcontext()
+    return _compat.autocast_off(device_type)
 
 
 @value_check

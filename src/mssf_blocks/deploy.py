@@ -19,6 +19,7 @@ __all__ = ["static_path", "use_static_path", "PYTREE_FIELDS"]
 # fields (grid, sizes) become part of the graph's input spec, fixed at export time.
 from typing import Any, List, Tuple  # noqa: E402
 
+from . import _compat  # noqa: E402
 from .fusion import FusionInputs  # noqa: E402
 from .geometry import CentroidProjection  # noqa: E402
 from .sparse import SparseVoxels  # noqa: E402
@@ -37,8 +38,6 @@ _STATIC_FIELDS = {
 
 
 def _register(cls: type) -> None:
-    from torch.utils import _pytree as pytree
-
     children, static = PYTREE_FIELDS[cls], _STATIC_FIELDS[cls]
 
     def get(obj: Any, f: str) -> Any:
@@ -53,7 +52,7 @@ def _register(cls: type) -> None:
     def flatten_with_keys(obj: Any):
         # MappingKey (obj['points']), not GetAttrKey (obj.points): torch 2.13's export guard code substitutes
         # paths as text, and obj.points is a prefix of obj.points_batch (a SyntaxError in ep.module()).
-        return [(pytree.MappingKey(f), get(obj, f)) for f in children], tuple(getattr(obj, f) for f in static)
+        return [(_compat.mapping_key(f), get(obj, f)) for f in children], tuple(getattr(obj, f) for f in static)
 
     def unflatten(values: List[Any], context: Tuple[Any, ...]) -> Any:
         kwargs = dict(zip(children, values))
@@ -70,11 +69,9 @@ def _register(cls: type) -> None:
 
         return tuple(tuple(c) if isinstance(c, list) else c for c in json.loads(text))
 
-    if cls in pytree.SUPPORTED_NODES:
-        return
-    pytree.register_pytree_node(
+    _compat.register_pytree_node(
         cls, flatten, unflatten, serialized_type_name=f"mssf_blocks.{cls.__name__}",
-        flatten_with_keys_fn=flatten_with_keys, to_dumpable_context=to_dumpable, from_dumpable_context=from_dumpable,
+        flatten_with_keys=flatten_with_keys, to_dumpable=to_dumpable, from_dumpable=from_dumpable,
     )
 
 

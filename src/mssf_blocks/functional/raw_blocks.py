@@ -17,10 +17,10 @@ from __future__ import annotations
 from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from .. import _compat
 from .plan_costs import _RAW_CHUNK_BYTES
 
 
@@ -207,12 +207,12 @@ def _bag_raw(raw: _RawLevel, start: int, stop: int):
     # at 512 queries); x * 1.0 and x * 0.0 are the same bits either way. (Fresh arrays: in place.)
     psw = psw.mul_(torch.ne(rows, raw.n_rows, out=torch.empty_like(psw)))
     if raw.clamp is not None:
-        sampled = F.embedding_bag(rows.clamp_(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
+        sampled = _compat.embedding_bag(rows.clamp_(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
     else:
         inside = rows != raw.n_rows  # (the compaction's index: rare, see _RawLevel)
         counts = inside.sum(1)
         offsets = torch.cumsum(counts, 0) - counts
-        sampled = F.embedding_bag(rows[inside], raw.table, offsets=offsets, per_sample_weights=psw[inside],
+        sampled = _compat.embedding_bag(rows[inside], raw.table, offsets=offsets, per_sample_weights=psw[inside],
                                   mode="sum")
     return sampled, psw.view(-1, m, k).sum(-1, keepdim=True)
 
@@ -234,7 +234,7 @@ class _ProjectedLevel(NamedTuple):
 def _bag_projected(lvl: _ProjectedLevel, start: int, stop: int) -> Tensor:
     """``(n, M, d)`` samples of the queries ``[start, stop)`` of a projected level."""
     rows, psw = _block_corners(lvl, start, stop)
-    return F.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, lvl.c00.shape[1],
+    return _compat.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, lvl.c00.shape[1],
                                                                                      lvl.table.shape[1])
 
 

@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .. import _compat
 from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape, check_tensor
 from .._static import use_static_path
 from ..errors import MSSFError
@@ -326,7 +327,7 @@ def _ms_deform_sample_fast(
         # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
         # along D); otherwise one layout copy of this level.
         table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
-        part = F.embedding_bag(
+        part = _compat.embedding_bag(
             rows[lvl].view(m * q, p * 4), table, per_sample_weights=psw[lvl].view(m * q, p * 4), mode="sum"
         )  # (M * Q, D)
         if out is None:

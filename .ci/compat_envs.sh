@@ -1,0 +1,124 @@
+#!/usr/bin/env bash
+# The declared floors, tested (docs/compatibility.md): after `make test` (the pinned torch), the core and
+# framework-integration tests on the floor torch and on the newest torch on the registry, and the core
+# blocks' forward and backward (+ import) on every Python version pyproject.toml declares.
+# Each environment is a venv under $COMPAT_DIR, reused while its package list (stamp) is unchanged: they
+# hold only third-party packages (the library is taken from src/ via PYTHONPATH), so the default lies in
+# the user's cache, shared by every clone: only the first run installs (about 10 GB; docs/compatibility.md).
+# Prints one line of test counts per environment and fails when any environment has a failure.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+COMPAT_DIR=${COMPAT_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/mssf-blocks/compat-envs}
+# this machine's pip config caps torch (/etc/xdg/pip/constraints.txt); the newest release lies above it
+export PIP_CONSTRAINT=/dev/null PIP_DISABLE_PIP_VERSION_CHECK=1
+export OMP_NUM_THREADS=1 PYTHONPATH="$ROOT/src" PYTHONDONTWRITEBYTECODE=1
+
+FLOOR_TORCH="torch==2.1.2"   # the newest torch with mmcv 2.1.0 wheels (mmdetection3d 1.4): pyproject's floor
+NEWEST_TORCH="torch"         # whatever is newest on the registry (CUDA builds: they run on the CPU)
+# the core and framework-integration tests (everything but the example detectors, docs and packaging)
+CORE_TESTS=(tests/functional tests/integrations tests/test_audit_inputs.py tests/test_blocks.py
+            tests/test_compat_spconv.py tests/test_compat_torch.py tests/test_compile.py tests/test_diagnostics.py
+            tests/test_export.py
+            tests/test_fusion.py tests/test_geometry.py tests/test_heads.py tests/test_lift.py tests/test_msdff.py
+            tests/test_mssf_official.py tests/test_precision.py tests/test_sparse.py tests/test_static_path.py
+            tests/test_testing.py)
+# per Python version: import + forward / backward / gradcheck of the core blocks
+PY_TESTS=(tests/test_compat_torch.py tests/test_fusion.py tests/test_msdff.py tests/test_lift.py tests/test_heads.py
+          tests/test_geometry.py)
+TEST_DEPS=(einops pytest hypothesis)
+FRAMEWORK_DEPS=(shapely pyyaml easydict "spconv>=2.3" tqdm pillow addict yapf termcolor rich)
+
+find_python() {  # python3.X on PATH, else pyenv's
+  local v=$1 p
+  if p=$(command -v "python$v") && "$p" -c "" 2>/dev/null; then echo "$p"; return; fi
+  for p in "$(pyenv root 2>/dev/null || echo "$HOME/.pyenv")"/versions/"$v".*/bin/python"$v"; do
+    [ -x "$p" ] && { echo "$p"; return; }
+  done
+  echo "compat_envs: no python$v on PATH or in pyenv" >&2; return 1
+}
+
+TORCH_PURE_DEPS=(filelock fsspec jinja2 networkx sympy typing-extensions setuptools)
+version_of() { "$1/bin/python" -c 'import torch, sys; print(f"torch {torch.__version__}, Python {sys.version.split()[0]}")'; }
+
+# make_torch_env NAME TORCH_SPEC NUMPY_SPEC: Python 3.11, the torch, the test and framework dependencies
+make_torch_env() {
+  local name=$1 torch_spec=$2 numpy_spec=$3 env=$COMPAT_DIR/$1 t0=$SECONDS
+  local stamp="3.11 $torch_spec $numpy_spec ${TEST_DEPS[*]} ${FRAMEWORK_DEPS[*]}"
+  [ -f "$env/.stamp" ] && [ "$(cat "$env/.stamp")" = "$stamp" ] && { echo "  $name: reused ($(version_of "$env"))"; return; }
+  rm -rf "$env" && "$(find_python 3.11)" -m venv "$env"
+  "$env/bin/pip" install --quiet "$torch_spec" "$numpy_spec" "${TEST_DEPS[@]}" "${FRAMEWORK_DEPS[@]}"
+  # mmdet3d's registry only, as the Makefile installs it (--no-deps: no compiled mmcv, no opencv-python)
+  "$env/bin/pip" install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0 \
+    "opencv-python-headless$([ "$numpy_spec" = "numpy<2" ] && echo '<4.11')"
+  echo "$stamp" > "$env/.stamp"
+  echo "  $name: installed in $((SECONDS - t0)) s ($(version_of "$env"))"
+}
+
+# make_py_env NAME PYTHON_VERSION BASE NUMPY_SPEC: that Python with BASE's torch version and only the test
+# dependencies. The CUDA libraries (nvidia/, 2.5-3 GB, the same wheels for every Python) are BASE's,
+# linked rather than unpacked again; everything Python-specific (torch, numpy) is this Python's own.
+make_py_env() {
+  local name=$1 pyv=$2 base=$COMPAT_DIR/$3 numpy_spec=$4 env=$COMPAT_DIR/$1 t0=$SECONDS
+  local torch_version; torch_version=$("$base/bin/python" -c 'import torch; print(torch.__version__.split("+")[0])')
+  local stamp="$pyv torch==$torch_version $numpy_spec ${TEST_DEPS[*]}"
+  [ -f "$env/.stamp" ] && [ "$(cat "$env/.stamp")" = "$stamp" ] && { echo "  $name: reused ($(version_of "$env"))"; return; }
+  rm -rf "$env" && "$(find_python "$pyv")" -m venv "$env"
+  "$env/bin/pip" install --quiet --no-deps "torch==$torch_version"
+  "$env/bin/pip" install --quiet "${TORCH_PURE_DEPS[@]}" "$numpy_spec" "${TEST_DEPS[@]}"
+  local site; site=$("$env/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+  ln -s "$("$base/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/nvidia" "$site/nvidia"
+  echo "$stamp" > "$env/.stamp"
+  echo "  $name: installed in $((SECONDS - t0)) s ($(version_of "$env"))"
+}
+
+# run_env NAME TESTS...: the suite in that environment, its summary line into $COMPAT_DIR/NAME.summary
+run_env() {
+  local name=$1; shift
+  local env=$COMPAT_DIR/$name t0=$SECONDS rc=0
+  "$env/bin/python" -m pytest -q -p no:cacheprovider -rs "$@" > "$COMPAT_DIR/$name.log" 2>&1 || rc=$?
+  local summary; summary=$(tail -n 1 "$COMPAT_DIR/$name.log" | sed 's/=//g; s/^ *//; s/ *$//')
+  echo "$name ($(version_of "$env")): $summary [$((SECONDS - t0)) s]$( [ $rc = 0 ] || echo "  FAILED, see $COMPAT_DIR/$name.log")" \
+    > "$COMPAT_DIR/$name.summary"
+  return $rc
+}
+
+mkdir -p "$COMPAT_DIR"
+echo "compat_envs: installing (logs in $COMPAT_DIR/*.install.log)"
+t_install=$SECONDS fail=0
+ORDER=(torch-floor torch-newest py3.9 py3.10 py3.12 py3.13)
+# wait_all NAME:PID ...: the install lines, or the log's tail of a failed install
+wait_all() {
+  local item
+  for item in "$@"; do
+    if wait "${item#*:}"; then grep -h "^  " "$COMPAT_DIR/${item%%:*}.install.log" || true
+    else echo "  ${item%%:*}: install FAILED"; tail -n 20 "$COMPAT_DIR/${item%%:*}.install.log"; fail=1; fi
+  done
+}
+make_torch_env torch-floor "$FLOOR_TORCH" "numpy<2" > "$COMPAT_DIR/torch-floor.install.log" 2>&1 & a=$!
+make_torch_env torch-newest "$NEWEST_TORCH" numpy > "$COMPAT_DIR/torch-newest.install.log" 2>&1 & b=$!
+wait_all "torch-floor:$a" "torch-newest:$b"
+[ $fail = 0 ] || exit 1
+jobs=()
+for spec in "py3.9 3.9 torch-floor numpy<2" "py3.10 3.10 torch-floor numpy<2" "py3.12 3.12 torch-newest numpy" \
+            "py3.13 3.13 torch-newest numpy"; do
+  # shellcheck disable=SC2086
+  set -- $spec
+  make_py_env "$@" > "$COMPAT_DIR/$1.install.log" 2>&1 &
+  jobs+=("$1:$!")
+done
+wait_all "${jobs[@]}"
+echo "compat_envs: environments ready in $((SECONDS - t_install)) s"
+[ $fail = 0 ] || exit 1
+
+# two suites at a time (one torch thread each: the 2-core CI machine), then the Python checks
+run_env torch-floor "${CORE_TESTS[@]}" & p1=$!
+run_env torch-newest "${CORE_TESTS[@]}" & p2=$!
+wait $p1 || fail=1; wait $p2 || fail=1
+pys=()
+for name in py3.9 py3.10 py3.12 py3.13; do run_env "$name" "${PY_TESTS[@]}" & pys+=($!); done
+for p in "${pys[@]}"; do wait "$p" || fail=1; done
+
+echo "compat_envs: test counts per environment (the pinned torch: make test above)"
+for name in "${ORDER[@]}"; do cat "$COMPAT_DIR/$name.summary"; done
+exit $fail
