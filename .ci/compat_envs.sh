@@ -76,7 +76,11 @@ make_py_env() {
 run_env() {
   local name=$1; shift
   local env=$COMPAT_DIR/$name t0=$SECONDS rc=0
-  "$env/bin/python" -m pytest -q -p no:cacheprovider -rs "$@" > "$COMPAT_DIR/$name.log" 2>&1 || rc=$?
+  # CI unset: what cannot run in these environments skips with its reason (counted, -rs) instead of failing as
+  # it must in `make test`: the real mmdet3d (the mmcv wheel with compiled ops is built for the pinned torch
+  # only), OpenPCDet's code (its packages are installed by the Makefile), the Triton kernels (run by make test)
+  env -u CI "$env/bin/python" -m pytest -q -p no:cacheprovider -rs --ignore=tests/functional/test_triton_kernels.py \
+    "$@" > "$COMPAT_DIR/$name.log" 2>&1 || rc=$?
   local summary; summary=$(tail -n 1 "$COMPAT_DIR/$name.log" | sed 's/=//g; s/^ *//; s/ *$//')
   echo "$name ($(version_of "$env")): $summary [$((SECONDS - t0)) s]$( [ $rc = 0 ] || echo "  FAILED, see $COMPAT_DIR/$name.log")" \
     > "$COMPAT_DIR/$name.summary"

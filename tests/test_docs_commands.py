@@ -68,6 +68,8 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
     ("docs/index.md", "make demo"): "as README.md's `make demo`",
     ("README.md", "make test"): "the suite this test is part of",
     ("docs/index.md", "make test"): "the suite this test is part of",
+    ("docs/compatibility.md", "make test-compat"): "what .ci/run runs after `make test` in CI (builds the floor and newest torch environments, minutes)",
+    ("docs/compatibility.md", "COMPAT_DIR=/tmp/envs bash .ci/compat_envs.sh"): "the same script as `make test-compat`, run by CI; a second copy of its environments here would take minutes and GBs",
     ("docs/demo.md", "python examples/train_demo.py"): "`make demo` itself (6-10 minutes); its --quick line runs",
     ("docs/demo.md", "python examples/train_demo.py --lighting --save-checkpoint outputs/demo/ckpt.pt"):
         "a full demo run; tests/examples/test_train_demo.py runs --quick --lighting --save-checkpoint",

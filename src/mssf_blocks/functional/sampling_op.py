@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .. import _compat
 from .._checks import check_dtype, check_shape, is_tracing
 from ..errors import MSSFError
 from .plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK
@@ -199,7 +200,7 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
 # registration
 # ---------------------------------------------------------------------------------------------------
 _OP = None
-if hasattr(torch.library, "custom_op"):  # torch >= 2.4; older: the entry calls the backends itself
+if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backends itself
 
     @torch.library.custom_op("mssf_blocks::deform_sample_project", mutates_args=())
     def _op(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor, proj_weight: Tensor,
