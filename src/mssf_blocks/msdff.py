@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from . import _compat
 from ._checks import check_floating, check_positive_int, check_shape
 from ._fusion_utils import (
     _autocast_off,
@@ -43,10 +44,7 @@ def _compiling_only() -> bool:
     """``torch.compile`` (dynamo) is capturing, not an exporter: the sampling op is one opaque node there
     (the device's backend, e.g. the CPU plans, instead of the static grid plan), while exports (torch.export,
     ONNX, tracing) keep the grid plan of standard operators."""
-    compiler = getattr(torch, "compiler", None)
-    if compiler is None or not compiler.is_compiling():
-        return False
-    if hasattr(compiler, "is_exporting") and compiler.is_exporting():
+    if not _compat.is_compiling() or _compat.is_exporting():
         return False
     onnx = getattr(torch, "onnx", None)
     return not (onnx is not None and onnx.is_in_onnx_export())

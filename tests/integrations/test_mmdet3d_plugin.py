@@ -12,6 +12,8 @@ the ``RandomFlip3D`` / ``GlobalRotScaleTrans`` keys, image levels ``(B*V, C, H, 
 
 from __future__ import annotations
 
+import importlib.util
+
 import math
 import sys
 from pathlib import Path
@@ -39,7 +41,10 @@ def mmdet3d_models():
 def build_from_config(models, **overrides):
     from mmengine.config import Config
 
-    cfg = Config.fromfile(str(CONFIG))  # runs custom_imports -> the plugin registers itself
+    # custom_imports (mssf_examples.mmdet3d.plugin: the detector, dataset and metric) import mmdet3d.models,
+    # which needs mmcv's compiled ops; with mmcv-lite (the compat environments) the encoder's registration
+    # is the library plugin's, imported above
+    cfg = Config.fromfile(str(CONFIG), import_custom_modules=importlib.util.find_spec("mmcv._ext") is not None)
     assert models.module_dict.get("MSSFSparseEncoder") is mmdet3d_plugin.MSSFSparseEncoder
     enc = cfg.model.pts_middle_encoder
     enc.update(SMALL, **overrides)
