@@ -137,3 +137,23 @@ def image_levels_bv(levels: Any, batch_size: int, num_cameras: int, name: str) -
             raise MSSFError(f"{name}[{i}]: expected a 4-d or 5-d tensor, got shape {tuple(lvl.shape)}")
         out.append(lvl)
     return out
+
+
+def mmdet3d_seg_loss(seg_head: Any, out: Any, points: Sequence[Tensor], gt_bboxes_3d: Sequence[Any]) -> Tensor:
+    """The semantic head's focal loss for an mmdet3d middle encoder's latest forward output ``out``.
+
+    ``out`` carries ``seg_voxels`` (the voxels the head read) and ``seg_logits``; ``points`` are the
+    per-sample points of that forward, ``gt_bboxes_3d`` per sample ``LiDARInstance3DBoxes`` (their
+    ``.tensor``) or ``(G, 7+)`` tensors, mmdet3d's bottom-centre boxes. The centroids are recomputed from
+    the points, as the head's foreground labels are defined on them.
+    """
+    from ..functional.geometry import voxel_centroids
+
+    boxes = [getattr(b, "tensor", b)[:, :7] for b in gt_bboxes_3d]
+    flat = torch.cat(list(points), 0)
+    batch = torch.cat([torch.full((p.shape[0],), i, dtype=torch.long, device=flat.device) for i, p in enumerate(points)])
+    v = out.seg_voxels
+    centroids, _ = voxel_centroids(flat[:, :3], batch, v.coords, v.spatial_shape, v.batch_size, v.voxel_size,
+                                   v.point_range_min, v.stride)
+    return seg_head.loss_from_boxes(out.seg_logits, centroids.to(out.seg_logits.dtype), v.batch_index,
+                                    [g.to(centroids) for g in boxes], origin="bottom")

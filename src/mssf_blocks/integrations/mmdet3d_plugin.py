@@ -140,19 +140,9 @@ class MSSFSparseEncoder(nn.Module):
         """
         if self.last_output is None:
             raise MSSFError("seg_loss: no semantic-head output; build with seg_hidden and num_fusion_blocks > 0, then run forward")
-        import torch
+        from ._common import mmdet3d_seg_loss
 
-        boxes = [getattr(b, "tensor", b)[:, :7] for b in gt_bboxes_3d]
-        flat = torch.cat(list(points), 0)
-        batch = torch.cat([torch.full((p.shape[0],), i, dtype=torch.long, device=flat.device) for i, p in enumerate(points)])
-        out = self.last_output
-        from ..functional.geometry import voxel_centroids
-
-        v = out.seg_voxels
-        centroids, _ = voxel_centroids(flat[:, :3], batch, v.coords, v.spatial_shape, v.batch_size, v.voxel_size,
-                                       v.point_range_min, v.stride)
-        return self.net.seg_head.loss_from_boxes(out.seg_logits, centroids.to(out.seg_logits.dtype), v.batch_index,
-                                                 [g.to(centroids) for g in boxes], origin="bottom")
+        return mmdet3d_seg_loss(self.net.seg_head, self.last_output, points, gt_bboxes_3d)
 
 
 #: name -> class, registered by :func:`register_mmdet3d_modules`
