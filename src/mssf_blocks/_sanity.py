@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ._checks import is_tracing
+from ._running_coverage import RunningCoverage
 from .errors import MSSFError, MSSFGeometryWarning
 
 __all__ = ["set_geometry_checks", "geometry_checks_enabled"]
@@ -115,9 +116,11 @@ def _matrix_hint(lidar2img: Tensor) -> str:
 
 
 def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, batch_size: int,
-                              image_size: Sequence[int], lidar2img: Tensor, eps: float) -> None:
+                              image_size: Sequence[int], lidar2img: Tensor, eps: float,
+                              monitor: Optional[RunningCoverage] = None, stride: Sequence[int] = (1, 1, 1)) -> None:
     """Warn per sample when no voxel lands in the image, or all of them in the top-left quarter or on
-    one spot (see the module doc); ``uv (N, V, 2)`` normalised, ``depth (N, V)``."""
+    one spot, or (with ``monitor``) when the in-image fraction collapses against its running value (see
+    the module doc); ``uv (N, V, 2)`` normalised, ``depth (N, V)``."""
     if uv.shape[0] == 0 or not geometry_checks_enabled(uv):
         return
     h, w = (int(v) for v in image_size)
@@ -131,6 +134,9 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
             f"projection: none of sample {b}'s {int(n_all[b])} voxels projects inside the image "
             f"(image_size={(h, w)}): the camera contributes nothing; {_CAUSES}{_matrix_hint(l2i[b:b + 1])}"
         ), stacklevel=2)
+    if monitor is not None:
+        hits, totals = n_in.tolist(), n_all.tolist()
+        monitor.observe("projection", stride, hits, totals, [t > 0 and k == 0 for k, t in zip(hits, totals)])
     front = (depth > eps) & torch.isfinite(uv).all(-1)
     pix = uv * uv.new_tensor([w, h])  # pixel positions, half a pixel off at most
     swapped = front & (pix >= 0).all(-1) & (pix[..., 0] <= h) & (pix[..., 1] <= w)
@@ -159,9 +165,11 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
 
 
 def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batch: Tensor,
-                            batch_size: int) -> None:
+                            batch_size: int, monitor: Optional[RunningCoverage] = None,
+                            stride: Sequence[int] = (1, 1, 1)) -> None:
     """Warn when a sample has voxels and points but no voxel holds any of them (the voxel grid and
-    the points disagree), or when there are voxels and no points at all (centres are used)."""
+    the points disagree), when there are voxels and no points at all (centres are used), or (with
+    ``monitor``) when a sample's fraction of voxels holding a point collapses against its running value."""
     if has_points.shape[0] == 0 or not geometry_checks_enabled(has_points):
         return
     if points_batch.shape[0] == 0:
@@ -179,6 +187,9 @@ def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batc
             "the voxel grid and the points disagree; check voxel_size (x, y, z order), in_stride / the "
             "voxels' stride, point_range_min and points_batch"
         ), stacklevel=2)
+    if monitor is not None:
+        hits, totals, pts = n_hold.tolist(), n_vox.tolist(), n_pts.tolist()
+        monitor.observe("centroids", stride, hits, totals, [k == 0 and p > 0 for k, p in zip(hits, pts)])
 
 
 def check_grid(spatial_shape: Sequence[int], voxel_size: Sequence[float], point_range_min: Sequence[float],

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_floating, check_points, check_shape, check_triple
+from ._running_coverage import RunningCoverage
 from ._sanity import check_centroid_coverage, check_projection_coverage, set_geometry_checks
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
@@ -101,6 +102,9 @@ class VoxelCentroidProjector(nn.Module):
         self.point_range_max = (
             None if point_range_max is None else check_triple(point_range_max, "point_range_max", float)
         )
+        #: running per-sample coverage (in-image and centroid fractions) per voxel stride, for the
+        #: collapse warnings (docs/conventions.md, "Common mistakes"); plain numbers, not in the state_dict
+        self.coverage = RunningCoverage()
 
     def forward(
         self,
@@ -134,8 +138,10 @@ class VoxelCentroidProjector(nn.Module):
         proj = project_points(centroid, batch_index, lidar2img, image_size, points_to_sensor, self.eps)
         uv, valid = proj.uv, proj.valid
         # (warnings; they read data only where that costs no host synchronisation: _sanity's doc)
-        check_projection_coverage(uv, proj.depth, batch_index, voxels.batch_size, image_size, lidar2img, self.eps)
-        check_centroid_coverage(has_points, batch_index, points_batch, voxels.batch_size)
+        check_projection_coverage(uv, proj.depth, batch_index, voxels.batch_size, image_size, lidar2img, self.eps,
+                                  getattr(self, "coverage", None), voxels.stride)
+        check_centroid_coverage(has_points, batch_index, points_batch, voxels.batch_size,
+                                getattr(self, "coverage", None), voxels.stride)
         ok_depth = proj.depth > self.eps
         if not self.half_pixel:  # u / W (project_points validated image_size)
             h, w = (int(x) for x in image_size)
