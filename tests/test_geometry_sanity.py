@@ -138,6 +138,7 @@ def test_empty_point_list_warns_centres_are_used():
 
 def test_checks_can_be_switched_off():
     vox, pts, pb, l2i = scene()
+    assert any("empty" in m for m in project(vox, pts[:0], pb[:0], l2i)[1])  # on by default on the CPU
     set_geometry_checks(False)
     try:
         _, msgs = project(vox, pts[:0], pb[:0], l2i)

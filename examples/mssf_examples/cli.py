@@ -145,9 +145,10 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     model = distributed.wrap_model(model, device, dist, args.sync_bn)
 
     # The augmentation draws: every process its own stream (rank 0's is a single process's), drawn in this
-    # process after the loader, so the seed alone fixes them. Their states and torch's CPU generator (any
-    # random op in the model) go into every checkpoint and a resumed run restores them: the same draws
-    # as an uninterrupted run. (The data order is a function of the seed: batch_order, sliced at start.)
+    # process after the loader, so the seed alone fixes them. Their states, torch's CPU generator and, in a
+    # run on CUDA, the CUDA generators (any random op in the model) go into every checkpoint and a resumed
+    # run restores them: the same draws as an uninterrupted run. (The data order is a function of the
+    # seed: batch_order, sliced at start.)
     aug_rng = None if augmentation.is_identity else torch.Generator().manual_seed(args.seed + 1_000_003 * dist.rank)
     if start:
         saved = resume["train_state"].get("rng_states") or []
@@ -155,6 +156,7 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
             torch.set_rng_state(saved[dist.rank]["torch"])
             if aug_rng is not None and saved[dist.rank].get("augment") is not None:
                 aug_rng.set_state(saved[dist.rank]["augment"])
+            _restore_cuda_rng(saved[dist.rank].get("cuda"), dist.is_main)
         elif aug_rng is not None:  # a checkpoint without them (older, or another number of processes)
             aug_rng.manual_seed(args.seed + 1_000_003 * dist.rank + 7_919 * start)
             if dist.is_main:
@@ -162,7 +164,8 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
                       "process(es): augmentations are drawn afresh from here", file=sys.stderr)
 
     def checkpoint(step: int, state: Dict) -> None:
-        mine = {"torch": torch.get_rng_state(), "augment": None if aug_rng is None else aug_rng.get_state()}
+        mine = {"torch": torch.get_rng_state(), "augment": None if aug_rng is None else aug_rng.get_state(),
+                "cuda": _cuda_rng()}
         states = [mine]
         if dist.enabled:  # (every process calls this at the same step)
             states = [None] * dist.world_size
@@ -193,6 +196,27 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
         _evaluate(model, config, val_ds, args.out / f"eval_{args.val_split}", batch_size, args.workers, ckpt,
                   progress=not args.no_progress)
     return 0
+
+
+def _cuda_rng() -> Optional[List[torch.Tensor]]:
+    """The CUDA generators' states where this process uses CUDA (initialised: a CPU run on a GPU machine
+    stays off the GPU), else ``None``. Host-side states: no synchronisation, no context on other GPUs."""
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        return torch.cuda.get_rng_state_all()
+    return None
+
+
+def _restore_cuda_rng(states: Optional[List[torch.Tensor]], main: bool) -> None:
+    """Put the checkpoint's CUDA generator states back (one per visible GPU); a checkpoint of a CPU run
+    holds none, and another GPU count (or no CUDA now) keeps the fresh ones, with a note."""
+    if states is None:
+        return
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if count == len(states):
+        torch.cuda.set_rng_state_all(states)
+    elif main:
+        print(f"--resume: the checkpoint holds CUDA random states for {len(states)} GPU(s), this process sees "
+              f"{count}: random ops on the GPU (if the model has any) draw afresh from here", file=sys.stderr)
 
 
 def _runtime(ap: argparse.ArgumentParser, args, batch_size: int) -> "distributed.Runtime":

@@ -141,3 +141,40 @@ def test_progress_bar_shows_the_lr_the_step_used(monkeypatch):
         handle.remove()
     assert len(seen) == 5 and len(set(seen)) == 5  # one-cycle: a new rate every step
     assert [p["lr"] for p in _Bar.posts] == [f"{v:.2e}" for v in seen]
+
+
+def _fake_states(tag: int):
+    return [torch.tensor([tag, 1], dtype=torch.uint8), torch.tensor([tag, 2], dtype=torch.uint8)]
+
+
+def test_cuda_random_states_saved_only_where_cuda_runs(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "get_rng_state_all", lambda: _fake_states(5))
+    for available, initialised, want in ((True, True, _fake_states(5)), (True, False, None), (False, False, None)):
+        monkeypatch.setattr(torch.cuda, "is_available", lambda a=available: a)
+        monkeypatch.setattr(torch.cuda, "is_initialized", lambda i=initialised: i)
+        got = cli._cuda_rng()  # a CPU run on a GPU machine (not initialised) must not start CUDA
+        assert (got is None) if want is None else all(torch.equal(g, w) for g, w in zip(got, want))
+
+
+def test_cuda_random_states_restored_on_resume(tree, tmp_path, monkeypatch, capsys):
+    calls = []
+    monkeypatch.setattr(cli, "_cuda_rng", lambda: (calls.append(1), _fake_states(len(calls)))[1])
+    out = tmp_path / "run"
+    assert cli.main(_args(tree, out, "--device", "cpu", "--steps", "2")) == 0
+    saved = torch.load(out / "checkpoints" / "step_000001.pt", map_location="cpu", weights_only=True)
+    cuda = saved["train_state"]["rng_states"][0]["cuda"]
+    assert calls and len(cuda) == 2 and all(torch.equal(a, b) for a, b in zip(cuda, _fake_states(1)))
+    restored = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "set_rng_state_all", lambda states: restored.append(list(states)))
+    for count, want in ((2, [_fake_states(1)]), (1, [])):  # the same GPU count, then another
+        monkeypatch.setattr(torch.cuda, "device_count", lambda c=count: c)
+        restored.clear()
+        capsys.readouterr()
+        args = _args(tree, tmp_path / f"resumed_{count}", "--device", "cpu", "--steps", "2", "--resume",
+                     str(out / "checkpoints" / "step_000001.pt"))
+        assert cli.main(args) == 0
+        assert len(restored) == len(want) and all(torch.equal(a, b) for r, w in zip(restored, want)
+                                                  for a, b in zip(r, w))
+        note = "CUDA random states for 2 GPU(s), this process sees 1" in capsys.readouterr().err
+        assert note == (count == 1)
