@@ -37,13 +37,13 @@ def test_int64_indices_are_refused_before_spconv():
 
 
 def test_permuted_spatial_shape_is_named():
-    v = voxels()
-    with pytest.raises(MSSFError, match=r"expected the network's \(4, 8, 16\), got \(16, 8, 4\).*permuted"):
-        check_spconv_input(v.features, v.coords, (16, 8, 4), 1, expected_shape=(4, 8, 16))
     # SparseVoxels: coordinates that fit only a permutation of the grid say so
     coords = torch.tensor([[0, 1, 2, 12]], dtype=torch.int32)  # x = 12 needs W >= 13
     with pytest.raises(MSSFError, match=r"x index.*fit spatial_shape=\(4, 8, 16\).*\(D, H, W\)"):
         SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    v = voxels()
+    with pytest.raises(MSSFError, match=r"expected the network's \(4, 8, 16\), got \(16, 8, 4\).*permuted"):
+        check_spconv_input(v.features, v.coords, (16, 8, 4), 1, expected_shape=(4, 8, 16))
 
 
 def test_one_visible_voxel_in_training_mode_is_our_error():

@@ -158,7 +158,7 @@ def test_cuda_random_states_saved_only_where_cuda_runs(monkeypatch):
 
 def test_cuda_random_states_restored_on_resume(tree, tmp_path, monkeypatch, capsys):
     calls = []
-    monkeypatch.setattr(cli, "_cuda_rng", lambda: (calls.append(1), _fake_states(len(calls)))[1])
+    monkeypatch.setattr(cli, "_cuda_rng", lambda: (calls.append(1), _fake_states(len(calls)))[1], raising=False)
     out = tmp_path / "run"
     assert cli.main(_args(tree, out, "--device", "cpu", "--steps", "2")) == 0
     saved = torch.load(out / "checkpoints" / "step_000001.pt", map_location="cpu", weights_only=True)
