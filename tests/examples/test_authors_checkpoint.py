@@ -205,8 +205,13 @@ def their_mssf_v_shapes():
     s[f"{seg}.0.weight"], s[f"{seg}.3.weight"], s[f"{seg}.6.weight"], s[f"{seg}.6.bias"] = (256, 64), (256, 256), (1, 256), (1,)
     s.update(_bn(f"{seg}.1", 256))
     s.update(_bn(f"{seg}.4", 256))
-    # the detection head is ignored as a whole (by its prefix): two of its tensors stand for it here
-    s["pts_bbox_head.heads.0.hm.0.weight"], s["pts_bbox_head.heads.0.hm.0.bias"] = (256, 3, 3, 256), (256,)
+    # VoxelNeXtHead, one task of 3 classes: SeparateHeadVoxelNeXt branches (SubMConv2d 3x3 with bias, BN1d,
+    # ReLU; SubMConv2d 1x1 with bias), share_conv_channel 256
+    for branch, out in (("reg", 2), ("height", 1), ("dim", 3), ("rot", 2), ("heatmap", 3)):
+        p = f"pts_bbox_head.task_heads.0.{branch}"
+        s[f"{p}.0.0.weight"], s[f"{p}.0.0.bias"] = (256, 3, 3, 256), (256,)
+        s.update(_bn(f"{p}.0.1", 256))
+        s[f"{p}.1.weight"], s[f"{p}.1.bias"] = (out, 1, 1, 256), (out,)
     pp = their_mssf_pp_shapes()
     s.update({k: v for k, v in pp.items() if k.startswith(("img_backbone.", "img_neck."))})
     return s
