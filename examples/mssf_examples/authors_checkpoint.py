@@ -39,7 +39,7 @@ same ResNet / FPN layout; the preset needs ``num_image_levels=5`` and ``image_de
   (:data:`~mssf_examples.heads.authors.AUTHORS_CLASS_ORDER`) to the preset's: an anchor of class ``k`` and
   yaw ``r`` is their anchor ``perm[k] * R + r``, its class logit ``k'`` their ``perm[k']``.
 * MSSF-V ``pts_bbox_head.task_heads.0.<branch>.*`` -> ``head.heads.<ours>.*`` (``heatmap`` -> ``hm``,
-  ``reg`` -> ``center``, ``height`` -> ``center_z``, ``dim``, ``rot``), the heatmap's output rows permuted.
+  ``reg`` -> ``center``, ``height`` -> ``center_z``, ``dim``, ``rot``), the heatmap's outputs permuted.
 
 Otherwise (the examples' own head) the head is reported missing.
 
@@ -50,7 +50,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import re
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -96,20 +96,23 @@ def _v_rename(key: str) -> Optional[str]:
     return f"stages.{stage}.downsample.{rest}" if j == 0 else f"stages.{stage}.blocks.{j - 1}.{rest}"
 
 
-def head_pairs(theirs: Mapping[str, Tensor], model: nn.Module, layout: str) -> Dict[str, Tuple[str, Optional[Tensor]]]:
-    """Their detection-head tensors -> ``(our name, row index or None)`` for a detector built with
-    ``layout="authors"``: ours = ``theirs[rows]`` (their class order permuted to the preset's)."""
+def head_pairs(theirs: Mapping[str, Tensor], model: nn.Module, layout: str) -> Dict[str, Tuple[str, Optional[Callable]]]:
+    """Their detection-head tensors -> ``(our name, transform or None)`` for a detector built with
+    ``layout="authors"``: ours = ``transform(theirs)``, their class order permuted to the preset's (the
+    anchor head's output rows; the VoxelNeXt heatmap's bias, and its 1x1 weight's columns as spconv reads
+    it: ``weight.view(in, out)``, see :class:`~mssf_examples.heads.authors.SubMConv2dSpconvLayout`)."""
     from .heads.authors import AUTHORS_HEAD_NAMES, class_permutation
 
     perm = class_permutation(model.preset.class_names)
-    pairs: Dict[str, Tuple[str, Optional[Tensor]]] = {}
+    pairs: Dict[str, Tuple[str, Optional[Callable]]] = {}
     if layout == "mssf_pp":
         head = model.head
         c, rot = head.num_classes, head.num_anchors_per_location // head.num_classes
         anchor = [perm[k] * rot + r for k in range(c) for r in range(rot)]  # ours a' -> theirs a
 
-        def rows(per: int, cls: bool) -> Tensor:
-            return torch.tensor([anchor[a] * per + (perm[j] if cls else j) for a in range(len(anchor)) for j in range(per)])
+        def rows(per: int, cls: bool) -> Callable:
+            idx = torch.tensor([anchor[a] * per + (perm[j] if cls else j) for a in range(len(anchor)) for j in range(per)])
+            return lambda t: t[idx]
 
         for mine, ours, idx in (("conv_cls", "conv_cls", rows(c, True)), ("conv_reg", "conv_box", rows(head.code_size, False)),
                                 ("conv_dir_cls", "conv_dir", rows(head.num_dir_bins, False))):
@@ -124,8 +127,12 @@ def head_pairs(theirs: Mapping[str, Tensor], model: nn.Module, layout: str) -> D
             continue
         branch, rest = k[len(prefix):].split(".", 1)
         if branch in names:
-            idx = torch.tensor(perm) if branch == "heatmap" and rest in ("1.weight", "1.bias") else None
-            pairs[k] = (f"head.heads.{names[branch]}.{rest}", idx)
+            fn = None
+            if branch == "heatmap" and rest == "1.bias":
+                fn = lambda t: t[list(perm)]  # noqa: E731
+            elif branch == "heatmap" and rest == "1.weight":  # (out, 1, 1, in) used as (in, out): permute columns
+                fn = lambda t: t.reshape(t.shape[3], t.shape[0])[:, list(perm)].reshape(t.shape)  # noqa: E731
+            pairs[k] = (f"head.heads.{names[branch]}.{rest}", fn)
     return pairs
 
 
@@ -239,7 +246,7 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
         shown = ", ".join(unknown[:12]) + (f", ... ({len(unknown)} in all)" if len(unknown) > 12 else "")
         raise MSSFError(f"checkpoint: {len(unknown)} tensor(s) of theirs map to nothing in layout {layout!r}: {shown}")
     out.update({renamed[k]: theirs[k] for k in renamed})
-    out.update({ours: theirs[k][idx] for k, (ours, idx) in head_map.items() if idx is not None})
+    out.update({ours: fn(theirs[k]) for k, (ours, fn) in head_map.items() if fn is not None})
     pfn = "voxel_encoder.pfn_layers.0.linear.weight"
     if layout == "mssf_pp" and pfn in renamed:
         out[renamed[pfn]] = fold_legacy_pfn_columns(theirs[pfn])

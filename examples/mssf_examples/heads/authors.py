@@ -12,7 +12,8 @@
   shared layer (their ``shared_conv`` sits in the encoder), one branch per output, each a 3x3
   ``SubMConv2d`` with bias, ``BatchNorm1d`` (eps 1e-5), ReLU, then a 1x1 ``SubMConv2d`` with bias. The
   branches ``heatmap, reg, height, dim, rot`` are the examples' ``hm, center, center_z, dim, rot`` (the
-  same code: offset from the voxel's integer index, centre ``z``, log sizes, ``(sin, cos)`` yaw).
+  same code: offset from the voxel's integer index, centre ``z``, log sizes, ``(sin, cos)`` yaw). Its
+  convolutions run without spconv (:class:`SubMConv2dSpconvLayout`, spconv's parameters and results).
 
 The detectors build these with ``MSSFDetector(..., layout="authors")``;
 :func:`mssf_examples.authors_checkpoint.convert_authors` maps their tensors.
@@ -26,18 +27,14 @@ from typing import Dict, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
-import spconv.pytorch as spconv
-
 from mssf_blocks.errors import MSSFError
 
-from ..backbones.voxelnext import _SubMConv2dBias
-from ..spconv_compat import quiet
 from .center_head import REGRESSION_BRANCHES
 from .common import BEVGrid
 from .sparse_center_head import SparseCenterHead
 
-__all__ = ["AUTHORS_CLASS_ORDER", "AUTHORS_ANCHOR_BOTTOMS", "AUTHORS_DECODE", "AUTHORS_HEAD_NAMES", "AuthorsVoxelNeXtHead",
-           "authors_anchor_head_kwargs", "authors_anchor_z_centers", "class_permutation"]
+__all__ = ["AUTHORS_CLASS_ORDER", "AUTHORS_ANCHOR_BOTTOMS", "AUTHORS_DECODE", "AUTHORS_HEAD_NAMES", "AuthorsVoxelNeXtHead", "SubMConv2dSpconvLayout",
+           "authors_anchor_head_kwargs", "authors_anchor_z_centers", "class_permutation", "submanifold_neighbours"]
 
 #: Their class order (``class_names`` of ``vod-3d-3class`` and ``tj4d-3d-4class``); label ``k`` of their
 #: heads is ``AUTHORS_CLASS_ORDER[k]``.
@@ -90,9 +87,62 @@ def authors_anchor_head_kwargs() -> dict:
 AUTHORS_DECODE = {"anchor": (0.1, 0.01, 50), "voxelnext": (0.02, 0.2, 83)}
 
 
+def submanifold_neighbours(coords: Tensor, ny: int, nx: int, kernel_size: int) -> Tensor:
+    """``(k * k, M)`` row of the voxel at offset ``(dy, dx)`` (row-major, centre ``k // 2``) of every voxel
+    ``coords (M, 3) (b, y, x)``, or ``-1`` where that cell is empty (a hash join: sort + searchsorted)."""
+    c = coords.long()
+    keys = (c[:, 0] * ny + c[:, 1]) * nx + c[:, 2]
+    sorted_keys, order = keys.sort()
+    r = kernel_size // 2
+    rows = []
+    for dy in range(kernel_size):
+        for dx in range(kernel_size):
+            y, x = c[:, 1] + dy - r, c[:, 2] + dx - r
+            inside = (y >= 0) & (y < ny) & (x >= 0) & (x < nx)
+            k = (c[:, 0] * ny + y) * nx + x
+            pos = torch.searchsorted(sorted_keys, k).clamp(max=max(len(keys) - 1, 0))
+            hit = inside & (sorted_keys[pos] == k) if len(keys) else inside
+            rows.append(torch.where(hit, order[pos], torch.full_like(pos, -1)))
+    return torch.stack(rows)
+
+
+class SubMConv2dSpconvLayout(nn.Module):
+    """A 2D submanifold convolution with spconv 2's parameters (``weight (out, k, k, in)``, ``bias``) and
+    spconv 2.3's result, without spconv: output rows are the input rows; a ``k x k`` kernel reads the
+    non-empty cells around each voxel (correlation, as ``SubMConv2d``); a 1x1 kernel computes
+    ``x @ weight.view(in, out)``, what spconv's 1x1 path does with its default ``FILTER_HWIO = False``
+    (it reads the ``(out, 1, 1, in)`` weight as ``(in, out)``: a reshape, not a transpose), so their
+    trained 1x1 layers give their outputs."""
+
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int, bias: bool = True):
+        super().__init__()
+        self.in_channels, self.out_channels, self.kernel_size = in_channels, out_channels, kernel_size
+        self.weight = nn.Parameter(torch.empty(out_channels, kernel_size, kernel_size, in_channels))
+        self.bias = nn.Parameter(torch.zeros(out_channels)) if bias else None
+        nn.init.kaiming_normal_(self.weight)
+
+    def extra_repr(self) -> str:
+        return f"{self.in_channels}, {self.out_channels}, kernel_size={self.kernel_size}, bias={self.bias is not None}"
+
+    def forward(self, x: Tensor, neighbours: Tensor) -> Tensor:
+        """``x (M, in)``, ``neighbours`` from :func:`submanifold_neighbours` (ignored for ``k = 1``)."""
+        if self.kernel_size == 1:
+            out = x @ self.weight.reshape(self.in_channels, self.out_channels)
+        else:
+            out = x.new_zeros(x.shape[0], self.out_channels)
+            padded = torch.cat([x, x.new_zeros(1, x.shape[1])])  # row -1: an empty cell reads zeros
+            for t, rows in enumerate(neighbours):
+                w = self.weight[:, t // self.kernel_size, t % self.kernel_size, :]
+                out = out + padded[rows] @ w.T
+        return out if self.bias is None else out + self.bias
+
+
 class AuthorsVoxelNeXtHead(SparseCenterHead):
     """Their ``VoxelNeXtHead`` (one task, all classes): per branch ``SubMConv2d 3x3 (bias) -> BN1d -> ReLU
     -> SubMConv2d 1x1 (bias)`` on the sparse BEV voxels, no shared layer.
+
+    The convolutions are :class:`SubMConv2dSpconvLayout` (spconv's parameters and results, in plain torch:
+    any dtype, exact in float64; ``tests/examples/test_authors_heads.py`` checks them against spconv).
 
     Args:
         in_channels: voxel channels (theirs 256).
@@ -107,30 +157,28 @@ class AuthorsVoxelNeXtHead(SparseCenterHead):
     def __init__(self, in_channels: int, grid: BEVGrid, num_classes: int, head_channels: int = 256, **kwargs):
         super().__init__(in_channels, grid, num_classes, head_channels=head_channels, **kwargs)
         self.shared = nn.Identity()  # theirs has none (the encoder's shared_conv precedes the head)
-        factory = {"device": kwargs.get("device"), "dtype": kwargs.get("dtype")}
+        factory = {k: kwargs[k] for k in ("device", "dtype") if kwargs.get(k) is not None}
         outputs = [("hm", num_classes)] + list(REGRESSION_BRANCHES)
         self.heads = nn.ModuleDict({
-            name: spconv.SparseSequential(
-                spconv.SparseSequential(
-                    _SubMConv2dBias(in_channels, head_channels, 3, padding=1, bias=True, indice_key=f"head_{name}"),
-                    nn.BatchNorm1d(head_channels, eps=1e-5, momentum=0.1, **factory),
-                    nn.ReLU()),
-                _SubMConv2dBias(head_channels, channels, 1, bias=True, indice_key=f"head_{name}_out"))
-            for name, channels in outputs})
-        self.heads.to(**{k: v for k, v in factory.items() if v is not None})  # (spconv takes no device / dtype)
+            name: nn.Sequential(  # containers only: the names of their SparseSequential
+                nn.Sequential(SubMConv2dSpconvLayout(in_channels, head_channels, 3),
+                              nn.BatchNorm1d(head_channels, eps=1e-5, momentum=0.1), nn.ReLU()),
+                SubMConv2dSpconvLayout(head_channels, channels, 1))
+            for name, channels in outputs}).to(**factory)
+        for name, branch in self.heads.items():
+            if name != "hm":
+                nn.init.zeros_(branch[0][0].bias)
+                nn.init.zeros_(branch[1].bias)
         nn.init.constant_(self.heads["hm"][1].bias, -2.19)
 
     def forward(self, features: Tensor, coords: Tensor, batch_size: int) -> Dict[str, object]:
         """Per-voxel heatmap logits and regression, as :meth:`SparseCenterHead.forward`."""
         self._check_inputs(features, coords, batch_size)
-        t = spconv.SparseConvTensor(features, coords.int(), [self.grid.ny, self.grid.nx], batch_size)
+        neighbours = submanifold_neighbours(coords, self.grid.ny, self.grid.nx, 3)
         out: Dict[str, object] = {}
-        with quiet():
-            for name, head in self.heads.items():
-                y = head(t)
-                if not torch.equal(y.indices, t.indices):  # pragma: no cover - submanifold keeps the rows
-                    raise MSSFError("AuthorsVoxelNeXtHead: spconv reordered the voxels")
-                out[name] = y.features
+        for name, branch in self.heads.items():
+            conv, norm, act = branch[0]
+            out[name] = branch[1](act(norm(conv(features, neighbours))), neighbours)
         out["coords"] = coords
         out["batch_size"] = batch_size
         return out
