@@ -37,6 +37,10 @@ from .voxelize import DynamicVoxelizer, VoxelGrid
 __all__ = ["BEVBackbone2D", "MSSFDetector", "build_detector", "DETECTOR_NAMES", "IMAGE_FEATURE_SOURCES"]
 
 DETECTOR_NAMES = ("second", "centerpoint", "voxelnext", "pointpillars")
+#: The authors' image normalisation (``data_preprocessor`` of their configs, after ``bgr_to_rgb``), applied
+#: to ``batch.images`` (RGB in [0, 1]) by a detector built with ``layout="authors"``.
+AUTHORS_IMAGE_MEAN = (123.675, 116.28, 103.53)
+AUTHORS_IMAGE_STD = (58.395, 57.12, 57.375)
 IMAGE_FEATURE_SOURCES = ("backbone", "precomputed")
 
 
@@ -105,7 +109,8 @@ class MSSFDetector(nn.Module):
             anchors (their anchor centres: :func:`~mssf_examples.heads.authors.authors_anchor_z_centers`)
             and the image branch (theirs: ResNet-50, FPN of 256 with 5 levels); their decoding settings
             (``test_cfg``) are :data:`~mssf_examples.heads.authors.AUTHORS_DECODE`, for
-            ``score_threshold``, ``nms_iou``, ``max_detections`` (``convert-authors`` stores them).
+            ``score_threshold``, ``nms_iou``, ``max_detections`` (``convert-authors`` stores them). The
+            images are normalised as theirs (:data:`AUTHORS_IMAGE_MEAN`, :data:`AUTHORS_IMAGE_STD` on 0..255).
         image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
             ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
         score_threshold, nms_iou, max_detections: decoding settings in eval mode.
@@ -245,7 +250,12 @@ class MSSFDetector(nn.Module):
             return list(feats)
         if batch.images is None:
             raise MSSFError("batch.images: required with image_features='backbone', got None")
-        return self.image_branch(batch.images)
+        images = batch.images
+        if self.layout == "authors":  # their Det3DDataPreprocessor: RGB 0..255, minus mean, over std
+            mean = images.new_tensor(AUTHORS_IMAGE_MEAN)[:, None, None]
+            std = images.new_tensor(AUTHORS_IMAGE_STD)[:, None, None]
+            images = (images * 255.0 - mean) / std
+        return self.image_branch(images)
 
     def extract(self, batch: RadarCameraBatch):
         """Run everything up to the head: returns ``(head predictions, BackboneOutput, points, points_batch)``."""

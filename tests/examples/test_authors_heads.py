@@ -283,3 +283,22 @@ def test_authors_voxelnext_head_equals_the_same_branches_built_from_spconv():
     # the 1x1 layer read as a transpose (x @ W[:, 0, 0, :].T) would differ
     w = head.heads["hm"][1].weight
     assert not torch.allclose(w.reshape(c, 3), w[:, 0, 0, :].T)
+
+
+def test_authors_layout_feeds_the_image_branch_their_normalised_images():
+    from test_detectors import make_batch
+
+    from mssf_examples.detectors import build_detector
+    from mssf_examples.presets import TINY
+
+    torch.manual_seed(0)
+    model = build_detector("voxelnext", TINY, num_fusion_blocks=2, layout="authors").eval()
+    seen, forward = [], model.image_branch.forward
+    model.image_branch.forward = lambda x: seen.append(x) or forward(x)
+    batch = make_batch()
+    with torch.no_grad():
+        model(batch)
+    mean, std = (123.675, 116.28, 103.53), (58.395, 57.12, 57.375)  # their data_preprocessor (RGB)
+    for c in range(3):
+        want = (batch.images[:, :, c] * 255 - mean[c]) / std[c]
+        assert (seen[0][:, :, c] - want).abs().max() <= 1e-5
