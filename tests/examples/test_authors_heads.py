@@ -7,8 +7,7 @@ their definitions (``EricLiuhhh/MSSF`` @ 8341012, mmdet3d 1.x), written here wit
   direction fix of ``_predict_by_feat_single`` (offset ``-pi / 2``, period ``pi``).
 * MSSF-V ``VoxelNeXtHead`` / ``SeparateHeadVoxelNeXt``: submanifold 3x3 convolution with bias, BN1d,
   ReLU, 1x1 convolution per branch (spconv 2.3's 1x1 path); ``VoxelNeXtBBoxCoder.decode`` per voxel. The
-  same branch built from spconv's own ``SubMConv2d`` gives the head's outputs (float32: spconv's CPU
-  float64 kernels are not reliable, see the test).
+  same branch built from spconv's own ``SubMConv2d`` gives the head's outputs (in float32, see the test).
 * MSSF-PP ``SECONDFuse`` blocks and ``SECONDFPN`` deblocks (conv / BN(eps 1e-3) / ReLU, transposed conv).
 """
 
@@ -253,8 +252,9 @@ def test_converted_second_blocks_and_fpn_deblocks_equal_theirs_in_float64():
 def test_authors_voxelnext_head_equals_the_same_branches_built_from_spconv():
     """The spconv-free convolutions against spconv's SubMConv2d (the framework their head runs on), float32.
 
-    (Not float64: spconv 2.3.8's CPU SubMConv2d gave different float64 results for the same input on
-    repeated calls in one process, up to 0.7 on unit-scale features, while float32 is reproducible.)"""
+    (float32: spconv 2.3.8's CPU SubMConv2d / SubMConv3d in float64 gave wrong results with two torch threads,
+    in 21 of 30 random draws up to 1.07 on unit-scale features, while float32, and float64 on one thread,
+    matched a loop; this head does not depend on it.)"""
     import spconv.pytorch as spconv
 
     g = torch.Generator().manual_seed(7)
