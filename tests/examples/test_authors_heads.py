@@ -9,6 +9,7 @@ their definitions (``EricLiuhhh/MSSF`` @ 8341012, mmdet3d 1.x), written here wit
   ReLU, 1x1 convolution per branch (spconv 2.3's 1x1 path); ``VoxelNeXtBBoxCoder.decode`` per voxel. The
   same branch built from spconv's own ``SubMConv2d`` gives the head's outputs (in float32, see the test).
 * MSSF-PP ``SECONDFuse`` blocks and ``SECONDFPN`` deblocks (conv / BN(eps 1e-3) / ReLU, transposed conv).
+* MSSF-V's BEV tail in ``SparseEncoderVoxelNeXtFuse``: ``bev_out``, ``conv_out``, ``shared_conv``.
 """
 
 import math
@@ -302,3 +303,78 @@ def test_authors_layout_feeds_the_image_branch_their_normalised_images():
     for c in range(3):
         want = (batch.images[:, :, c] * 255 - mean[c]) / std[c]
         assert (seen[0][:, :, c] - want).abs().max() <= 1e-5
+
+
+# ---------------------------------------------------------------------------------------------------
+# SparseEncoderVoxelNeXtFuse's BEV tail: bev_out (sum of x_conv4..6 at equal (b, y, x), x_conv5 / x_conv6
+# indices x2 / x4), conv_out (regular SparseConv2d 3x3, BN1d eps 1e-3, ReLU), shared_conv (SubMConv2d 3x3
+# with bias, BN1d eps 1e-5, ReLU)
+def their_sparse_conv2d(sites, w, b, ny, nx, subm):
+    """Loops: output sites = the input sites (submanifold) or every in-bounds cell with an input in its
+    3x3 window (regular, padding 1); value = sum over the window of weight[:, dy, dx, :] @ input."""
+    if subm:
+        outs = sorted(sites)
+    else:
+        outs = sorted({(bi, y + dy, x + dx) for (bi, y, x) in sites for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                       if 0 <= y + dy < ny and 0 <= x + dx < nx})
+    res = {}
+    for (bi, y, x) in outs:
+        acc = torch.zeros(w.shape[0], dtype=F64) if b is None else b.clone()
+        for dy in range(3):
+            for dx in range(3):
+                f = sites.get((bi, y + dy - 1, x + dx - 1))
+                if f is not None:
+                    acc = acc + w[:, dy, dx, :] @ f
+        res[(bi, y, x)] = acc
+    return res
+
+
+@pytest.mark.usefixtures("one_thread")  # spconv's float64 CPU kernels are right on one thread only
+def test_voxelnext_bev_tail_in_their_layout_equals_theirs_in_float64():
+    from mssf_examples.backbones import BackboneOutput, VoxelNeXtBackbone
+    from mssf_examples.voxelize import VoxelGrid
+
+    g = torch.Generator().manual_seed(8)
+    c = 8
+    grid = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (0.2, 0.2, 0.125))  # 64 x 64, BEV 8 x 8 at stride 8
+    model = VoxelNeXtBackbone(7, grid, channels=(c,) * 7, out_channels=c, authors_layout=True, num_fusion_blocks=0)
+    model = model.double().train()
+    for m in (model.conv_out[1], model.shared_conv[1]):
+        m.eval()
+        m.running_mean.copy_(0.2 * torch.randn(c, generator=g, dtype=F64))
+        m.running_var.copy_(0.5 + torch.rand(c, generator=g, dtype=F64))
+        m.weight.data.copy_(1 + 0.2 * torch.randn(c, generator=g, dtype=F64))
+        m.bias.data.copy_(0.2 * torch.randn(c, generator=g, dtype=F64))
+    ny, nx = model.bev_shape
+
+    def stage(n, factor):
+        cells = torch.randperm(2 * (ny // factor) * (nx // factor), generator=g)[:n]
+        per = (ny // factor) * (nx // factor)
+        b, y, x = cells // per, (cells % per) // (nx // factor), cells % (nx // factor)
+        z = torch.randint(0, 3, (n,), generator=g)
+        return SimpleNamespace(features=torch.randn(n, c, generator=g, dtype=F64),
+                               coords=torch.stack([b, z, y, x], 1).int())
+
+    stages = [stage(20, 1), stage(8, 2), stage(3, 4)]
+    model.forward_stages = lambda voxels, inputs: BackboneOutput(stages=[None, None, None] + stages)
+    with torch.no_grad():
+        feats, coords = model(SimpleNamespace(batch_size=2), None).sparse_bev
+    # theirs: bev_out, then the two layers
+    merged = {}
+    for s, k in zip(stages, (1, 2, 4)):
+        for f, (bi, _, y, x) in zip(s.features, s.coords.tolist()):
+            key = (bi, y * k, x * k)
+            merged[key] = merged.get(key, torch.zeros(c, dtype=F64)) + f
+    sd = {k: v.detach() for k, v in model.state_dict().items()}
+
+    def bn_relu(v, p, eps):
+        return torch.relu((v - sd[f"{p}.running_mean"]) / torch.sqrt(sd[f"{p}.running_var"] + eps) * sd[f"{p}.weight"]
+                          + sd[f"{p}.bias"])
+
+    out = their_sparse_conv2d(merged, sd["conv_out.0.weight"], None, ny, nx, subm=False)
+    out = {k: bn_relu(v, "conv_out.1", 1e-3) for k, v in out.items()}
+    out = their_sparse_conv2d(out, sd["shared_conv.0.weight"], sd["shared_conv.0.bias"], ny, nx, subm=True)
+    out = {k: bn_relu(v, "shared_conv.1", 1e-5) for k, v in out.items()}
+    have = {tuple(k): f for k, f in zip(coords.tolist(), feats)}
+    assert have.keys() == out.keys() and len(out) > len(merged)  # the regular conv dilates the set
+    assert max((have[k] - out[k]).abs().max().item() for k in out) <= 1e-9
