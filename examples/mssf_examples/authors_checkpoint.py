@@ -12,9 +12,9 @@ Layouts (``layout=``):
   :func:`fold_legacy_pfn_columns`), both fusion stages (``middle_encoder.*`` ->
   ``scatter_stage``, ``backbone.*`` -> ``backbone_stage``, through
   :func:`mssf_blocks.compat.mssf_pp.mssf_pp_stage_maps`), ``backbone.blocks`` -> ``blocks``,
-  ``neck.deblocks`` -> ``deblocks``. Ignored: the image backbone and neck (``img_backbone``, ``img_neck``:
-  mmdet's ResNet-50 and FPN, which the example image branch does not reproduce), the detection head
-  (``bbox_head``: their ``Anchor3DHead``, not mapped onto the example ``AnchorHead``) and the dead
+  ``neck.deblocks`` -> ``deblocks``. Ignored into the backbone alone: the image backbone and neck
+  (``img_backbone``, ``img_neck``: mmdet's ResNet-50 and FPN) and the detection head (``bbox_head``:
+  their ``Anchor3DHead``), which map onto the detector (below); always: the dead
   ``voxel_fuse.img_transform`` of both stages.
 
 * ``"mssf_v"``: their MSSF-V (``VoxelNeXtFuse`` with ``SparseEncoderVoxelNeXtFuse``) into
@@ -23,9 +23,8 @@ Layouts (``layout=``):
   ``conv1.<j>`` -> ``stages.0.blocks.<j>``, ``conv<i>.0`` -> ``stages.<i-1>.downsample``,
   ``conv<i>.<j>`` -> ``stages.<i-1>.blocks.<j-1>``, the fusion modules, query initialiser and semantic
   head through :func:`mssf_blocks.compat.mssf_official.mssf_v_module_maps` (``stage_channels`` = their
-  ``base_channels``, 32). Ignored: ``img_backbone``, ``img_neck``, ``pts_bbox_head`` (their
-  ``VoxelNeXtHead``, not mapped onto the example ``SparseCenterHead``) and the dead
-  ``voxel_fuse.img_transform``.
+  ``base_channels``, 32). Ignored into the backbone alone: ``img_backbone``, ``img_neck``,
+  ``pts_bbox_head`` (their ``VoxelNeXtHead``); always: the dead ``voxel_fuse.img_transform``.
 
 The target may also be the example detector (:class:`~mssf_examples.detectors.MSSFDetector` built with
 ``pillar_layout="authors"``, or ``"voxelnext"`` with an ``authors_layout`` backbone): the backbone's
