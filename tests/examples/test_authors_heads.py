@@ -378,3 +378,22 @@ def test_voxelnext_bev_tail_in_their_layout_equals_theirs_in_float64():
     have = {tuple(k): f for k, f in zip(coords.tolist(), feats)}
     assert have.keys() == out.keys() and len(out) > len(merged)  # the regular conv dilates the set
     assert max((have[k] - out[k]).abs().max().item() for k in out) <= 1e-9
+
+
+def test_authors_helpers_name_bad_arguments():
+    from mssf_blocks.errors import MSSFError
+    from mssf_examples.detectors import build_detector
+    from mssf_examples.heads.authors import class_permutation
+    from mssf_examples.presets import TINY
+
+    assert class_permutation(OURS) == (2, 0, 1)
+    assert class_permutation(("Car", "Pedestrian", "Cyclist", "Truck")) == (2, 0, 1, 3)
+    with pytest.raises(MSSFError, match=r"class names: expected the classes .*got \('Car', 'Bus'"):
+        class_permutation(("Car", "Bus", "Cyclist"))
+    assert authors_anchor_z_centers(OURS, [SIZES[k] for k in OURS], "vod") == pytest.approx((-1.0, 0.265, 0.265))
+    with pytest.raises(MSSFError, match="dataset: expected one of"):
+        authors_anchor_z_centers(OURS, [SIZES[k] for k in OURS], "kitti")
+    with pytest.raises(MSSFError, match="layout: 'authors' exists for"):
+        build_detector("second", TINY, layout="authors")
+    with pytest.raises(MSSFError, match="layout: expected 'paper' or 'authors'"):
+        build_detector("voxelnext", TINY, layout="theirs")

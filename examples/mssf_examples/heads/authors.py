@@ -33,8 +33,9 @@ from .center_head import REGRESSION_BRANCHES
 from .common import BEVGrid
 from .sparse_center_head import SparseCenterHead
 
-__all__ = ["AUTHORS_CLASS_ORDER", "AUTHORS_ANCHOR_BOTTOMS", "AUTHORS_DECODE", "AUTHORS_HEAD_NAMES", "AuthorsVoxelNeXtHead", "SubMConv2dSpconvLayout",
-           "authors_anchor_head_kwargs", "authors_anchor_z_centers", "class_permutation", "submanifold_neighbours"]
+__all__ = ["AUTHORS_CLASS_ORDER", "AUTHORS_ANCHOR_BOTTOMS", "AUTHORS_DECODE", "AUTHORS_HEAD_NAMES",
+           "AuthorsVoxelNeXtHead", "SubMConv2dSpconvLayout", "authors_anchor_head_kwargs",
+           "authors_anchor_z_centers", "class_permutation", "submanifold_neighbours"]
 
 #: Their class order (``class_names`` of ``vod-3d-3class`` and ``tj4d-3d-4class``); label ``k`` of their
 #: heads is ``AUTHORS_CLASS_ORDER[k]``.
@@ -70,7 +71,8 @@ def authors_anchor_z_centers(class_names: Sequence[str], anchor_sizes: Sequence[
         raise MSSFError(f"dataset: expected one of {tuple(AUTHORS_ANCHOR_BOTTOMS)}, got {dataset!r}")
     bottoms = {k.lower(): v for k, v in AUTHORS_ANCHOR_BOTTOMS[dataset].items()}
     if any(c.lower() not in bottoms for c in class_names):
-        raise MSSFError(f"class_names: expected classes among {tuple(AUTHORS_ANCHOR_BOTTOMS[dataset])}, got {tuple(class_names)}")
+        raise MSSFError(f"class_names: expected classes among {tuple(AUTHORS_ANCHOR_BOTTOMS[dataset])}, "
+                        f"got {tuple(class_names)}")
     return tuple(bottoms[c.lower()] + float(s[2]) / 2 for c, s in zip(class_names, anchor_sizes))
 
 
