@@ -41,6 +41,9 @@ _SUITE = "runs these test files, which are part of `make test` itself"
 _GPU = "needs a CUDA GPU (CI has none); the same CLI code runs on the CPU in real-data.md's commands, and " \
        "tests/examples/test_distributed.py covers --device / --amp / --workers / torchrun on the CPU"
 
+_AUTHORS = "needs the authors' released checkpoint (not available offline); tests/examples/test_authors_cli.py " \
+           "runs the same two commands on a fabricated checkpoint of their key list and a generated VoD tree"
+
 NOT_RUN_FILES: Dict[str, str] = {
     "docs/frameworks.md": "run by tests/integrations (the framework tests, which need the real OpenPCDet / "
                           "mmdetection3d and say so)",
@@ -94,6 +97,10 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
                      "--sync-bn --out /shared/outputs/vod_cp_16gpu"): "two nodes of 8 GPUs; " + _GPU,
     ("docs/gpus.md", "make gpu-check"): "the device check for a GPU machine; tests/test_gpu_check.py runs its "
                                         "--smoke --device cpu mode",
+    ("docs/differences.md", "python -m mssf_examples convert-authors mssf_pp_vod.pth --out converted/mssf_pp.pt "
+                            "--layout mssf_pp"): _AUTHORS,
+    ("docs/differences.md", "python -m mssf_examples eval --checkpoint converted/mssf_pp.pt --data-root "
+                            "/data/view_of_delft --split val"): _AUTHORS,
 }
 
 #: commands that run exactly as printed (placeholders aside), in page order

@@ -12,9 +12,9 @@ Layouts (``layout=``):
   :func:`fold_legacy_pfn_columns`), both fusion stages (``middle_encoder.*`` ->
   ``scatter_stage``, ``backbone.*`` -> ``backbone_stage``, through
   :func:`mssf_blocks.compat.mssf_pp.mssf_pp_stage_maps`), ``backbone.blocks`` -> ``blocks``,
-  ``neck.deblocks`` -> ``deblocks``. Ignored: the image backbone and neck (``img_backbone``, ``img_neck``:
-  mmdet's ResNet-50 and FPN, which the example image branch does not reproduce), the detection head
-  (``bbox_head``: their ``Anchor3DHead``, not mapped onto the example ``AnchorHead``) and the dead
+  ``neck.deblocks`` -> ``deblocks``. Ignored into the backbone alone: the image backbone and neck
+  (``img_backbone``, ``img_neck``: mmdet's ResNet-50 and FPN) and the detection head (``bbox_head``:
+  their ``Anchor3DHead``), which map onto the detector (below); always: the dead
   ``voxel_fuse.img_transform`` of both stages.
 
 * ``"mssf_v"``: their MSSF-V (``VoxelNeXtFuse`` with ``SparseEncoderVoxelNeXtFuse``) into
@@ -23,16 +23,24 @@ Layouts (``layout=``):
   ``conv1.<j>`` -> ``stages.0.blocks.<j>``, ``conv<i>.0`` -> ``stages.<i-1>.downsample``,
   ``conv<i>.<j>`` -> ``stages.<i-1>.blocks.<j-1>``, the fusion modules, query initialiser and semantic
   head through :func:`mssf_blocks.compat.mssf_official.mssf_v_module_maps` (``stage_channels`` = their
-  ``base_channels``, 32). Ignored: ``img_backbone``, ``img_neck``, ``pts_bbox_head`` (their
-  ``VoxelNeXtHead``, not mapped onto the example ``SparseCenterHead``) and the dead
-  ``voxel_fuse.img_transform``.
+  ``base_channels``, 32). Ignored into the backbone alone: ``img_backbone``, ``img_neck``,
+  ``pts_bbox_head`` (their ``VoxelNeXtHead``); always: the dead ``voxel_fuse.img_transform``.
 
 The target may also be the example detector (:class:`~mssf_examples.detectors.MSSFDetector` built with
 ``pillar_layout="authors"``, or ``"voxelnext"`` with an ``authors_layout`` backbone): the backbone's
 tensors then go under ``backbone.``, and their image backbone and neck map by name onto the example
 image branch (``img_backbone`` -> ``image_branch.backbone``, ``img_neck`` -> ``image_branch.neck``: the
-same ResNet / FPN layout; the preset needs ``num_image_levels=5`` and ``image_depth=50``). The detection
-head is then reported missing.
+same ResNet / FPN layout; the preset needs ``num_image_levels=5`` and ``image_depth=50``). Built with
+``layout="authors"`` (their whole detector), the detection head maps too (:func:`head_pairs`):
+
+* MSSF-PP ``bbox_head.conv_cls`` / ``conv_reg`` / ``conv_dir_cls`` -> ``head.conv_cls`` / ``conv_box`` /
+  ``conv_dir``, their output channels permuted from their class order
+  (:data:`~mssf_examples.heads.authors.AUTHORS_CLASS_ORDER`) to the preset's: an anchor of class ``k`` and
+  yaw ``r`` is their anchor ``perm[k] * R + r``, its class logit ``k'`` their ``perm[k']``.
+* MSSF-V ``pts_bbox_head.task_heads.0.<branch>.*`` -> ``head.heads.<ours>.*`` (``heatmap`` -> ``hm``,
+  ``reg`` -> ``center``, ``height`` -> ``center_z``, ``dim``, ``rot``), the heatmap's outputs permuted.
+
+Otherwise (the examples' own head) the head is reported missing.
 
 ``python -m mssf_examples convert-authors CHECKPOINT --out FILE`` runs it and prints the report.
 """
@@ -41,15 +49,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import re
-from typing import Dict, List, Mapping, Optional, Tuple
+from typing import Callable, Dict, List, Mapping, Optional, Tuple
 
+import torch
 from torch import Tensor, nn
 
 from mssf_blocks.compat.mssf_official import mssf_v_module_maps, official_to_ours
 from mssf_blocks.compat.mssf_pp import mssf_pp_stage_maps
 from mssf_blocks.errors import MSSFError
 
-__all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "fold_legacy_pfn_columns", "unwrap_checkpoint"]
+__all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "fold_legacy_pfn_columns", "head_pairs", "unwrap_checkpoint"]
 
 LAYOUTS = ("mssf_pp", "mssf_v")
 
@@ -60,12 +69,12 @@ _IMAGE_IGNORED = (
 )
 _DEAD = "dead: built by their query initialiser, never called"
 _PP_IGNORED = _IMAGE_IGNORED + (
-    ("bbox_head.", "their Anchor3DHead: not mapped onto the example AnchorHead"),
+    ("bbox_head.", "their Anchor3DHead: maps onto a detector built with layout='authors' only"),
     ("middle_encoder.voxel_fuse.img_transform.", _DEAD),
     ("backbone.voxel_fuse.img_transform.", _DEAD),
 )
 _V_IGNORED = _IMAGE_IGNORED + (
-    ("pts_bbox_head.", "their VoxelNeXtHead: not mapped onto the example SparseCenterHead"),
+    ("pts_bbox_head.", "their VoxelNeXtHead: maps onto a detector built with layout='authors' only"),
     ("pts_middle_encoder.voxel_fuse.img_transform.", _DEAD),
 )
 _ENC = "pts_middle_encoder."
@@ -84,6 +93,46 @@ def _v_rename(key: str) -> Optional[str]:
     if stage == 0:  # conv1: two residual blocks, no downsampling
         return f"stages.0.blocks.{j}.{rest}"
     return f"stages.{stage}.downsample.{rest}" if j == 0 else f"stages.{stage}.blocks.{j - 1}.{rest}"
+
+
+def head_pairs(theirs: Mapping[str, Tensor], model: nn.Module, layout: str) -> Dict[str, Tuple[str, Optional[Callable]]]:
+    """Their detection-head tensors -> ``(our name, transform or None)`` for a detector built with
+    ``layout="authors"``: ours = ``transform(theirs)``, their class order permuted to the preset's (the
+    anchor head's output rows; the VoxelNeXt heatmap's bias, and its 1x1 weight's columns as spconv reads
+    it: ``weight.view(in, out)``, see :class:`~mssf_examples.heads.authors.SubMConv2dSpconvLayout`)."""
+    from .heads.authors import AUTHORS_HEAD_NAMES, class_permutation
+
+    perm = class_permutation(model.preset.class_names)
+    pairs: Dict[str, Tuple[str, Optional[Callable]]] = {}
+    if layout == "mssf_pp":
+        head = model.head
+        c, rot = head.num_classes, head.num_anchors_per_location // head.num_classes
+        anchor = [perm[k] * rot + r for k in range(c) for r in range(rot)]  # ours a' -> theirs a
+
+        def rows(per: int, cls: bool) -> Callable:
+            idx = torch.tensor([anchor[a] * per + (perm[j] if cls else j) for a in range(len(anchor)) for j in range(per)])
+            return lambda t: t[idx]
+
+        for mine, ours, idx in (("conv_cls", "conv_cls", rows(c, True)), ("conv_reg", "conv_box", rows(head.code_size, False)),
+                                ("conv_dir_cls", "conv_dir", rows(head.num_dir_bins, False))):
+            for p in ("weight", "bias"):
+                if f"bbox_head.{mine}.{p}" in theirs:
+                    pairs[f"bbox_head.{mine}.{p}"] = (f"head.{ours}.{p}", idx)
+        return pairs
+    names = dict(AUTHORS_HEAD_NAMES)
+    prefix = "pts_bbox_head.task_heads.0."
+    for k in theirs:
+        if not k.startswith(prefix):
+            continue
+        branch, rest = k[len(prefix):].split(".", 1)
+        if branch in names:
+            fn = None
+            if branch == "heatmap" and rest == "1.bias":
+                fn = lambda t: t[list(perm)]  # noqa: E731
+            elif branch == "heatmap" and rest == "1.weight":  # (out, 1, 1, in) used as (in, out): permute columns
+                fn = lambda t: t.reshape(t.shape[3], t.shape[0])[:, list(perm)].reshape(t.shape)  # noqa: E731
+            pairs[k] = (f"head.heads.{names[branch]}.{rest}", fn)
+    return pairs
 
 
 @dataclass
@@ -151,7 +200,11 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
     table = _PP_IGNORED if layout == "mssf_pp" else _V_IGNORED
     if detector and model.image_branch is not None:
         table = tuple(t for t in table if t not in _IMAGE_IGNORED)
+    authors_head = detector and getattr(model, "layout", "paper") == "authors"
+    if authors_head:  # their detection head maps onto the head built as theirs
+        table = tuple(t for t in table if not t[0].startswith(("bbox_head.", "pts_bbox_head.")))
     ignored = {k: why for k in theirs for p, why in table if k.startswith(p)}
+    head_map = head_pairs(theirs, model, layout) if authors_head else {}
     image = {}
     if detector and model.image_branch is not None:
         image = {k: dst + k[len(src):] for k in theirs
@@ -175,6 +228,7 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
             fusion="sff" if simple else "msdff")
         stages = [("pts_middle_encoder", maps, ignore)]
     renamed.update(image)
+    renamed.update({k: ours for k, (ours, _) in head_map.items()})
     stage_keys = {}
     for enc, maps, ignore in stages:
         keys = [k for k in theirs if k.startswith(enc + ".") and k not in ignored and k not in renamed]
@@ -191,6 +245,7 @@ def convert_authors(theirs: Mapping[str, Tensor], model: nn.Module, layout: str 
         shown = ", ".join(unknown[:12]) + (f", ... ({len(unknown)} in all)" if len(unknown) > 12 else "")
         raise MSSFError(f"checkpoint: {len(unknown)} tensor(s) of theirs map to nothing in layout {layout!r}: {shown}")
     out.update({renamed[k]: theirs[k] for k in renamed})
+    out.update({ours: fn(theirs[k]) for k, (ours, fn) in head_map.items() if fn is not None})
     pfn = "voxel_encoder.pfn_layers.0.linear.weight"
     if layout == "mssf_pp" and pfn in renamed:
         out[renamed[pfn]] = fold_legacy_pfn_columns(theirs[pfn])

@@ -294,14 +294,18 @@ def _eval(ap: argparse.ArgumentParser, args) -> int:
     spec = DATASETS.get(config.get("dataset"))
     if spec is None:
         ap.error(f"--checkpoint {args.checkpoint}: unknown dataset {config.get('dataset')!r} in its config")
+    if args.data_root is None and config.get("data_root") is None:
+        ap.error(f"--data-root: required (the checkpoint {args.checkpoint} names no data root)")
     root = args.data_root if args.data_root is not None else Path(config["data_root"])
     sensor = args.sensor if "sensor" in args else config.get("sensor", spec.default_sensor)
     batch_size = getattr(args, "batch_size", config.get("batch_size", 4))
     ds = _open_dataset(ap, root, spec, sensor, args.split)
     preset = _preset_from_json(config["preset"])
     thr = args.score_threshold if args.score_threshold is not None else config.get("score_threshold", 0.1)
+    # a converted authors' checkpoint (convert-authors) carries layout="authors" and their NMS settings
+    decode = {k: config[k] for k in ("nms_iou", "max_detections") if k in config}
     model = build_detector(config["detector"], preset, num_fusion_blocks=config["fusion_blocks"],
-                           fusion=config["fusion"], score_threshold=thr)
+                           fusion=config["fusion"], score_threshold=thr, layout=config.get("layout", "paper"), **decode)
     model.load_state_dict(state)  # the checkpoint's tensors are on the CPU, whatever device wrote them
     try:
         if distributed.distributed_from_env().enabled:

@@ -37,6 +37,10 @@ from .voxelize import DynamicVoxelizer, VoxelGrid
 __all__ = ["BEVBackbone2D", "MSSFDetector", "build_detector", "DETECTOR_NAMES", "IMAGE_FEATURE_SOURCES"]
 
 DETECTOR_NAMES = ("second", "centerpoint", "voxelnext", "pointpillars")
+#: The authors' image normalisation (``data_preprocessor`` of their configs, after ``bgr_to_rgb``), applied
+#: to ``batch.images`` (RGB in [0, 1]) by a detector built with ``layout="authors"``.
+AUTHORS_IMAGE_MEAN = (123.675, 116.28, 103.53)
+AUTHORS_IMAGE_STD = (58.395, 57.12, 57.375)
 IMAGE_FEATURE_SOURCES = ("backbone", "precomputed")
 
 
@@ -96,6 +100,17 @@ class MSSFDetector(nn.Module):
             replacing) or ``"authors"`` (:class:`AuthorsPointPillarsBackbone`: the authors' MSSF-PP, two
             concatenating fusion stages, their widths; ``num_fusion_blocks`` must be 2 and ``fusion``
             ``"msdff"``; loads their checkpoints through ``mssf_examples.authors_checkpoint``).
+        layout: ``"paper"`` or ``"authors"``: the whole detector as the MSSF authors built it, for their
+            checkpoints (``mssf_examples.authors_checkpoint``): PointPillars = ``pillar_layout="authors"``
+            and their ``Anchor3DHead`` (:func:`~mssf_examples.heads.authors.authors_anchor_head_kwargs`:
+            yaws 0 / 1.57, mmdet3d's direction offsets, their test settings); VoxelNeXt = the backbone's
+            ``authors_layout`` and their ``VoxelNeXtHead``
+            (:class:`~mssf_examples.heads.authors.AuthorsVoxelNeXtHead`, 256 wide). The preset gives the
+            anchors (their anchor centres: :func:`~mssf_examples.heads.authors.authors_anchor_z_centers`)
+            and the image branch (theirs: ResNet-50, FPN of 256 with 5 levels); their decoding settings
+            (``test_cfg``) are :data:`~mssf_examples.heads.authors.AUTHORS_DECODE`, for
+            ``score_threshold``, ``nms_iou``, ``max_detections`` (``convert-authors`` stores them). The
+            images are normalised as theirs (:data:`AUTHORS_IMAGE_MEAN`, :data:`AUTHORS_IMAGE_STD` on 0..255).
         image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
             ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
         score_threshold, nms_iou, max_detections: decoding settings in eval mode.
@@ -118,8 +133,18 @@ class MSSFDetector(nn.Module):
         max_detections: int = 100,
         head_position: str = "after_fusion",
         pillar_layout: str = "paper",
+        layout: str = "paper",
     ) -> None:
         super().__init__()
+        if layout not in ("paper", "authors"):
+            raise MSSFError(f"layout: expected 'paper' or 'authors', got {layout!r}")
+        if layout == "authors":
+            if name not in ("pointpillars", "voxelnext"):
+                raise MSSFError(f"layout: 'authors' exists for their MSSF-PP (pointpillars) and MSSF-V (voxelnext), "
+                                f"got name={name!r}")
+            if name == "pointpillars":
+                pillar_layout = "authors"
+        self.layout = layout
         if name not in DETECTOR_NAMES:
             raise MSSFError(f"name: expected one of {DETECTOR_NAMES}, got {name!r}")
         if image_features not in IMAGE_FEATURE_SOURCES:
@@ -170,17 +195,29 @@ class MSSFDetector(nn.Module):
             px0, py0, _, px1, py1, _ = p.pillar_range
             bev_grid = BEVGrid(px0, py0, px1, py1, *self.backbone.bev_shape)
             matched, unmatched = _anchor_thresholds(p.class_names)
+            head_kw = {}
+            if layout == "authors":
+                from .heads.authors import authors_anchor_head_kwargs
+
+                head_kw = authors_anchor_head_kwargs()
             self.head = AnchorHead(self.backbone.bev_channels, bev_grid, p.anchor_sizes, p.anchor_z_centers,
-                                   matched_thresholds=matched, unmatched_thresholds=unmatched)
+                                   matched_thresholds=matched, unmatched_thresholds=unmatched, **head_kw)
         else:
             grid = VoxelGrid(p.point_cloud_range, p.voxel_size)
             self.voxelizer = DynamicVoxelizer(p.point_cloud_range, p.voxel_size)
             fusion_kwargs["head_position"] = head_position
             if name == "voxelnext":
                 self.backbone = VoxelNeXtBackbone(c_in, grid, channels=p.voxelnext_channels, out_channels=p.voxelnext_out,
-                                                  **fusion_kwargs)
+                                                  authors_layout=layout == "authors", **fusion_kwargs)
                 bev_grid = BEVGrid(x0, y0, x1, y1, *self.backbone.bev_shape)
-                self.head = SparseCenterHead(self.backbone.bev_channels, bev_grid, p.num_classes, head_channels=p.head_channels)
+                if layout == "authors":
+                    from .heads.authors import AuthorsVoxelNeXtHead
+
+                    self.head = AuthorsVoxelNeXtHead(self.backbone.bev_channels, bev_grid, p.num_classes,
+                                                     head_channels=self.backbone.bev_channels)
+                else:
+                    self.head = SparseCenterHead(self.backbone.bev_channels, bev_grid, p.num_classes,
+                                                 head_channels=p.head_channels)
             else:
                 if name == "second":
                     self.backbone = SECONDBackbone(c_in, grid, channels=p.second_channels, out_channels=p.second_out,
@@ -213,7 +250,12 @@ class MSSFDetector(nn.Module):
             return list(feats)
         if batch.images is None:
             raise MSSFError("batch.images: required with image_features='backbone', got None")
-        return self.image_branch(batch.images)
+        images = batch.images
+        if self.layout == "authors":  # their Det3DDataPreprocessor: RGB 0..255, minus mean, over std
+            mean = images.new_tensor(AUTHORS_IMAGE_MEAN)[:, None, None]
+            std = images.new_tensor(AUTHORS_IMAGE_STD)[:, None, None]
+            images = (images * 255.0 - mean) / std
+        return self.image_branch(images)
 
     def extract(self, batch: RadarCameraBatch):
         """Run everything up to the head: returns ``(head predictions, BackboneOutput, points, points_batch)``."""
@@ -272,7 +314,7 @@ class MSSFDetector(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"name={self.name!r}, preset={self.preset.name!r}, num_fusion_blocks={self.num_fusion_blocks}, "
-                f"image_features={self.image_feature_source!r}")
+                f"image_features={self.image_feature_source!r}" + (", layout='authors'" if self.layout == "authors" else ""))
 
 
 def _float32(x):

@@ -75,6 +75,14 @@ class SparseCenterHead(_CenterHeadBase):
 
     def forward(self, features: Tensor, coords: Tensor, batch_size: int) -> Dict[str, object]:
         """Per-voxel heatmap logits and regression from ``features (M, C)`` at ``coords (M, 3)`` (b, y, x)."""
+        self._check_inputs(features, coords, batch_size)
+        x = self.shared(features)
+        out: Dict[str, object] = {name: head(x) for name, head in self.heads.items()}
+        out["coords"] = coords
+        out["batch_size"] = batch_size
+        return out
+
+    def _check_inputs(self, features: Tensor, coords: Tensor, batch_size: int) -> None:
         dims: dict = {}
         check_shape(features, "features", ("M", self.in_channels), dims)
         check_shape(coords, "coords", ("M", 3), dims)
@@ -90,11 +98,6 @@ class SparseCenterHead(_CenterHeadBase):
                     f"coords: expected (b, y, x) in [0, {batch_size}) x [0, {self.grid.ny}) x [0, {self.grid.nx}), "
                     f"got per-column min {lo} and max {hi}"
                 )
-        x = self.shared(features)
-        out: Dict[str, object] = {name: head(x) for name, head in self.heads.items()}
-        out["coords"] = coords
-        out["batch_size"] = batch_size
-        return out
 
     def loss(self, preds: Dict[str, object], gt_boxes: List[Tensor], gt_labels: List[Tensor]) -> Dict[str, Tensor]:
         """Focal heatmap loss over all voxels and L1 regression at each box's voxel.
