@@ -93,3 +93,38 @@ def test_spconv_indices_outside_a_permuted_spatial_shape_are_named():
     x = spconv.SparseConvTensor(torch.ones(2, 4), idx, [16, 8, 4], 1)  # (W, H, D) given
     with pytest.raises(MSSFError, match=r"indices: expected .* inside spatial_shape \(16, 8, 4\).*\(4, 8, 16\)"):
         _block()(x, inputs)
+
+
+def test_float64_on_several_cpu_threads_is_refused_before_spconv():
+    v = voxels(dtype=torch.float64)
+    check_spconv_input(v.features, v.coords, v.spatial_shape, 1)  # one thread (the fixture): accepted
+    n = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        with pytest.raises(MSSFError, match=r"features: float64 on the CPU needs one torch thread.*got 2.*float32"):
+            v.to_spconv()
+        check_spconv_input(v.features.float(), v.coords, v.spatial_shape, 1)  # float32: accepted
+    finally:
+        torch.set_num_threads(n)
+
+
+def test_spconv_float64_on_two_threads_is_still_wrong():
+    """Why the check above exists; when a newer spconv is right on two threads, this fails: drop the check."""
+    spconv = pytest.importorskip("spconv.pytorch")
+    gen = torch.Generator().manual_seed(0)
+    n = torch.get_num_threads()
+    worst = 0.0
+    try:
+        for _ in range(5):
+            idx = torch.unique(torch.randint(0, 20, (400, 3), generator=gen), dim=0)
+            coords = torch.cat([torch.zeros(len(idx), 1, dtype=torch.int64), idx], 1).int()
+            feats = torch.randn(len(idx), 16, dtype=torch.float64, generator=gen)
+            conv = spconv.SubMConv3d(16, 32, 3, indice_key="t", bias=False).double()
+            out = []
+            for threads in (1, 2):
+                torch.set_num_threads(threads)
+                out.append(conv(spconv.SparseConvTensor(feats, coords, [20, 20, 20], 1)).features)
+            worst = max(worst, (out[0] - out[1]).abs().max().item())
+    finally:
+        torch.set_num_threads(n)
+    assert worst > 1e-6, f"spconv's float64 CPU results agree on one and two threads (max diff {worst:.1e})"

@@ -41,8 +41,9 @@ _FX_MESSAGE = "is_fx_tracing will return true"
 _INDEXING_MESSAGE = "Using a non-tuple sequence for multidimensional indexing"
 
 
-#: feature dtypes spconv's kernels handle (no integer path; float64 runs on the CPU, checked against a dense
-#: conv3d in tests/test_spconv_dense_reference.py and the float64 parity tests of the authors' stages)
+#: feature dtypes spconv's kernels handle (no integer path; float64 runs on the CPU with one torch thread,
+#: checked against a dense conv3d in tests/test_spconv_dense_reference.py and the float64 parity tests of the
+#: authors' stages; with two threads its CPU float64 results are wrong, so check_spconv_input refuses that)
 _SPCONV_FEATURE_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 
 
@@ -51,7 +52,7 @@ def check_spconv_input(features: Tensor, coords: Tensor, spatial_shape, batch_si
     """Our error, before spconv runs, for what spconv would fail on with its own internal error.
 
     Checks (shapes and dtypes only, no data read): ``features`` a floating ``(N, C)`` tensor (float32,
-    float64, float16 or bfloat16); ``coords`` an int32 ``(N, 4)`` tensor; ``N > 0`` (spconv cannot
+    float64, float16 or bfloat16; float64 on the CPU only with one torch thread, where spconv 2.3.8 is right); ``coords`` an int32 ``(N, 4)`` tensor; ``N > 0`` (spconv cannot
     run on zero voxels); and, with ``expected_shape`` (the network's ``(D, H, W)``), ``spatial_shape``
     equal to it, naming the axis order when it is a permutation of it.
 
@@ -74,6 +75,13 @@ def check_spconv_input(features: Tensor, coords: Tensor, spatial_shape, batch_si
     if coords.dtype != torch.int32:
         raise MSSFError(f"{name}.coords: expected dtype torch.int32 for spconv (its indices), got {coords.dtype}; "
                         "convert with .int()")
+    if features.dtype == torch.float64 and features.device.type == "cpu" and torch.get_num_threads() > 1:
+        raise MSSFError(
+            f"{name}.features: float64 on the CPU needs one torch thread for spconv, got "
+            f"{torch.get_num_threads()} threads: spconv 2.3.8's CPU float64 kernels give wrong values with more "
+            "than one (off by up to about 1 in 9 of 10 random draws, measured 2026-12-03; float32 is right); "
+            "call torch.set_num_threads(1) or use float32"
+        )
     if features.shape[0] != coords.shape[0]:
         raise MSSFError(f"{name}: expected as many feature rows as coords rows, got {features.shape[0]} and "
                         f"{coords.shape[0]}")
