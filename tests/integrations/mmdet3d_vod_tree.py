@@ -25,7 +25,7 @@ def require_mmdet3d():
         pytest.skip(f"mmdet3d with mmcv's compiled ops not installed ({exc})")
 
 
-def write_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 7):
+def write_tree(root: Path, train: int = 4, val: int = 2, image_size=(304, 484), seed: int = 7):
     """``root/radar_5frames`` with ``train`` + ``val`` generated frames (jpg) and ``vod_infos_{train,val}.pkl``.
     Returns the data root (``root/radar_5frames``)."""
     from PIL import Image

@@ -34,21 +34,14 @@ def data_root(tmp_path_factory):
     return write_tree(tmp_path_factory.mktemp("vod"))
 
 
-def small_cfg(name, data_root, work_dir, epochs=1):
-    """The shipped config with the data root, iterations, image scale and workers overridden."""
-    from mssf_examples.mmdet3d.cli import load_config, set_image_scale
+def small_cfg(name, data_root, work_dir, iters=2):
+    """The shipped config with only the data root, the iteration count and the image scale overridden, as the
+    entry's ``--data-root``, ``--iters`` and ``--image-scale`` do (batch size, workers, schedule as shipped)."""
+    from mssf_examples.mmdet3d.cli import load_config, set_image_scale, set_iterations
 
     cfg = load_config(str(CONFIGS / name), str(work_dir), data_root=str(data_root))
     set_image_scale(cfg, IMAGE_SCALE)
-    cfg.train_cfg.max_epochs = epochs
-    cfg.train_cfg.val_interval = epochs + 1  # .val() is called by the test
-    cfg.param_scheduler[0].end = epochs
-    cfg.train_dataloader.batch_size = 1
-    for key in ("train_dataloader", "val_dataloader", "test_dataloader"):
-        cfg[key].num_workers = 0
-        cfg[key].persistent_workers = False
-    cfg.default_hooks.logger.interval = 1
-    cfg.default_hooks.checkpoint.interval = 1000
+    set_iterations(cfg, iters)
     return cfg
 
 
@@ -59,7 +52,7 @@ def recorder(model):
 
     class Recorder(Hook):
         def __init__(self):
-            self.losses = []
+            self.losses, self.batch_sizes, self.validations = [], [], []
             self.nonzero = {}
             for name, p in model.named_parameters():
                 if FUSION_PARAM.search(name):
@@ -74,6 +67,10 @@ def recorder(model):
 
         def after_train_iter(self, runner, batch_idx, data_batch=None, outputs=None):
             self.losses.append({k: float(v) for k, v in outputs.items()})
+            self.batch_sizes.append(len(data_batch["data_samples"]))
+
+        def after_val_epoch(self, runner, metrics=None):
+            self.validations.append((runner.iter, dict(metrics or {})))
 
     return Recorder()
 
@@ -90,9 +87,11 @@ def run(cfg):
 
 @pytest.mark.parametrize("name", MSSF + sorted(TWINS.values()))
 def test_config_trains_and_evaluates(name, data_root, tmp_path):
-    runner, rec = run(small_cfg(name, data_root, tmp_path))
+    cfg = small_cfg(name, data_root, tmp_path)
+    assert cfg.train_dataloader.batch_size == 4 and cfg.train_dataloader.num_workers == 4  # as shipped
+    runner, rec = run(cfg)
     fusion = name in MSSF
-    assert len(rec.losses) == 2
+    assert len(rec.losses) == 2 and rec.batch_sizes == [4, 4]  # the generated tree has 4 training frames
     expected = {"loss_cls", "loss_bbox", "loss_dir"} | ({"loss_seg"} if fusion else set())
     for step in rec.losses:
         assert expected <= set(step), step
@@ -104,7 +103,10 @@ def test_config_trains_and_evaluates(name, data_root, tmp_path):
         assert not any(p.requires_grad for p in runner.model.img_backbone.parameters())  # frozen image branch
     else:
         assert not rec.nonzero  # the twin has no fusion parameters
-    metrics = runner.val()
+    # the entry's iteration count validates once, at the end: IterBasedTrainLoop's val_loop.run(), which is
+    # what Runner.val() runs (a second call would repeat the same evaluation)
+    assert [it for it, _ in rec.validations] == [2]
+    metrics = rec.validations[0][1]
     for region in ("entire_area", "driving_corridor"):
         for cls in ("Car", "Pedestrian", "Cyclist", "mAP"):
             for key in ("AP3D_R11", "AP3D_R40", "APBEV_R11", "APBEV_R40"):
