@@ -1,11 +1,15 @@
-"""The ``python -m mssf_examples.mmdet3d`` commands of docs/frameworks.md ("mmdetection3d"), run in order.
+"""The commands of docs/frameworks.md ("mmdetection3d"), run in order, and its install lines against the Makefile.
 
-In a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated VoD release tree with
-``.jpg`` images, ``examples`` the repository's), each command line of the section's ``bash`` blocks that
-starts with ``python -m mssf_examples.mmdet3d`` runs in-process through the entry's ``main``. Changed
-from the printed text, and only this: ``train`` gets 1 epoch (2 with ``--resume``), batch 1, no
-workers and a 160 x 100 image (``--image-scale`` / ``--cfg-options``), and ``test`` the checkpoint that
-short run wrote (``epoch_1.pth`` for the printed ``epoch_80.pth``).
+Classified as tests/test_docs_commands.py classifies the other pages' commands (that test leaves
+docs/frameworks.md to the framework tests): each ``python -m mssf_examples.mmdet3d`` line of the section's
+``bash`` blocks is in ``RUN`` (runs verbatim) or in ``SHORTENED`` (the texts given are replaced, each must
+still be in the line, everything else as printed, with the reason); a line in neither, or a classified
+line no longer printed, fails ``test_every_command_is_classified``. They run in-process through the
+entry's ``main`` in a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated
+VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's).
+
+The section's ``pip install`` lines name exactly the packages and versions that ``make test`` installs
+(the Makefile's recipe, which CI runs), so the printed lines cannot drift from what is tested.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ import re
 import shlex
 import sys
 from pathlib import Path
+from typing import Dict, Tuple
 
 import pytest
 
@@ -22,28 +27,65 @@ from mmdet3d_vod_tree import require_mmdet3d, write_tree  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 REPO = Path(__file__).resolve().parents[2]
-SMALL = ["--image-scale", "160", "100", "--cfg-options", "train_dataloader.batch_size=1",
-         "train_dataloader.num_workers=0", "train_dataloader.persistent_workers=False",
-         "val_dataloader.num_workers=0", "val_dataloader.persistent_workers=False",
-         "test_dataloader.num_workers=0", "test_dataloader.persistent_workers=False"]
+CONFIG = "examples/configs/mmdet3d/mssf_pointpillars_vod.py"
+ENTRY = "python -m mssf_examples.mmdet3d"
+
+#: run exactly as printed, in page order
+RUN = {
+    f"{ENTRY} infos --root data/view_of_delft --sensor radar_5frames",
+    f"{ENTRY} train {CONFIG} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check",
+    f"{ENTRY} test {CONFIG} work_dirs/quick_check/iter_2.pth --image-scale 320 200",
+}
+_SMALL = " --image-scale 160 100"
+#: run with the given texts replaced: {line: ({printed text: replacement}, reason)}
+SHORTENED: Dict[str, Tuple[Dict[str, str], str]] = {
+    f"{ENTRY} train {CONFIG}": ({CONFIG: CONFIG + " --iters 1" + _SMALL}, "the paper's 80 epochs (hours on a GPU)"),
+    f"{ENTRY} test {CONFIG} work_dirs/mssf_pointpillars_vod/epoch_80.pth":
+        ({"epoch_80.pth": "iter_1.pth" + _SMALL}, "evaluates the checkpoint of the shortened run above"),
+    f"{ENTRY} train {CONFIG} --resume":
+        ({"--resume": "--resume --iters 2" + _SMALL}, "resumes the shortened run at its iteration 1 for one more"),
+}
 
 
-def doc_commands():
+def section() -> str:
     text = (REPO / "docs" / "frameworks.md").read_text()
-    section = text[text.index("## mmdetection3d"):text.index("## Conventions that differ")]
+    return text[text.index("## mmdetection3d"):text.index("## Conventions that differ")]
+
+
+def bash_lines(text: str):
     lines = []
-    for block in re.findall(r"```bash\n(.*?)```", section, re.S):
-        lines += [ln.strip() for ln in block.replace("\\\n", " ").splitlines()
-                  if ln.strip().startswith("python -m mssf_examples.mmdet3d")]
+    for block in re.findall(r"```bash\n(.*?)```", text, re.S):
+        lines += [" ".join(ln.split()) for ln in block.replace("\\\n", " ").splitlines() if ln.strip()]
     return lines
 
 
-def test_docs_commands_run_as_printed(tmp_path, monkeypatch):
+def doc_commands():
+    return [ln for ln in bash_lines(section()) if ln.startswith(ENTRY)]
+
+
+def test_every_command_is_classified():
+    commands = doc_commands()
+    unclassified = [c for c in commands if c not in RUN and c not in SHORTENED]
+    assert not unclassified, f"docs/frameworks.md: classify these in RUN or SHORTENED: {unclassified}"
+    stale = sorted((RUN | set(SHORTENED)) - set(commands))
+    assert not stale, f"classified commands no longer in docs/frameworks.md: {stale}"
+    for cmd, (replace, reason) in SHORTENED.items():
+        assert reason and all(old in cmd for old in replace), (cmd, replace)
+
+
+def as_run(cmd: str):
+    if cmd in SHORTENED:
+        for old, new in SHORTENED[cmd][0].items():
+            cmd = cmd.replace(old, new)
+    return shlex.split(cmd)[3:]
+
+
+def test_docs_commands_run(tmp_path, monkeypatch):
     require_mmdet3d()
     from mssf_examples.mmdet3d.cli import main
 
     commands = doc_commands()
-    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "test", "train"], commands
+    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "test", "train", "test", "train"], commands
     write_tree(tmp_path / "data" / "view_of_delft")
     (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").unlink()  # the docs write it
     (tmp_path / "examples").symlink_to(REPO / "examples")
@@ -52,15 +94,60 @@ def test_docs_commands_run_as_printed(tmp_path, monkeypatch):
     # set it through monkeypatch so that it is gone again after this test
     monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
     for cmd in commands:
-        argv = shlex.split(cmd)[3:]
-        if argv[0] == "train":
-            epochs = 2 if "--resume" in argv else 1
-            argv += SMALL + [f"train_cfg.max_epochs={epochs}", f"param_scheduler.0.end={epochs}"]
-        elif argv[0] == "test":
-            argv = [a.replace("epoch_80.pth", "epoch_1.pth") for a in argv] + SMALL
-        assert main(argv) == 0, cmd
-    work = tmp_path / "work_dirs" / "mssf_pointpillars_vod"
+        assert main(as_run(cmd)) == 0, cmd
     assert (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").is_file()
-    assert (work / "epoch_1.pth").is_file() and (work / "epoch_2.pth").is_file()  # resumed at epoch 1
-    logs = "".join(p.read_text() for p in work.glob("*/*.log"))
+    quick, full = tmp_path / "work_dirs" / "quick_check", tmp_path / "work_dirs" / "mssf_pointpillars_vod"
+    assert (quick / "iter_2.pth").is_file()
+    assert (full / "iter_1.pth").is_file() and (full / "iter_2.pth").is_file()  # resumed at iteration 1
+    quick_log = "".join(p.read_text() for p in quick.glob("*/*.log"))
+    assert "Iter(train) [2/2]" in quick_log and "VoD/driving_corridor/mAP/AP3D_R11" in quick_log
+    logs = "".join(p.read_text() for p in full.glob("*/*.log"))
     assert "resumed" in logs.lower() and "VoD/driving_corridor/mAP/AP3D_R11" in logs
+
+
+# ---------------------------------------------------------------------------------------------------
+# the install lines
+# ---------------------------------------------------------------------------------------------------
+
+def _specs(args):
+    """``({package spec}, no_deps)`` of one ``pip install`` argument list (options dropped, quotes removed)."""
+    args = [a.strip('"') for a in args]
+    return {a for a in args if not a.startswith("-")}, "--no-deps" in args
+
+
+def makefile_lines():
+    """The Makefile's lines, continuations joined."""
+    return (REPO / "Makefile").read_text().replace("\\\n", " ").splitlines()
+
+
+def docs_installs():
+    text = section()
+    install = text[text.index("### Install"):text.index("### Prepare View-of-Delft")]
+    return [_specs(shlex.split(ln, comments=True)[2:]) for ln in bash_lines(install) if ln.startswith("pip install")]
+
+
+def test_install_lines_match_the_makefile():
+    lines = makefile_lines()
+    make = [(i, *_specs(ln.split("-m pip install", 1)[1].split())) for i, ln in enumerate(lines)
+            if "$(PY) -m pip install" in ln]
+    docs = docs_installs()
+    assert len(docs) == 3, docs
+    (lib, _), (nodeps_docs, nd), (deps_docs, d) = docs
+    assert nd and not d
+    # the library: the Makefile's editable install holds every extra the docs' one names
+    extras = lambda specs: {e for s in specs for e in re.findall(r"^\.\[(.*)\]$", s)[0].split(",")}  # noqa: E731
+    make_lib = [specs for _, specs, _ in make if any(s.startswith(".[") and "examples" in s for s in specs)]
+    assert len(make_lib) == 1 and extras(lib) <= extras(make_lib[0]), (lib, make_lib)
+    # the --no-deps line: the same specs, versions included, as the Makefile's mmdet3d line
+    make_nodeps = [specs for _, specs, n in make if n and any(s.startswith("mmdet3d") for s in specs)]
+    assert make_nodeps == [nodeps_docs], (make_nodeps, nodeps_docs)
+    # the line with dependencies: the Makefile's two for mmdet3d (train / val helpers, then what mmdet3d's
+    # models, datasets and evaluation import at module level, named by the comment above it)
+    wanted = [specs for i, specs, n in make if not n and ("addict" in specs or "what mmdet3d's models" in lines[i - 1])]
+    assert len(wanted) == 2, wanted
+    make_deps = set().union(*wanted)
+    assert deps_docs == make_deps, (sorted(deps_docs - make_deps), sorted(make_deps - deps_docs))
+    # mmcv: the version the docs name is the Makefile's wheel and fallback version
+    version = re.search(r"mim install\s+mmcv==([\d.]+)", " ".join(section().split())).group(1)
+    text = "\n".join(lines)
+    assert f"mmcv-{version}-*.whl" in text and f"mmcv-lite=={version}" in text

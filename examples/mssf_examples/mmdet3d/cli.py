@@ -1,6 +1,7 @@
 """``python -m mssf_examples.mmdet3d infos|train|test``: mmdet3d training without the repository's ``tools/``.
 
-* ``infos --root DATA --sensor radar_5frames [--splits train val]``: the info files (:mod:`.infos`);
+* ``infos --root DATA --sensor radar_5frames [--splits train val]``: the View-of-Delft info files, and
+  ``infos --dataset tj4d --root DATA``: TJ4DRadSet's (:mod:`.infos`);
 * ``train CONFIG [--work-dir DIR] [--data-root DIR] [--image-scale W H] [--iters N] [--resume [CKPT]]
   [--cfg-options k=v ...]``: ``Runner.from_cfg(cfg).train()``; ``--iters N`` (:func:`set_iterations`) trains N
   iterations instead of the config's epochs, with the schedule, validation, checkpoint and logging bound to them;
@@ -21,11 +22,13 @@ from typing import List, Optional
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m mssf_examples.mmdet3d", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
-    i = sub.add_parser("infos", help="write vod_infos_<split>.pkl from the VoD release")
-    i.add_argument("--root", required=True, help="the VoD release root (holding radar, radar_5frames, lidar)")
-    i.add_argument("--sensor", default="radar_5frames", help="radar folder (default radar_5frames)")
+    i = sub.add_parser("infos", help="write vod_infos_<split>.pkl (tj4d_infos_<split>.pkl) from the release")
+    i.add_argument("--dataset", choices=("vod", "tj4d"), default="vod",
+                   help="vod: View-of-Delft (default); tj4d: TJ4DRadSet (root holding training/ and ImageSets/)")
+    i.add_argument("--root", required=True, help="the release root (VoD: holding radar, radar_5frames, lidar)")
+    i.add_argument("--sensor", default="radar_5frames", help="VoD's radar folder (default radar_5frames)")
     i.add_argument("--splits", nargs="+", default=["train", "val"], help="split files (default train val)")
-    i.add_argument("--out-dir", default=None, help="default <root>/<sensor>")
+    i.add_argument("--out-dir", default=None, help="default <root>/<sensor> (VoD), <root> (TJ4DRadSet)")
     for name in ("train", "test"):
         s = sub.add_parser(name, help=f"{name} a config with mmengine's Runner")
         s.add_argument("config")
@@ -124,9 +127,11 @@ def load_config(config: str, work_dir: Optional[str] = None, cfg_options: Option
 def main(argv: Optional[List[str]] = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "infos":
-        from .infos import create_vod_infos
+        from .infos import create_tj4d_infos, create_vod_infos
 
-        for split, path in create_vod_infos(args.root, args.sensor, args.splits, args.out_dir).items():
+        written = create_tj4d_infos(args.root, args.splits, args.out_dir) if args.dataset == "tj4d" else \
+            create_vod_infos(args.root, args.sensor, args.splits, args.out_dir)
+        for split, path in written.items():
             print(f"{split}: {path}")
         return 0
     from mmengine.registry import init_default_scope
