@@ -2,9 +2,9 @@
 
 Classified as tests/test_docs_commands.py classifies the other pages' commands (that test leaves
 docs/frameworks.md to the framework tests): each ``python -m mssf_examples.mmdet3d`` line of the section's
-``bash`` blocks is in ``RUN`` (runs verbatim) or in ``SHORTENED`` (the texts given are replaced, each must
-still be in the line, everything else as printed, with the reason); a line in neither, or a classified
-line no longer printed, fails ``test_every_command_is_classified``. They run in-process through the
+``bash`` blocks is in ``RUN`` (runs verbatim), ``SHORTENED`` (the texts given are replaced, each must
+still be in the line, everything else as printed, with the reason) or ``NOT_RUN`` (with the reason); a
+line in none, or a classified line no longer printed, fails ``test_every_command_is_classified``. They run in-process through the
 entry's ``main`` in a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated
 VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's).
 
@@ -34,16 +34,32 @@ ENTRY = "python -m mssf_examples.mmdet3d"
 RUN = {
     f"{ENTRY} infos --root data/view_of_delft --sensor radar_5frames",
     f"{ENTRY} train {CONFIG} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check",
-    f"{ENTRY} test {CONFIG} work_dirs/quick_check/iter_2.pth --image-scale 320 200",
 }
-_SMALL = " --image-scale 160 100"
+_QUICK = " --image-scale 320 200"
 #: run with the given texts replaced: {line: ({printed text: replacement}, reason)}
 SHORTENED: Dict[str, Tuple[Dict[str, str], str]] = {
-    f"{ENTRY} train {CONFIG}": ({CONFIG: CONFIG + " --iters 1" + _SMALL}, "the paper's 80 epochs (hours on a GPU)"),
     f"{ENTRY} test {CONFIG} work_dirs/mssf_pointpillars_vod/epoch_80.pth":
-        ({"epoch_80.pth": "iter_1.pth" + _SMALL}, "evaluates the checkpoint of the shortened run above"),
+        ({"mssf_pointpillars_vod/epoch_80.pth": "quick_check/iter_2.pth" + _QUICK},
+         "evaluates the quick check's checkpoint (the paper's run is not run: below)"),
     f"{ENTRY} train {CONFIG} --resume":
-        ({"--resume": "--resume --iters 2" + _SMALL}, "resumes the shortened run at its iteration 1 for one more"),
+        ({"--resume": "--resume --work-dir work_dirs/quick_check --iters 3" + _QUICK},
+         "resumes the quick check at its iteration 2 for one more"),
+}
+_TJ4D = "examples/configs/mmdet3d/mssf_pointpillars_tj4d.py"
+#: run exactly as printed by tests/integrations/test_mmdet3d_tj4d.py (on its generated TJ4DRadSet tree)
+RUN_TJ4D = [
+    f"{ENTRY} infos --dataset tj4d --root data/TJ4DRadSet",
+    f"{ENTRY} train {_TJ4D} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check_tj4d",
+]
+_PAPER = "the paper's 80 epochs (hours on a GPU)"
+#: not run, with the reason
+NOT_RUN = {
+    f"{ENTRY} train {CONFIG}": _PAPER + "; the quick check above is this line with --iters 2 --image-scale 320 200 "
+                               "--work-dir, run as printed",
+    f"{ENTRY} train {_TJ4D}": _PAPER + "; the TJ4D quick check is this line with --iters 2 --image-scale 320 200 "
+                              "--work-dir, run as printed by test_mmdet3d_tj4d.py",
+    f"{ENTRY} train examples/configs/mmdet3d/pointpillars_tj4d_radar.py":
+        _PAPER + "; test_mmdet3d_tj4d.py trains this config 2 iterations (--iters, --image-scale, --data-root)",
 }
 
 
@@ -65,9 +81,10 @@ def doc_commands():
 
 def test_every_command_is_classified():
     commands = doc_commands()
-    unclassified = [c for c in commands if c not in RUN and c not in SHORTENED]
-    assert not unclassified, f"docs/frameworks.md: classify these in RUN or SHORTENED: {unclassified}"
-    stale = sorted((RUN | set(SHORTENED)) - set(commands))
+    known = RUN | set(RUN_TJ4D) | set(SHORTENED) | set(NOT_RUN)
+    unclassified = [c for c in commands if c not in known]
+    assert not unclassified, f"docs/frameworks.md: classify these in RUN, RUN_TJ4D, SHORTENED or NOT_RUN: {unclassified}"
+    stale = sorted(known - set(commands))
     assert not stale, f"classified commands no longer in docs/frameworks.md: {stale}"
     for cmd, (replace, reason) in SHORTENED.items():
         assert reason and all(old in cmd for old in replace), (cmd, replace)
@@ -84,8 +101,8 @@ def test_docs_commands_run(tmp_path, monkeypatch):
     require_mmdet3d()
     from mssf_examples.mmdet3d.cli import main
 
-    commands = doc_commands()
-    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "test", "train", "test", "train"], commands
+    commands = [c for c in doc_commands() if c not in RUN_TJ4D]
+    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "train", "test", "train", "train", "train"], commands
     write_tree(tmp_path / "data" / "view_of_delft")
     (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").unlink()  # the docs write it
     (tmp_path / "examples").symlink_to(REPO / "examples")
@@ -94,15 +111,18 @@ def test_docs_commands_run(tmp_path, monkeypatch):
     # set it through monkeypatch so that it is gone again after this test
     monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
     for cmd in commands:
-        assert main(as_run(cmd)) == 0, cmd
+        if cmd not in NOT_RUN:
+            assert main(as_run(cmd)) == 0, cmd
     assert (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").is_file()
-    quick, full = tmp_path / "work_dirs" / "quick_check", tmp_path / "work_dirs" / "mssf_pointpillars_vod"
-    assert (quick / "iter_2.pth").is_file()
-    assert (full / "iter_1.pth").is_file() and (full / "iter_2.pth").is_file()  # resumed at iteration 1
-    quick_log = "".join(p.read_text() for p in quick.glob("*/*.log"))
-    assert "Iter(train) [2/2]" in quick_log and "VoD/driving_corridor/mAP/AP3D_R11" in quick_log
-    logs = "".join(p.read_text() for p in full.glob("*/*.log"))
-    assert "resumed" in logs.lower() and "VoD/driving_corridor/mAP/AP3D_R11" in logs
+    quick = tmp_path / "work_dirs" / "quick_check"
+    assert (quick / "iter_2.pth").is_file() and (quick / "iter_3.pth").is_file()  # resumed at iteration 2
+    runs = sorted(quick.glob("*/*.log"))
+    assert len(runs) == 2, runs  # the quick check and the resumed run (test writes to work_dirs/<config name>)
+    first, resumed = (p.read_text() for p in runs)
+    assert "Iter(train) [2/2]" in first and "VoD/driving_corridor/mAP/AP3D_R11" in first
+    assert "resumed" in resumed.lower() and "Iter(train) [3/3]" in resumed
+    tested = "".join(p.read_text() for p in (tmp_path / "work_dirs" / "mssf_pointpillars_vod").glob("*/*.log"))
+    assert "VoD/driving_corridor/mAP/AP3D_R11" in tested
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -1,10 +1,12 @@
 """TJ4DRadSet in the real mmdetection3d 1.4.0: info files, ``TJ4DDataset``, ``TJ4DMetric`` and the config pair.
 
 On a generated TJ4DRadSet tree (KITTI layout, 8-float points, the four classes; 2 training frames, so
-the shipped batch size 4 gives batches of 2), ``mssf_pointpillars_tj4d.py`` and its radar-only twin, with
-only the data root, the iteration count and the image scale overridden, train 2 iterations and validate
-at the end: box (and for MSSF semantic) losses present and finite, every fusion parameter with a
-non-zero gradient, the TJ4D keys. ``TJ4DMetric`` on the dataset's own ground truth scores what the
+the shipped batch size 4 gives batches of 2), docs/frameworks.md's TJ4DRadSet lines run as printed (the
+info files, then the MSSF-PP quick check, ``--iters 2 --image-scale 320 200``, through the entry's
+``main``, with a recording hook attached to the runner it builds), and the radar-only twin with only the
+data root, the iteration count and the image scale overridden: 2 iterations and validation at the end,
+box (and for MSSF semantic) losses present and finite, every fusion parameter with a non-zero gradient,
+the TJ4D keys. ``TJ4DMetric`` on the dataset's own ground truth scores what the
 project's TJ4D evaluation gives the label files read directly; moved boxes score zero.
 """
 
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shlex
 import sys
 from pathlib import Path
 
@@ -20,7 +23,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 from mmdet3d_vod_tree import require_mmdet3d, write_tj4d_tree  # noqa: E402
-from test_mmdet3d_train import run, small_cfg  # noqa: E402
+from test_mmdet3d_docs import REPO, RUN_TJ4D  # noqa: E402
+from test_mmdet3d_train import recorder, run, small_cfg  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF, TWIN = "mssf_pointpillars_tj4d.py", "pointpillars_tj4d_radar.py"
@@ -33,6 +37,53 @@ KEYS = ("AP3D_R11", "AP3D_R40", "APBEV_R11", "APBEV_R40")
 def data_root(tmp_path_factory):
     require_mmdet3d()
     return write_tj4d_tree(tmp_path_factory.mktemp("tj4d"))
+
+
+def check_run(rec, fusion):
+    assert len(rec.losses) == 2 and rec.batch_sizes == [2, 2]
+    for step in rec.losses:
+        assert {"loss_cls", "loss_bbox", "loss_dir"} <= set(step) and ("loss_seg" in step) == fusion, step
+        assert all(math.isfinite(v) for v in step.values()), step
+    if fusion:
+        assert rec.nonzero and all(rec.nonzero.values()), [n for n, ok in rec.nonzero.items() if not ok]
+    else:
+        assert not rec.nonzero
+    assert [it for it, _ in rec.validations] == [2]
+    metrics = rec.validations[0][1]
+    assert {f"TJ4D/{r}/{c}/{k}" for r in REGIONS for c in CLASSES + ("mAP",) for k in KEYS} <= set(metrics)
+
+
+def test_docs_lines_run_as_printed(tmp_path, monkeypatch):
+    """docs/frameworks.md's TJ4DRadSet info and quick-check lines, verbatim, in a folder laid out as the docs
+    assume (``data/TJ4DRadSet``, ``examples``)."""
+    require_mmdet3d()
+    from mmengine.runner import Runner
+
+    from mssf_examples.mmdet3d.cli import main
+
+    root = write_tj4d_tree(tmp_path / "data" / "TJ4DRadSet")
+    for split in ("train", "val"):
+        (root / f"tj4d_infos_{split}.pkl").unlink()  # the docs' line writes them
+    (tmp_path / "examples").symlink_to(REPO / "examples")
+    monkeypatch.chdir(tmp_path)
+    built = []
+    from_cfg = Runner.from_cfg.__func__
+
+    def recording_from_cfg(cls, cfg):
+        runner = from_cfg(cls, cfg)
+        built.append((cfg, recorder(runner.model)))
+        runner.register_hook(built[-1][1])
+        return runner
+
+    monkeypatch.setattr(Runner, "from_cfg", classmethod(recording_from_cfg))
+    for cmd in RUN_TJ4D:
+        assert main(shlex.split(cmd)[3:]) == 0, cmd
+    assert (root / "tj4d_infos_train.pkl").is_file()
+    ((cfg, rec),) = built
+    assert cfg.model.pts_middle_encoder.point_cloud_range == [0, -39.68, -4, 69.12, 39.68, 2]
+    assert cfg.model.pts_middle_encoder.in_channels == 5 and cfg.model.pts_bbox_head.num_classes == 4
+    check_run(rec, fusion=True)
+    assert (tmp_path / "work_dirs" / "quick_check_tj4d" / "iter_2.pth").is_file()
 
 
 def test_infos(data_root):
@@ -49,24 +100,11 @@ def test_infos(data_root):
     assert frame["tj4d"]["label_text"] == text and "vod" not in frame
 
 
-@pytest.mark.parametrize("name", [MSSF, TWIN])
-def test_config_trains_and_evaluates(name, data_root, tmp_path):
-    cfg = small_cfg(name, data_root, tmp_path)
-    assert cfg.model.pts_middle_encoder.point_cloud_range == [0, -39.68, -4, 69.12, 39.68, 2]
+def test_radar_only_twin_trains_and_evaluates(data_root, tmp_path):
+    cfg = small_cfg(TWIN, data_root, tmp_path)
     assert cfg.model.pts_middle_encoder.in_channels == 5 and cfg.model.pts_bbox_head.num_classes == 4
-    runner, rec = run(cfg)
-    fusion = name == MSSF
-    assert len(rec.losses) == 2 and rec.batch_sizes == [2, 2]
-    for step in rec.losses:
-        assert {"loss_cls", "loss_bbox", "loss_dir"} <= set(step) and ("loss_seg" in step) == fusion, step
-        assert all(math.isfinite(v) for v in step.values()), step
-    if fusion:
-        assert rec.nonzero and all(rec.nonzero.values()), [n for n, ok in rec.nonzero.items() if not ok]
-    else:
-        assert not rec.nonzero
-    assert [it for it, _ in rec.validations] == [2]
-    metrics = rec.validations[0][1]
-    assert {f"TJ4D/{r}/{c}/{k}" for r in REGIONS for c in CLASSES + ("mAP",) for k in KEYS} <= set(metrics)
+    _, rec = run(cfg)
+    check_run(rec, fusion=False)
 
 
 def test_fusion_removed_is_the_radar_only_twin(data_root, tmp_path):

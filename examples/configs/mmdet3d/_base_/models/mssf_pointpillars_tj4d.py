@@ -1,12 +1,12 @@
 # MSSF-PointPillars on TJ4DRadSet (the paper's MSSF-PP): the VoD model (mssf_pointpillars_vod.py) on the paper's
-# TJ4D pillar range 0..69.12 x -39.68..39.68 x -4..2 m (pillars 0.16 m: 432 x 496), the 5 input features
+# TJ4D pillar range 0..69.12 x -39.68..39.68 x -4..2 m (pillars 0.16 m, 6 m high: 432 x 496), the 5 input features
 # x, y, z, V_r, Power, four classes and the paper's TJ4D anchor sizes (its (w, l, h), given here as mmdet3d's
 # (l, w, h)). Anchor bottoms as KITTI's (car, truck -1.78; pedestrian, cyclist -0.6): not from the paper.
 _base_ = ["./mssf_pointpillars_vod.py"]
 grid_range = [0, -39.68, -4, 69.12, 39.68, 2]
 _iou = dict(type="mmdet3d.BboxOverlapsNearest3D")
 model = dict(
-    pts_middle_encoder=dict(in_channels=5, point_cloud_range=grid_range),
+    pts_middle_encoder=dict(in_channels=5, point_cloud_range=grid_range, voxel_size=[0.16, 0.16, 6]),
     pts_bbox_head=dict(
         num_classes=4,
         anchor_generator=dict(
