@@ -6,7 +6,10 @@ docs/frameworks.md to the framework tests): each ``python -m mssf_examples.mmdet
 still be in the line, everything else as printed, with the reason) or ``NOT_RUN`` (with the reason); a
 line in none, or a classified line no longer printed, fails ``test_every_command_is_classified``. They run in-process through the
 entry's ``main`` in a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated
-VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's).
+VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's). The quick
+check's run is also the training check of ``mssf_pointpillars_vod.py`` (``check_vod_run`` of
+test_mmdet3d_train.py: losses, fusion gradients, the VoD keys), through a recording hook attached to the
+runner the entry builds.
 
 The section's ``pip install`` lines name exactly the packages and versions that ``make test`` installs
 (the Makefile's recipe, which CI runs), so the printed lines cannot drift from what is tested.
@@ -24,6 +27,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from mmdet3d_vod_tree import require_mmdet3d, write_tree  # noqa: E402
+from test_mmdet3d_train import check_vod_run, recording_runners  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 REPO = Path(__file__).resolve().parents[2]
@@ -110,10 +114,15 @@ def test_docs_commands_run(tmp_path, monkeypatch):
     # the entry's `test` / `--resume` set this for the rest of the process (mmengine 0.10.7 checkpoints):
     # set it through monkeypatch so that it is gone again after this test
     monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+    built = recording_runners(monkeypatch)
     for cmd in commands:
         if cmd not in NOT_RUN:
             assert main(as_run(cmd)) == 0, cmd
     assert (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").is_file()
+    # the quick check is test_mmdet3d_train.py's run of mssf_pointpillars_vod.py (its only overrides the data
+    # root, here the docs' default, the iteration count and the image scale): checked as the other configs
+    assert len(built) == 3  # quick check, test, resume
+    check_vod_run(*built[0], fusion=True)
     quick = tmp_path / "work_dirs" / "quick_check"
     assert (quick / "iter_2.pth").is_file() and (quick / "iter_3.pth").is_file()  # resumed at iteration 2
     runs = sorted(quick.glob("*/*.log"))

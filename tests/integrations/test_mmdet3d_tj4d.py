@@ -24,7 +24,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from mmdet3d_vod_tree import require_mmdet3d, write_tj4d_tree  # noqa: E402
 from test_mmdet3d_docs import REPO, RUN_TJ4D  # noqa: E402
-from test_mmdet3d_train import recorder, run, small_cfg  # noqa: E402
+from test_mmdet3d_train import recording_runners, run, small_cfg  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF, TWIN = "mssf_pointpillars_tj4d.py", "pointpillars_tj4d_radar.py"
@@ -57,8 +57,6 @@ def test_docs_lines_run_as_printed(tmp_path, monkeypatch):
     """docs/frameworks.md's TJ4DRadSet info and quick-check lines, verbatim, in a folder laid out as the docs
     assume (``data/TJ4DRadSet``, ``examples``)."""
     require_mmdet3d()
-    from mmengine.runner import Runner
-
     from mssf_examples.mmdet3d.cli import main
 
     root = write_tj4d_tree(tmp_path / "data" / "TJ4DRadSet")
@@ -66,20 +64,12 @@ def test_docs_lines_run_as_printed(tmp_path, monkeypatch):
         (root / f"tj4d_infos_{split}.pkl").unlink()  # the docs' line writes them
     (tmp_path / "examples").symlink_to(REPO / "examples")
     monkeypatch.chdir(tmp_path)
-    built = []
-    from_cfg = Runner.from_cfg.__func__
-
-    def recording_from_cfg(cls, cfg):
-        runner = from_cfg(cls, cfg)
-        built.append((cfg, recorder(runner.model)))
-        runner.register_hook(built[-1][1])
-        return runner
-
-    monkeypatch.setattr(Runner, "from_cfg", classmethod(recording_from_cfg))
+    built = recording_runners(monkeypatch)
     for cmd in RUN_TJ4D:
         assert main(shlex.split(cmd)[3:]) == 0, cmd
     assert (root / "tj4d_infos_train.pkl").is_file()
-    ((cfg, rec),) = built
+    ((runner, rec),) = built
+    cfg = runner.cfg
     assert cfg.model.pts_middle_encoder.point_cloud_range == [0, -39.68, -4, 69.12, 39.68, 2]
     assert cfg.model.pts_middle_encoder.in_channels == 5 and cfg.model.pts_bbox_head.num_classes == 4
     check_run(rec, fusion=True)

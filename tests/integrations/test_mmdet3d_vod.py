@@ -150,9 +150,14 @@ def _first_iteration_error(cfg, match):
 
     from mssf_blocks import MSSFError
 
+    from mssf_examples.mmdet3d.cli import release_workers
+
     runner = Runner.from_cfg(cfg)
-    with pytest.raises(MSSFError, match=match):
-        runner.train()
+    try:
+        with pytest.raises(MSSFError, match=match):
+            runner.train()
+    finally:
+        release_workers(runner)
 
 
 def _pipeline(cfg):

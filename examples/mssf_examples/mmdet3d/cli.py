@@ -109,6 +109,22 @@ def set_iterations(cfg, iters: int) -> None:
                              window_size=min(int(cfg.get("log_processor", {}).get("window_size", 10)), iters))
 
 
+def release_workers(runner) -> None:
+    """Stop the data loaders' worker processes of ``runner``'s loops now.
+
+    The shipped configs keep their workers (``persistent_workers=True``); left to garbage collection (or to
+    interpreter exit) torch's loader waits up to 5 s per worker for them to stop: 7 to 27 s measured after a
+    2-iteration run on a loaded 2-core machine, against 0.5 s when stopped here (after the run, nothing lost).
+    """
+    for name in ("_train_loop", "_val_loop", "_test_loop"):
+        loop = getattr(runner, name, None)
+        loader = getattr(loop, "dataloader", None)
+        it = getattr(loader, "_iterator", None)
+        if it is not None and hasattr(it, "_shutdown_workers"):
+            it._shutdown_workers()
+            loader._iterator = None
+
+
 def load_config(config: str, work_dir: Optional[str] = None, cfg_options: Optional[List[str]] = None,
                 data_root: Optional[str] = None):
     from mmengine.config import Config, DictAction
@@ -154,8 +170,11 @@ def main(argv: Optional[List[str]] = None) -> int:
             cfg.resume, cfg.load_from = True, None
         elif args.resume is not None:
             cfg.resume, cfg.load_from = True, args.resume
-        Runner.from_cfg(cfg).train()
+        runner = Runner.from_cfg(cfg)
+        runner.train()
     else:
         cfg.load_from = args.checkpoint
-        Runner.from_cfg(cfg).test()
+        runner = Runner.from_cfg(cfg)
+        runner.test()
+    release_workers(runner)
     return 0
