@@ -161,3 +161,25 @@ def test_fusion_removed_is_the_radar_only_twin(name, data_root, tmp_path):
     b = MODELS.build(twin.model).state_dict()
     assert list(a) == list(b)
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_iteration_count_binds_schedule_validation_checkpoint_and_logging(data_root, tmp_path):
+    """``--iters N`` (``set_iterations``): the one-cycle schedule over exactly N iterations, one validation and
+    one checkpoint at N, a log line every min(N, 50); a count that is not a positive integer is refused."""
+    from mssf_examples.mmdet3d.cli import load_config, set_iterations
+
+    for iters, log_every in ((2, 2), (120, 50)):
+        cfg = load_config(str(CONFIGS / "mssf_pointpillars_vod.py"), str(tmp_path), data_root=str(data_root))
+        shipped = cfg.param_scheduler[0].copy()
+        assert (shipped.by_epoch, shipped.begin, shipped.end) == (True, 0, cfg.train_cfg.max_epochs)
+        set_iterations(cfg, iters)
+        assert cfg.train_cfg == dict(type="IterBasedTrainLoop", max_iters=iters, val_interval=iters)
+        sched = cfg.param_scheduler[0]
+        assert (sched.type, sched.by_epoch, sched.begin, sched.end) == ("OneCycleLR", False, 0, iters)
+        assert "convert_to_iter_based" not in sched and sched.eta_max == shipped.eta_max
+        assert cfg.default_hooks.checkpoint.by_epoch is False and cfg.default_hooks.checkpoint.interval == iters
+        assert cfg.default_hooks.logger.interval == log_every and cfg.log_processor.by_epoch is False
+        assert cfg.train_dataloader.batch_size == 4 and cfg.train_dataloader.num_workers == 4  # untouched
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="iters: expected a positive integer"):
+            set_iterations(cfg, bad)
