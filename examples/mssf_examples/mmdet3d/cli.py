@@ -5,7 +5,7 @@
 * ``train CONFIG [--work-dir DIR] [--data-root DIR] [--image-scale W H] [--iters N] [--resume [CKPT]]
   [--cfg-options k=v ...]``: ``Runner.from_cfg(cfg).train()``; ``--iters N`` (:func:`set_iterations`) trains N
   iterations instead of the config's epochs, with the schedule, validation, checkpoint and logging bound to them;
-* ``test CONFIG CHECKPOINT [same options less --resume]``: ``Runner.test()`` with the checkpoint.
+* ``test CONFIG CHECKPOINT [same options less --resume and --iters]``: ``Runner.test()`` with the checkpoint.
 
 What mmdet3d's ``tools/train.py`` / ``tools/test.py`` do on one machine, less launchers and AMP.
 """
