@@ -25,7 +25,7 @@ def require_mmdet3d():
         pytest.skip(f"mmdet3d with mmcv's compiled ops not installed ({exc})")
 
 
-def write_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 7):
+def write_tree(root: Path, train: int = 4, val: int = 2, image_size=(304, 484), seed: int = 7):
     """``root/radar_5frames`` with ``train`` + ``val`` generated frames (jpg) and ``vod_infos_{train,val}.pkl``.
     Returns the data root (``root/radar_5frames``)."""
     from PIL import Image
@@ -43,3 +43,39 @@ def write_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), 
         png.unlink()
     create_vod_infos(root, SENSOR, ("train", "val"))
     return root / SENSOR
+
+
+def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 11):
+    """``root`` as a TJ4DRadSet release (``training/{velodyne,image_2,calib,label_2}``, ``ImageSets``) of
+    generated scenes: the points stored as TJ4DRadSet's 8 floats (x, y, z, V_r, Range, Power, Alpha, Beta), the
+    first car of every frame labelled ``Truck`` (the fourth class), and ``tj4d_infos_{train,val}.pkl``.
+    Returns ``root`` (the data root)."""
+    import shutil
+
+    import numpy as np
+
+    from mssf_examples.kitti_export import write_vod_tree
+    from mssf_examples.mmdet3d.infos import create_tj4d_infos
+    from mssf_examples.scenes import SceneConfig, SyntheticDataset
+
+    cfg = SceneConfig(image_size=image_size, point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
+    scenes = {"train": [SyntheticDataset("train", train, cfg, seed=seed)[i] for i in range(train)],
+              "val": [SyntheticDataset("val", val, cfg, seed=seed)[i] for i in range(val)]}
+    ids = write_vod_tree(root / "_vod", scenes, sensor="radar")
+    src = root / "_vod" / "radar"
+    for sub in ("calib", "image_2", "label_2"):
+        shutil.copytree(src / "training" / sub, root / "training" / sub)
+    (root / "training" / "velodyne").mkdir()
+    for f in (src / "training" / "velodyne").iterdir():
+        p = np.fromfile(f, dtype="<f4").reshape(-1, 7)
+        cols = [p[:, 0], p[:, 1], p[:, 2], p[:, 4], np.linalg.norm(p[:, :3], axis=1), p[:, 3],
+                np.arctan2(p[:, 1], p[:, 0]), np.zeros(len(p))]
+        np.stack(cols, 1).astype("<f4").tofile(root / "training" / "velodyne" / f.name)
+    for f in (root / "training" / "label_2").iterdir():
+        f.write_text(f.read_text().replace("Car ", "Truck ", 1))
+    shutil.rmtree(root / "_vod")
+    (root / "ImageSets").mkdir()
+    for split in ("train", "val"):
+        (root / "ImageSets" / f"{split}.txt").write_text("\n".join(ids[split]) + "\n")
+    create_tj4d_infos(root, ("train", "val"))
+    return root

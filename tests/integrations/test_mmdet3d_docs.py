@@ -1,11 +1,18 @@
-"""The ``python -m mssf_examples.mmdet3d`` commands of docs/frameworks.md ("mmdetection3d"), run in order.
+"""The commands of docs/frameworks.md ("mmdetection3d"), run in order, and its install lines against the Makefile.
 
-In a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated VoD release tree with
-``.jpg`` images, ``examples`` the repository's), each command line of the section's ``bash`` blocks that
-starts with ``python -m mssf_examples.mmdet3d`` runs in-process through the entry's ``main``. Changed
-from the printed text, and only this: ``train`` gets 1 epoch (2 with ``--resume``), batch 1, no
-workers and a 160 x 100 image (``--image-scale`` / ``--cfg-options``), and ``test`` the checkpoint that
-short run wrote (``epoch_1.pth`` for the printed ``epoch_80.pth``).
+Classified as tests/test_docs_commands.py classifies the other pages' commands (that test leaves
+docs/frameworks.md to the framework tests): each ``python -m mssf_examples.mmdet3d`` line of the section's
+``bash`` blocks is in ``RUN`` (runs verbatim), ``SHORTENED`` (the texts given are replaced, each must
+still be in the line, everything else as printed, with the reason) or ``NOT_RUN`` (with the reason); a
+line in none, or a classified line no longer printed, fails ``test_every_command_is_classified``. They run in-process through the
+entry's ``main`` in a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated
+VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's). The quick
+check's run is also the training check of ``mssf_pointpillars_vod.py`` (``check_vod_run`` of
+test_mmdet3d_train.py: losses, fusion gradients, the VoD keys), through a recording hook attached to the
+runner the entry builds.
+
+The section's ``pip install`` lines name exactly the packages and versions that ``make test`` installs
+(the Makefile's recipe, which CI runs), so the printed lines cannot drift from what is tested.
 """
 
 from __future__ import annotations
@@ -14,36 +21,92 @@ import re
 import shlex
 import sys
 from pathlib import Path
+from typing import Dict, Tuple
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from mmdet3d_vod_tree import require_mmdet3d, write_tree  # noqa: E402
+from test_mmdet3d_train import check_vod_run, recording_runners  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 REPO = Path(__file__).resolve().parents[2]
-SMALL = ["--image-scale", "160", "100", "--cfg-options", "train_dataloader.batch_size=1",
-         "train_dataloader.num_workers=0", "train_dataloader.persistent_workers=False",
-         "val_dataloader.num_workers=0", "val_dataloader.persistent_workers=False",
-         "test_dataloader.num_workers=0", "test_dataloader.persistent_workers=False"]
+CONFIG = "examples/configs/mmdet3d/mssf_pointpillars_vod.py"
+ENTRY = "python -m mssf_examples.mmdet3d"
+
+#: run exactly as printed, in page order
+RUN = {
+    f"{ENTRY} infos --root data/view_of_delft --sensor radar_5frames",
+    f"{ENTRY} train {CONFIG} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check",
+}
+_QUICK = " --image-scale 320 200"
+#: run with the given texts replaced: {line: ({printed text: replacement}, reason)}
+SHORTENED: Dict[str, Tuple[Dict[str, str], str]] = {
+    f"{ENTRY} test {CONFIG} work_dirs/mssf_pointpillars_vod/epoch_80.pth":
+        ({"mssf_pointpillars_vod/epoch_80.pth": "quick_check/iter_2.pth" + _QUICK},
+         "evaluates the quick check's checkpoint (the paper's run is not run: below)"),
+    f"{ENTRY} train {CONFIG} --resume":
+        ({"--resume": "--resume --work-dir work_dirs/quick_check --iters 3" + _QUICK},
+         "resumes the quick check at its iteration 2 for one more"),
+}
+_TJ4D = "examples/configs/mmdet3d/mssf_pointpillars_tj4d.py"
+#: run exactly as printed by tests/integrations/test_mmdet3d_tj4d.py (on its generated TJ4DRadSet tree)
+RUN_TJ4D = [
+    f"{ENTRY} infos --dataset tj4d --root data/TJ4DRadSet",
+    f"{ENTRY} train {_TJ4D} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check_tj4d",
+]
+_PAPER = "the paper's 80 epochs (hours on a GPU)"
+#: not run, with the reason
+NOT_RUN = {
+    f"{ENTRY} train {CONFIG}": _PAPER + "; the quick check above is this line with --iters 2 --image-scale 320 200 "
+                               "--work-dir, run as printed",
+    f"{ENTRY} train {_TJ4D}": _PAPER + "; the TJ4D quick check is this line with --iters 2 --image-scale 320 200 "
+                              "--work-dir, run as printed by test_mmdet3d_tj4d.py",
+    f"{ENTRY} train examples/configs/mmdet3d/pointpillars_tj4d_radar.py":
+        _PAPER + "; test_mmdet3d_tj4d.py trains this config 2 iterations (--iters, --image-scale, --data-root)",
+}
 
 
-def doc_commands():
+def section() -> str:
     text = (REPO / "docs" / "frameworks.md").read_text()
-    section = text[text.index("## mmdetection3d"):text.index("## Conventions that differ")]
+    return text[text.index("## mmdetection3d"):text.index("## Conventions that differ")]
+
+
+def bash_lines(text: str):
     lines = []
-    for block in re.findall(r"```bash\n(.*?)```", section, re.S):
-        lines += [ln.strip() for ln in block.replace("\\\n", " ").splitlines()
-                  if ln.strip().startswith("python -m mssf_examples.mmdet3d")]
+    for block in re.findall(r"```bash\n(.*?)```", text, re.S):
+        lines += [" ".join(ln.split()) for ln in block.replace("\\\n", " ").splitlines() if ln.strip()]
     return lines
 
 
-def test_docs_commands_run_as_printed(tmp_path, monkeypatch):
+def doc_commands():
+    return [ln for ln in bash_lines(section()) if ln.startswith(ENTRY)]
+
+
+def test_every_command_is_classified():
+    commands = doc_commands()
+    known = RUN | set(RUN_TJ4D) | set(SHORTENED) | set(NOT_RUN)
+    unclassified = [c for c in commands if c not in known]
+    assert not unclassified, f"docs/frameworks.md: classify these in RUN, RUN_TJ4D, SHORTENED or NOT_RUN: {unclassified}"
+    stale = sorted(known - set(commands))
+    assert not stale, f"classified commands no longer in docs/frameworks.md: {stale}"
+    for cmd, (replace, reason) in SHORTENED.items():
+        assert reason and all(old in cmd for old in replace), (cmd, replace)
+
+
+def as_run(cmd: str):
+    if cmd in SHORTENED:
+        for old, new in SHORTENED[cmd][0].items():
+            cmd = cmd.replace(old, new)
+    return shlex.split(cmd)[3:]
+
+
+def test_docs_commands_run(tmp_path, monkeypatch):
     require_mmdet3d()
     from mssf_examples.mmdet3d.cli import main
 
-    commands = doc_commands()
-    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "test", "train"], commands
+    commands = [c for c in doc_commands() if c not in RUN_TJ4D]
+    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "train", "test", "train", "train", "train"], commands
     write_tree(tmp_path / "data" / "view_of_delft")
     (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").unlink()  # the docs write it
     (tmp_path / "examples").symlink_to(REPO / "examples")
@@ -51,16 +114,69 @@ def test_docs_commands_run_as_printed(tmp_path, monkeypatch):
     # the entry's `test` / `--resume` set this for the rest of the process (mmengine 0.10.7 checkpoints):
     # set it through monkeypatch so that it is gone again after this test
     monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+    built = recording_runners(monkeypatch)
     for cmd in commands:
-        argv = shlex.split(cmd)[3:]
-        if argv[0] == "train":
-            epochs = 2 if "--resume" in argv else 1
-            argv += SMALL + [f"train_cfg.max_epochs={epochs}", f"param_scheduler.0.end={epochs}"]
-        elif argv[0] == "test":
-            argv = [a.replace("epoch_80.pth", "epoch_1.pth") for a in argv] + SMALL
-        assert main(argv) == 0, cmd
-    work = tmp_path / "work_dirs" / "mssf_pointpillars_vod"
+        if cmd not in NOT_RUN:
+            assert main(as_run(cmd)) == 0, cmd
     assert (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").is_file()
-    assert (work / "epoch_1.pth").is_file() and (work / "epoch_2.pth").is_file()  # resumed at epoch 1
-    logs = "".join(p.read_text() for p in work.glob("*/*.log"))
-    assert "resumed" in logs.lower() and "VoD/driving_corridor/mAP/AP3D_R11" in logs
+    # the quick check is test_mmdet3d_train.py's run of mssf_pointpillars_vod.py (its only overrides the data
+    # root, here the docs' default, the iteration count and the image scale): checked as the other configs
+    assert len(built) == 3  # quick check, test, resume
+    check_vod_run(*built[0], fusion=True)
+    quick = tmp_path / "work_dirs" / "quick_check"
+    assert (quick / "iter_2.pth").is_file() and (quick / "iter_3.pth").is_file()  # resumed at iteration 2
+    runs = sorted(quick.glob("*/*.log"))
+    assert len(runs) == 2, runs  # the quick check and the resumed run (test writes to work_dirs/<config name>)
+    first, resumed = (p.read_text() for p in runs)
+    assert "Iter(train) [2/2]" in first and "VoD/driving_corridor/mAP/AP3D_R11" in first
+    assert "resumed" in resumed.lower() and "Iter(train) [3/3]" in resumed
+    tested = "".join(p.read_text() for p in (tmp_path / "work_dirs" / "mssf_pointpillars_vod").glob("*/*.log"))
+    assert "VoD/driving_corridor/mAP/AP3D_R11" in tested
+
+
+# ---------------------------------------------------------------------------------------------------
+# the install lines
+# ---------------------------------------------------------------------------------------------------
+
+def _specs(args):
+    """``({package spec}, no_deps)`` of one ``pip install`` argument list (options dropped, quotes removed)."""
+    args = [a.strip('"') for a in args]
+    return {a for a in args if not a.startswith("-")}, "--no-deps" in args
+
+
+def makefile_lines():
+    """The Makefile's lines, continuations joined."""
+    return (REPO / "Makefile").read_text().replace("\\\n", " ").splitlines()
+
+
+def docs_installs():
+    text = section()
+    install = text[text.index("### Install"):text.index("### Prepare View-of-Delft")]
+    return [_specs(shlex.split(ln, comments=True)[2:]) for ln in bash_lines(install) if ln.startswith("pip install")]
+
+
+def test_install_lines_match_the_makefile():
+    lines = makefile_lines()
+    make = [(i, *_specs(ln.split("-m pip install", 1)[1].split())) for i, ln in enumerate(lines)
+            if "$(PY) -m pip install" in ln]
+    docs = docs_installs()
+    assert len(docs) == 3, docs
+    (lib, _), (nodeps_docs, nd), (deps_docs, d) = docs
+    assert nd and not d
+    # the library: the Makefile's editable install holds every extra the docs' one names
+    extras = lambda specs: {e for s in specs for e in re.findall(r"^\.\[(.*)\]$", s)[0].split(",")}  # noqa: E731
+    make_lib = [specs for _, specs, _ in make if any(s.startswith(".[") and "examples" in s for s in specs)]
+    assert len(make_lib) == 1 and extras(lib) <= extras(make_lib[0]), (lib, make_lib)
+    # the --no-deps line: the same specs, versions included, as the Makefile's mmdet3d line
+    make_nodeps = [specs for _, specs, n in make if n and any(s.startswith("mmdet3d") for s in specs)]
+    assert make_nodeps == [nodeps_docs], (make_nodeps, nodeps_docs)
+    # the line with dependencies: the Makefile's two for mmdet3d (train / val helpers, then what mmdet3d's
+    # models, datasets and evaluation import at module level, named by the comment above it)
+    wanted = [specs for i, specs, n in make if not n and ("addict" in specs or "what mmdet3d's models" in lines[i - 1])]
+    assert len(wanted) == 2, wanted
+    make_deps = set().union(*wanted)
+    assert deps_docs == make_deps, (sorted(deps_docs - make_deps), sorted(make_deps - deps_docs))
+    # mmcv: the version the docs name is the Makefile's wheel and fallback version
+    version = re.search(r"mim install\s+mmcv==([\d.]+)", " ".join(section().split())).group(1)
+    text = "\n".join(lines)
+    assert f"mmcv-{version}-*.whl" in text and f"mmcv-lite=={version}" in text

@@ -1,9 +1,11 @@
 """The shipped mmdet3d configs train and evaluate inside the real mmdetection3d 1.4.0 (mmcv's compiled ops).
 
-Each config, with only the data root (a generated VoD-layout tree, ``.jpg`` images, info files written by
-``mssf_examples.mmdet3d.infos``), the iteration count (1 epoch of 2 frames, batch 1), the image scale and
-the worker count overridden, goes through ``Runner.from_cfg(cfg).train()`` and ``.val()``: the box and
-semantic losses are present and finite, every fusion-block parameter (MSDFF / SFF, query init, pillar
+Each config, with only the data root (a generated VoD-layout tree, ``.jpg`` images, 4 training frames,
+info files written by ``mssf_examples.mmdet3d.infos``), the iteration count (2) and the image scale
+overridden, as the entry's ``--data-root``, ``--iters`` and ``--image-scale`` do (batch size 4, 4 workers,
+schedule as shipped), goes through ``Runner.from_cfg(cfg).train()``, which validates at its end (the
+entry's iteration count puts the validation there: ``val_loop.run()``, what ``Runner.val()`` runs): the box
+and semantic losses are present and finite, every fusion-block parameter (MSDFF / SFF, query init, pillar
 lifts, semantic head) receives a non-zero gradient, the metric returns the VoD keys. The radar-only
 twins are the MSSF models less the fusion, parameter for parameter.
 """
@@ -34,21 +36,14 @@ def data_root(tmp_path_factory):
     return write_tree(tmp_path_factory.mktemp("vod"))
 
 
-def small_cfg(name, data_root, work_dir, epochs=1):
-    """The shipped config with the data root, iterations, image scale and workers overridden."""
-    from mssf_examples.mmdet3d.cli import load_config, set_image_scale
+def small_cfg(name, data_root, work_dir, iters=2):
+    """The shipped config with only the data root, the iteration count and the image scale overridden, as the
+    entry's ``--data-root``, ``--iters`` and ``--image-scale`` do (batch size, workers, schedule as shipped)."""
+    from mssf_examples.mmdet3d.cli import load_config, set_image_scale, set_iterations
 
     cfg = load_config(str(CONFIGS / name), str(work_dir), data_root=str(data_root))
     set_image_scale(cfg, IMAGE_SCALE)
-    cfg.train_cfg.max_epochs = epochs
-    cfg.train_cfg.val_interval = epochs + 1  # .val() is called by the test
-    cfg.param_scheduler[0].end = epochs
-    cfg.train_dataloader.batch_size = 1
-    for key in ("train_dataloader", "val_dataloader", "test_dataloader"):
-        cfg[key].num_workers = 0
-        cfg[key].persistent_workers = False
-    cfg.default_hooks.logger.interval = 1
-    cfg.default_hooks.checkpoint.interval = 1000
+    set_iterations(cfg, iters)
     return cfg
 
 
@@ -59,7 +54,7 @@ def recorder(model):
 
     class Recorder(Hook):
         def __init__(self):
-            self.losses = []
+            self.losses, self.batch_sizes, self.validations = [], [], []
             self.nonzero = {}
             for name, p in model.named_parameters():
                 if FUSION_PARAM.search(name):
@@ -74,6 +69,10 @@ def recorder(model):
 
         def after_train_iter(self, runner, batch_idx, data_batch=None, outputs=None):
             self.losses.append({k: float(v) for k, v in outputs.items()})
+            self.batch_sizes.append(len(data_batch["data_samples"]))
+
+        def after_val_epoch(self, runner, metrics=None):
+            self.validations.append((runner.iter, dict(metrics or {})))
 
     return Recorder()
 
@@ -81,18 +80,40 @@ def recorder(model):
 def run(cfg):
     from mmengine.runner import Runner
 
+    from mssf_examples.mmdet3d.cli import release_workers
+
     runner = Runner.from_cfg(cfg)
     rec = recorder(runner.model)
     runner.register_hook(rec)
     runner.train()
+    release_workers(runner)  # as the entry does (the shipped persistent workers)
     return runner, rec
 
 
-@pytest.mark.parametrize("name", MSSF + sorted(TWINS.values()))
-def test_config_trains_and_evaluates(name, data_root, tmp_path):
-    runner, rec = run(small_cfg(name, data_root, tmp_path))
-    fusion = name in MSSF
-    assert len(rec.losses) == 2
+def recording_runners(monkeypatch):
+    """Attach a :func:`recorder` to every runner ``Runner.from_cfg`` builds (the entry's ``main`` included);
+    returns the list of ``(runner, recorder)`` it fills."""
+    from mmengine.runner import Runner
+
+    built = []
+    from_cfg = Runner.from_cfg.__func__
+
+    def recording_from_cfg(cls, cfg):
+        runner = from_cfg(cls, cfg)
+        rec = recorder(runner.model)
+        runner.register_hook(rec)
+        built.append((runner, rec))
+        return runner
+
+    monkeypatch.setattr(Runner, "from_cfg", classmethod(recording_from_cfg))
+    return built
+
+
+def check_vod_run(runner, rec, fusion):
+    """2 iterations of 4 frames (the shipped batch size; the generated tree has 4 training frames), the losses
+    present and finite, every fusion parameter with a non-zero gradient, one validation at the end with the
+    VoD keys."""
+    assert len(rec.losses) == 2 and rec.batch_sizes == [4, 4]
     expected = {"loss_cls", "loss_bbox", "loss_dir"} | ({"loss_seg"} if fusion else set())
     for step in rec.losses:
         assert expected <= set(step), step
@@ -104,11 +125,24 @@ def test_config_trains_and_evaluates(name, data_root, tmp_path):
         assert not any(p.requires_grad for p in runner.model.img_backbone.parameters())  # frozen image branch
     else:
         assert not rec.nonzero  # the twin has no fusion parameters
-    metrics = runner.val()
+    # the entry's iteration count validates once, at the end: IterBasedTrainLoop's val_loop.run(), which is
+    # what Runner.val() runs (a second call would repeat the same evaluation)
+    assert [it for it, _ in rec.validations] == [2]
+    metrics = rec.validations[0][1]
     for region in ("entire_area", "driving_corridor"):
         for cls in ("Car", "Pedestrian", "Cyclist", "mAP"):
             for key in ("AP3D_R11", "AP3D_R40", "APBEV_R11", "APBEV_R40"):
                 assert f"VoD/{region}/{cls}/{key}" in metrics
+
+
+# mssf_pointpillars_vod.py: its run is docs/frameworks.md's quick check, run verbatim and checked with
+# check_vod_run by test_mmdet3d_docs.py (the same 2 iterations; one run instead of two)
+@pytest.mark.parametrize("name", ["mssf_second_vod.py"] + sorted(TWINS.values()))
+def test_config_trains_and_evaluates(name, data_root, tmp_path):
+    cfg = small_cfg(name, data_root, tmp_path)
+    assert cfg.train_dataloader.batch_size == 4 and cfg.train_dataloader.num_workers == 4  # as shipped
+    runner, rec = run(cfg)
+    check_vod_run(runner, rec, fusion=name in MSSF)
 
 
 @pytest.mark.parametrize("name", MSSF)
@@ -127,3 +161,25 @@ def test_fusion_removed_is_the_radar_only_twin(name, data_root, tmp_path):
     b = MODELS.build(twin.model).state_dict()
     assert list(a) == list(b)
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_iteration_count_binds_schedule_validation_checkpoint_and_logging(data_root, tmp_path):
+    """``--iters N`` (``set_iterations``): the one-cycle schedule over exactly N iterations, one validation and
+    one checkpoint at N, a log line every min(N, 50); a count that is not a positive integer is refused."""
+    from mssf_examples.mmdet3d.cli import load_config, set_iterations
+
+    for iters, log_every in ((2, 2), (120, 50)):
+        cfg = load_config(str(CONFIGS / "mssf_pointpillars_vod.py"), str(tmp_path), data_root=str(data_root))
+        shipped = cfg.param_scheduler[0].copy()
+        assert (shipped.by_epoch, shipped.begin, shipped.end) == (True, 0, cfg.train_cfg.max_epochs)
+        set_iterations(cfg, iters)
+        assert cfg.train_cfg == dict(type="IterBasedTrainLoop", max_iters=iters, val_interval=iters)
+        sched = cfg.param_scheduler[0]
+        assert (sched.type, sched.by_epoch, sched.begin, sched.end) == ("OneCycleLR", False, 0, iters)
+        assert "convert_to_iter_based" not in sched and sched.eta_max == shipped.eta_max
+        assert cfg.default_hooks.checkpoint.by_epoch is False and cfg.default_hooks.checkpoint.interval == iters
+        assert cfg.default_hooks.logger.interval == log_every and cfg.log_processor.by_epoch is False
+        assert cfg.train_dataloader.batch_size == 4 and cfg.train_dataloader.num_workers == 4  # untouched
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(ValueError, match="iters: expected a positive integer"):
+            set_iterations(cfg, bad)

@@ -101,7 +101,7 @@ def test_metric_matches_the_label_files(data_root, tmp_path):
 def test_overfit_one_frame_lowers_the_loss(data_root, tmp_path):
     from test_mmdet3d_train import run
 
-    cfg = small_cfg("mssf_pointpillars_vod.py", data_root, tmp_path, epochs=10)
+    cfg = small_cfg("mssf_pointpillars_vod.py", data_root, tmp_path, iters=10)
     cfg.train_dataloader.dataset.indices = 1  # one frame
     pipe = cfg.train_dataloader.dataset.pipeline  # the same frame every time: no point augmentation
     cfg.train_dataloader.dataset.pipeline = [s for s in pipe if s.type not in ("RandomFlip3D", "GlobalRotScaleTrans")]
@@ -150,9 +150,14 @@ def _first_iteration_error(cfg, match):
 
     from mssf_blocks import MSSFError
 
+    from mssf_examples.mmdet3d.cli import release_workers
+
     runner = Runner.from_cfg(cfg)
-    with pytest.raises(MSSFError, match=match):
-        runner.train()
+    try:
+        with pytest.raises(MSSFError, match=match):
+            runner.train()
+    finally:
+        release_workers(runner)
 
 
 def _pipeline(cfg):

@@ -1,5 +1,6 @@
-"""mmdetection3d 1.x support of the examples: ``MSSFDetector`` (:mod:`.detector`), View-of-Delft info files (:mod:`.infos`), ``VoDDataset``
-(:mod:`.dataset`), ``VoDMetric`` (:mod:`.metric`), their registration (:mod:`.plugin`) and the
-``python -m mssf_examples.mmdet3d infos|train|test`` entry (:mod:`.cli`). Only :mod:`.infos` works
-without mmdet3d; the others import it (docs/frameworks.md, "mmdetection3d").
+"""mmdetection3d 1.x support of the examples: ``MSSFDetector`` (:mod:`.detector`), View-of-Delft and TJ4DRadSet
+info files (:mod:`.infos`), ``VoDDataset`` / ``TJ4DDataset`` (:mod:`.dataset`), ``VoDMetric`` / ``TJ4DMetric``
+(:mod:`.metric`), their registration (:mod:`.plugin`) and the ``python -m mssf_examples.mmdet3d infos|train|test``
+entry (:mod:`.cli`). Only :mod:`.infos` works without mmdet3d; the others import it (docs/frameworks.md,
+"mmdetection3d").
 """

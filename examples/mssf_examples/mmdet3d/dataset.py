@@ -1,4 +1,6 @@
-"""``VoDDataset``: mmdet3d's ``KittiDataset`` with the View-of-Delft classes (Car, Pedestrian, Cyclist).
+"""``VoDDataset``: mmdet3d's ``KittiDataset`` with the View-of-Delft classes (Car, Pedestrian, Cyclist);
+``TJ4DDataset``: the same with the TJ4DRadSet classes (Car, Pedestrian, Cyclist, Truck), for the info files
+of :func:`~mssf_examples.mmdet3d.infos.create_tj4d_infos` (8-float radar read with ``load_dim=8``).
 
 Registered in ``mmdet3d.registry.DATASETS`` by :mod:`mssf_examples.mmdet3d.plugin`. It reads the info
 files of :mod:`~mssf_examples.mmdet3d.infos` (7-float radar points, ``.jpg`` images, ``CAM2`` calibration);
@@ -12,9 +14,9 @@ from mmdet3d.datasets import KittiDataset
 
 from mssf_blocks.errors import MSSFError
 
-from ..kitti_io import VOD_CLASSES
+from ..kitti_io import TJ4D_CLASSES, VOD_CLASSES
 
-__all__ = ["VoDDataset"]
+__all__ = ["VoDDataset", "TJ4DDataset"]
 
 
 class VoDDataset(KittiDataset):
@@ -31,3 +33,10 @@ class VoDDataset(KittiDataset):
                                 f"images[{self.default_cam_key!r}]; the camera modality needs the calibration "
                                 "(write the infos with python -m mssf_examples.mmdet3d infos)")
         return super().parse_data_info(info)
+
+
+class TJ4DDataset(VoDDataset):
+    """TJ4DRadSet in mmdet3d (labels 0..3 = Car, Pedestrian, Cyclist, Truck)."""
+
+    METAINFO = {"classes": TJ4D_CLASSES,
+                "palette": [(255, 158, 0), (0, 0, 230), (220, 20, 60), (112, 128, 144)]}

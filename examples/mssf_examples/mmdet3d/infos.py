@@ -1,4 +1,9 @@
-"""View-of-Delft release -> mmdetection3d 1.x info files (``vod_infos_<split>.pkl``).
+"""View-of-Delft / TJ4DRadSet releases -> mmdetection3d 1.x info files (``vod_infos_<split>.pkl``,
+``tj4d_infos_<split>.pkl``).
+
+TJ4DRadSet (:func:`create_tj4d_infos`): the KITTI layout ``<root>/training/{velodyne,image_2,calib,label_2}``
+with ``<root>/ImageSets``, 8 floats per point (x, y, z, V_r, Range, Power, Alpha, Beta), classes Car,
+Pedestrian, Cyclist, Truck (``bbox_label_3d`` 0..3), the frame texts under ``tj4d``; otherwise as below.
 
 Reads the release layout with :class:`~mssf_examples.kitti_io.KittiFormatDataset`
 (``<root>/<sensor>/training/{velodyne,image_2,calib,label_2}``, the split files in
@@ -30,9 +35,9 @@ import numpy as np
 
 from mssf_blocks.errors import MSSFError
 
-from ..kitti_io import VOD_CLASSES, VOD_RADAR, KittiFormatDataset
+from ..kitti_io import TJ4D_CLASSES, TJ4D_RADAR, VOD_CLASSES, VOD_RADAR, KittiFormatDataset
 
-__all__ = ["frame_info", "create_vod_infos"]
+__all__ = ["frame_info", "create_vod_infos", "create_tj4d_infos"]
 
 PathLike = Union[str, Path]
 
@@ -43,8 +48,10 @@ def _4x4(m: np.ndarray) -> np.ndarray:
     return out
 
 
-def frame_info(dataset: KittiFormatDataset, frame_id: str, with_labels: bool = True) -> Dict:
-    """The mmdet3d 1.x info dict of one frame (see the module docstring)."""
+def frame_info(dataset: KittiFormatDataset, frame_id: str, with_labels: bool = True,
+               classes: Sequence[str] = VOD_CLASSES, text_key: str = "vod") -> Dict:
+    """The mmdet3d 1.x info dict of one frame (see the module docstring): labels index ``classes`` (other
+    types -1), the label and calibration text under ``text_key``."""
     paths = dataset.paths(frame_id)
     frame = dataset.load(frame_id, with_labels=with_labels)
     calib = frame.calib
@@ -61,7 +68,7 @@ def frame_info(dataset: KittiFormatDataset, frame_id: str, with_labels: bool = T
             hh, ww, ll = objs.dimensions[i].numpy()
             centre = loc - np.array([0.0, hh / 2, 0.0])  # gravity centre (camera y points down)
             uvw = p2[:3] @ np.append(centre, 1.0)
-            label = VOD_CLASSES.index(name) if name in VOD_CLASSES else -1
+            label = list(classes).index(name) if name in classes else -1
             instances.append({
                 "bbox": [float(v) for v in objs.boxes_2d[i].tolist()],
                 "bbox_label": label,
@@ -89,7 +96,7 @@ def frame_info(dataset: KittiFormatDataset, frame_id: str, with_labels: bool = T
                             "lidar2cam": lidar2cam, "lidar2img": p2 @ lidar2cam},
                    "R0_rect": r0},
         "instances": instances,
-        "vod": {"label_text": label_text, "calib_text": paths.calib.read_text(), "image_size": (int(h), int(w))},
+        text_key: {"label_text": label_text, "calib_text": paths.calib.read_text(), "image_size": (int(h), int(w))},
     }
 
 
@@ -109,14 +116,40 @@ def create_vod_infos(root: PathLike, sensor: str = "radar_5frames", splits: Sequ
     """
     root = Path(root)
     out = Path(out_dir) if out_dir is not None else root / sensor
+    return _write(root, out, splits, prefix, "vod", VOD_CLASSES, sensor,
+                  lambda split: KittiFormatDataset(root, VOD_RADAR, sensor=sensor, split=split, load_image=False))
+
+
+def create_tj4d_infos(root: PathLike, splits: Sequence[str] = ("train", "val"), out_dir: Optional[PathLike] = None,
+                      prefix: str = "tj4d_infos") -> Dict[str, Path]:
+    """Write ``<out_dir>/<prefix>_<split>.pkl`` for every split of a TJ4DRadSet release; returns ``{split: path}``.
+
+    Args:
+        root: the TJ4DRadSet root (holding ``training/`` and ``ImageSets/``).
+        splits: split-file names (``ImageSets/<split>.txt``).
+        out_dir: where to write (default ``root``, the dataset's ``data_root``).
+
+    Raises:
+        FileNotFoundError: a folder, split file or frame file is missing (naming the paths tried).
+        MSSFError: point files whose size is not a multiple of 8 floats (TJ4DRadSet radar).
+    """
+    root = Path(root)
+    out = Path(out_dir) if out_dir is not None else root
+    return _write(root, out, splits, prefix, "tj4d", TJ4D_CLASSES, None,
+                  lambda split: KittiFormatDataset(root, TJ4D_RADAR, sensor=None, split=split,
+                                                   class_names=TJ4D_CLASSES, load_image=False))
+
+
+def _write(root: Path, out: Path, splits: Sequence[str], prefix: str, name: str, classes: Sequence[str],
+           sensor: Optional[str], reader) -> Dict[str, Path]:
     out.mkdir(parents=True, exist_ok=True)
     written = {}
     for split in splits:
-        ds = KittiFormatDataset(root, VOD_RADAR, sensor=sensor, split=split, load_image=False)
-        data_list = [frame_info(ds, fid) for fid in ds.frame_ids]
+        ds = reader(split)
+        data_list = [frame_info(ds, fid, classes=classes, text_key=name) for fid in ds.frame_ids]
         if not data_list:
-            raise MSSFError(f"split {split!r}: no frames listed in its split file under {root / sensor}")
-        infos = {"metainfo": {"categories": {c: i for i, c in enumerate(VOD_CLASSES)}, "dataset": "vod",
+            raise MSSFError(f"split {split!r}: no frames listed in its split file under {root / (sensor or '')}")
+        infos = {"metainfo": {"categories": {c: i for i, c in enumerate(classes)}, "dataset": name,
                               "info_version": "1.1", "sensor": sensor}, "data_list": data_list}
         path = out / f"{prefix}_{split}.pkl"
         with open(path, "wb") as f:

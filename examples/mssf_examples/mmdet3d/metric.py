@@ -9,6 +9,12 @@ own ``label_2`` and calibration text, which :mod:`~mssf_examples.mmdet3d.infos` 
 
 Keys (after mmengine's ``VoD/`` prefix): ``<region>/<class or mAP>/<AP3D_R11|AP3D_R40|APBEV_R11|APBEV_R40>``
 with ``region`` ``entire_area`` or ``driving_corridor``; the paper's Table I reports ``AP3D_R11``.
+
+``TJ4DMetric``: the same for TJ4DRadSet with the project's TJ4D protocol (``protocol="tj4d"``,
+:mod:`mssf_examples.evaluation_tj4d`: the MSSF authors' evaluation, cumulative range bins, their 41/40 "R40"),
+against the ``tj4d`` texts of :func:`~mssf_examples.mmdet3d.infos.create_tj4d_infos`; keys
+``TJ4D/<range_0_50|range_0_70|range_all>/<Car|Pedestrian|Cyclist|Truck|mAP>/<...>``; the paper's Table III
+reports ``range_0_70``, ``AP3D_R40`` and ``APBEV_R40``.
 """
 
 from __future__ import annotations
@@ -24,9 +30,9 @@ from mmengine.logging import MMLogger
 from mssf_blocks.errors import MSSFError
 
 from ..evaluation import evaluate, format_table
-from ..kitti_io import VOD_CLASSES, parse_calibration, parse_labels
+from ..kitti_io import TJ4D_CLASSES, VOD_CLASSES, parse_calibration, parse_labels
 
-__all__ = ["VoDMetric", "predictions_from_mmdet3d"]
+__all__ = ["VoDMetric", "TJ4DMetric", "predictions_from_mmdet3d"]
 
 
 def predictions_from_mmdet3d(pred: Dict, calib, image_size) -> Dict:
@@ -47,12 +53,14 @@ class VoDMetric(BaseMetric):
     """
 
     default_prefix = "VoD"
+    #: the evaluation protocol, the default classes, the info files' text key and the logged table's metric
+    protocol, default_classes, text_key, table_metric = "vod", VOD_CLASSES, "vod", "AP3D_R11"
 
     def __init__(self, ann_file: str, classes: Optional[Sequence[str]] = None, collect_device: str = "cpu",
                  prefix: Optional[str] = None) -> None:
         super().__init__(collect_device=collect_device, prefix=prefix)
         self.ann_file = str(ann_file)
-        self.classes = tuple(classes) if classes is not None else VOD_CLASSES
+        self.classes = tuple(classes) if classes is not None else self.default_classes
 
     def process(self, data_batch: Dict, data_samples: Sequence[Dict]) -> None:
         for s in data_samples:
@@ -61,15 +69,16 @@ class VoDMetric(BaseMetric):
                                  "pred": {k: pred[k].to("cpu") for k in ("bboxes_3d", "scores_3d", "labels_3d")}})
 
     def _frames(self) -> List[Dict]:
-        """The ``vod`` entry of every frame, in data-list order (mmengine's ``sample_idx`` is the dataset index)."""
+        """The ``vod`` (``tj4d``) entry of every frame, in data-list order (mmengine's ``sample_idx`` is the
+        dataset index)."""
         with open(self.ann_file, "rb") as f:
             infos = pickle.load(f)
         frames = []
         for info in infos["data_list"]:
-            if "vod" not in info:
-                raise MSSFError(f"ann_file {self.ann_file}: infos without the 'vod' label/calibration text; "
-                                "write them with python -m mssf_examples.mmdet3d infos")
-            frames.append(info["vod"])
+            if self.text_key not in info:
+                raise MSSFError(f"ann_file {self.ann_file}: infos without the {self.text_key!r} label/calibration "
+                                f"text; write them with python -m mssf_examples.mmdet3d infos --dataset {self.text_key}")
+            frames.append(info[self.text_key])
         return frames
 
     def compute_metrics(self, results: List[Dict]) -> Dict[str, float]:
@@ -82,8 +91,8 @@ class VoDMetric(BaseMetric):
             calib = parse_calibration(v["calib_text"], f"calib of {r['sample_idx']}")
             preds.append(predictions_from_mmdet3d(r["pred"], calib, v["image_size"]))
             gts.append(parse_labels(v["label_text"], f"labels of {r['sample_idx']}"))
-        res = evaluate(preds, gts, self.classes, protocol="vod")
-        MMLogger.get_current_instance().info("\n" + format_table(res, metric="AP3D_R11"))
+        res = evaluate(preds, gts, self.classes, protocol=self.protocol)
+        MMLogger.get_current_instance().info("\n" + format_table(res, metric=self.table_metric))
         out = {}
         for region, per_class in res.items():
             for cls, values in per_class.items():
@@ -91,3 +100,13 @@ class VoDMetric(BaseMetric):
                     val = float(values[key])
                     out[f"{region}/{cls}/{key}"] = val if not math.isnan(val) else float("nan")
         return out
+
+
+class TJ4DMetric(VoDMetric):
+    """TJ4DRadSet AP per class and mAP for the ranges 0-50 m, 0-70 m and all (the project's ``protocol="tj4d"``).
+
+    Args: as :class:`VoDMetric` (default classes Car, Pedestrian, Cyclist, Truck).
+    """
+
+    default_prefix = "TJ4D"
+    protocol, default_classes, text_key, table_metric = "tj4d", TJ4D_CLASSES, "tj4d", "AP3D_R40"
