@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 CONFIGS = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d"
-SENSOR = "radar_5frames"
 
 
 def require_mmdet3d():
@@ -28,21 +27,9 @@ def require_mmdet3d():
 def write_tree(root: Path, train: int = 4, val: int = 2, image_size=(304, 484), seed: int = 7):
     """``root/radar_5frames`` with ``train`` + ``val`` generated frames (jpg) and ``vod_infos_{train,val}.pkl``.
     Returns the data root (``root/radar_5frames``)."""
-    from PIL import Image
+    from mssf_examples.mmdet3d.generated import write_generated_vod
 
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.mmdet3d.infos import create_vod_infos
-    from mssf_examples.scenes import SceneConfig, SyntheticDataset
-
-    cfg = SceneConfig(image_size=image_size, point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
-    scenes = {"train": [SyntheticDataset("train", train, cfg, seed=seed)[i] for i in range(train)],
-              "val": [SyntheticDataset("val", val, cfg, seed=seed)[i] for i in range(val)]}
-    write_vod_tree(root, scenes, sensor=SENSOR)
-    for png in (root / SENSOR / "training" / "image_2").glob("*.png"):  # the release's images are jpg
-        Image.open(png).convert("RGB").save(png.with_suffix(".jpg"), quality=95)
-        png.unlink()
-    create_vod_infos(root, SENSOR, ("train", "val"))
-    return root / SENSOR
+    return write_generated_vod(root, train, val, image_size, seed)
 
 
 def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 11):
