@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import print_table  # noqa: E402
 from msdff import ImagePath, make_features, voxel_uv  # noqa: E402
 
-from mssf_blocks.functional import touched as touched_mod  # noqa: E402
+from mssf_blocks.functional.deform import touched as touched_mod  # noqa: E402
+from mssf_blocks.functional.deform.touched import order as order_mod  # noqa: E402
 
 LIBRARY_ORDER = touched_mod._spatial_order
 
@@ -47,7 +48,7 @@ def bands(image_index, locations, sizes):
 
 
 def z_order(image_index, locations, sizes):
-    x, y, bits = touched_mod._sort_cells(locations, sizes, 2.0)  # (the library's cells)
+    x, y, bits = order_mod._sort_cells(locations, sizes, 2.0)  # (the library's cells)
     key = torch.zeros_like(x)
     for b in range(bits):  # interleave the bits of x and y
         key |= ((x >> b) & 1) << (2 * b) | ((y >> b) & 1) << (2 * b + 1)

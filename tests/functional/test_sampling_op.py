@@ -14,10 +14,10 @@ import torch
 
 from mssf_blocks import _compat
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional import sampling_op
+from mssf_blocks.functional.deform import op as sampling_op
 from mssf_blocks.functional.plan_costs import SAMPLING_BACKENDS
 from mssf_blocks.functional.sampling import ms_deform_sample_reference
-from mssf_blocks.functional.sampling_op import deform_sample_project, resolve_backend
+from mssf_blocks.functional.deform.op import deform_sample_project, resolve_backend
 
 sys.path.insert(0, str(Path(__file__).parent))
 from sampling_references import naive_ms_deform, random_inputs  # noqa: E402
@@ -138,7 +138,7 @@ def test_triton_forced_on_cpu_tensors_without_the_interpreter_is_a_clear_error(m
 def test_triton_failure_warns_once_and_falls_back_to_grid(monkeypatch):
     """A launch that fails (here: a broken backend module) warns once, naming the cause; the grid path
     serves this and every later call, with the grid path's numbers."""
-    from mssf_blocks.functional import triton_backend  # (imports triton: the dev extra has it)
+    from mssf_blocks.functional.deform.triton import launch as triton_backend  # (imports triton: the dev extra has it)
 
     def broken(*args, **kwargs):
         raise RuntimeError("ptxas exited with status 255")

@@ -1,0 +1,197 @@
+"""One level of the CPU plans: the cheapest exact plan by the cost model, and its table.
+
+Per level, the pixels that some in-map bilinear corner reads are marked (``U`` of them) and the
+cheapest exact plan is run: project every pixel (``"dense"``), project only the touched pixels
+(``"project"``), or sample the touched pixels' raw channels from a gathered table (``"sample"``) or in
+place for channels-last levels (``"direct"``) and project per head. The cost constants live in
+``functional/plan_costs.py``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ...plan_costs import (
+    _BAG_BACKWARD,
+    _BAG_COST,
+    _COPY_COST,
+    _DIRECT_BAG_COST,
+    _FILL_COST,
+    _GATHER_COST,
+    _GRID_SAMPLE_COST,
+)
+from .blocks import _bag_projected, _bag_raw, _ProjectedLevel, _RawLevel
+from .points import _LevelLoc, _read_pixels, _top_left_cells
+from .rows import _gather_rows, _GatherProject, _is_row_table, _project_rows, _row_table
+
+def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
+    """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.
+
+    ``maps (I, H, W, M, d)`` (a projected level, e.g. a view of ``(I * H * W, M * d)`` rows),
+    ``loc (Q, M, P, 2)`` normalised, ``wt (Q, M, P)``. Zero padding, ``align_corners=False``: the
+    arithmetic of :func:`ms_deform_sample_reference`, laid out head-major (no per-image gather and
+    index_add for one image). Calling the reference instead gives the same values up to rounding, but
+    not bit for bit, and the demo's 2000 training steps amplify that (+13.42 -> +14.33 mAP).
+    """
+    num_images, _, _, m, d = maps.shape
+    q = loc.shape[0]
+    heads = maps.permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view: grid_sample reads any strides
+    grid = (2.0 * loc - 1.0).transpose(0, 1)  # (M, Q, P, 2)
+    wo = wt.transpose(0, 1)[:, None]  # (M, 1, Q, P)
+
+    def sample(i: int, g: Tensor, w: Tensor) -> Tensor:  # (M, d, q_i, P) -> (M, q_i, d)
+        s = F.grid_sample(heads[i], g, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return (s * w).sum(-1).transpose(1, 2)
+
+    if num_images == 1:
+        return sample(0, grid, wo).reshape(m * q, d)
+    out = maps.new_zeros(m, q, d)
+    for i in range(num_images):
+        sel = (image_index == i).nonzero().squeeze(1)
+        if sel.numel():
+            out = out.index_copy(1, sel, sample(i, grid[:, sel], wo[:, :, sel]))
+    return out.view(m * q, d)
+
+def _touched_level(
+    value: Tensor,
+    image_index: Tensor,
+    lv: _LevelLoc,
+    w_all: Optional[Tensor],
+    b_all: Optional[Tensor],
+    m: int,
+    plan: Optional[str],
+    needs_grad: bool = False,
+    defer_projection: bool = False,
+    projection_paid: bool = False,
+):
+    """One level of the ``"touched"`` method: ``(Q, M, d)`` output (possibly a strided view).
+
+    With ``defer_projection``, the raw-row plans return a :class:`_RawLevel` instead, for the caller to
+    bag with the other levels in blocks of queries and project each block once (``value_proj`` is
+    shared by the levels: one per-head ``bmm`` per block instead of one per level), and in forward the
+    projected plans return a :class:`_ProjectedLevel` (their table made, their corners left to the
+    caller's blocks);
+    ``projection_paid``: an earlier level already did, so the raw-row plans' cost leaves that
+    projection out.
+
+    With ``w_all=None`` (no projection; used by :func:`bilinear_sample`) the plan is ``"sample"`` (or
+    the given raw-row plan, ``"direct"`` for a channels-last map) and the raw ``(Q * M, D)`` bilinear
+    samples are returned.
+
+    ``value (I, 1, D, H, W)``, ``lv`` the level's points (:func:`_level`; ``lv.loc`` and
+    ``lv.wt`` are needed with ``needs_grad``), ``w_all (M * d, D)``, ``b_all (M * d,)``. Corners are
+    located on the level padded by 2 pixels on every side, with the
+    top-left corner clamped to ``[-2, W]`` x ``[-2, H]``: every corner then has a cell of the padded
+    grid, and a corner is in the map iff its cell is not in the padding (no per-corner masks). The
+    top-left cells are marked in a ``(I, H + 4, W + 4)`` array and the pixels read by some corner are
+    those with a marked cell at offset ``(0, 0)``, ``(0, -1)``, ``(-1, 0)`` or ``(-1, -1)``
+    (O(pixels + points), no sort); the touched in-map pixels are projected with one GEMM (all heads at
+    once) into a ``(U + 1, M * d)`` table whose last row is zero and which padding cells map to
+    (grid_sample's zero padding, bias included); every corner then reads its head's ``d`` channels of
+    its row in one ``embedding_bag`` weighted by ``bilinear weight * attention weight``.
+
+    With ``needs_grad`` the plan costs include the backward pass, and the projected plans sample with
+    ``F.grid_sample`` from a dense projected map instead (touched rows scattered into zeros for
+    ``"project"``): its fused backward is several times cheaper than ``embedding_bag``'s (per-corner
+    weight gradients and a sorted table gradient).
+    """
+    num_images, _, dch, h, w = value.shape
+    q, _, p = lv.x.shape
+    e = dch * m if w_all is None else w_all.shape[0]
+    d = e // m
+    dev = value.device
+    n_pix = num_images * h * w
+    if w_all is None:
+        plan = "sample" if plan is None else plan
+    hp, wp = h + 4, w + 4
+    n_cells = num_images * hp * wp
+    c00 = _top_left_cells(lv, image_index, num_images, h, w)  # (Q, M, P)
+    # int32 corner cells while the cells with the head folded in (below) fit: half the bytes to write
+    # and read (measured 4-7 % of the whole call, 2,500-8,000 queries)
+    cdt = torch.int32 if m * n_cells < 2**31 else torch.int64
+
+    # Which in-map pixels are read (the plans "project" and "sample" need them; the choice needs
+    # their number U), as raw pixel ids (image, y, x) -> (i * H + y) * W + x.
+    inner, u = None, n_pix
+    if plan is None or plan in ("project", "sample") or (needs_grad and plan == "dense"):
+        inner = _read_pixels(c00, num_images, h, w)
+        u = int(inner.sum())
+    if plan is None:
+        corners = m * q * 4 * p
+        bag = 1.0 + _BAG_BACKWARD if needs_grad else 1.0  # forward (+ backward) passes over the corners
+        gemm = 2.0 if needs_grad else 1.0  # the projection (+ its weight gradient)
+        # the projected plans' sampling: d channels per head and corner (per input channel: / D)
+        read = corners * d / dch * (_GRID_SAMPLE_COST if needs_grad else _BAG_COST)
+        # the raw-row plans' per-head projection, shared by the levels that take one (deferred)
+        raw_projection = 0.0 if projection_paid else q * e * gemm
+        costs = {
+            "dense": n_pix * e * gemm + read,
+            # (with gradients the touched rows are gathered again for the weight gradient)
+            "project": u * (e + _GATHER_COST) * gemm + (n_pix * e * _FILL_COST if needs_grad else 0.0) + read,
+            "sample": u * (_GATHER_COST + _COPY_COST) + corners * _BAG_COST * bag + raw_projection,
+        }
+        if _is_row_table(value):
+            costs["direct"] = corners * _DIRECT_BAG_COST * bag + raw_projection
+        plan = min(costs, key=costs.get)
+    touched = inner.view(-1).nonzero().squeeze(1) if plan in ("project", "sample") else None  # (U,) sorted
+    if needs_grad and plan in ("dense", "project"):
+        # Project (every pixel, or the touched ones scattered into zeros: untouched pixels are never
+        # read, weight-0 corners included), then grid_sample per head: its fused backward is several
+        # times cheaper than embedding_bag's.
+        if plan == "dense":
+            parts = _project_rows(value, w_all, b_all, None)
+            if u < n_pix and not all(bool(torch.isfinite(part).all()) for part in parts):
+                # A NaN / inf in a pixel no corner reads never reaches the output, but it would reach
+                # value_proj's weight gradient (0 * NaN): project again with such pixels zeroed. Only then:
+                # the check reads the (pixels, E) projection once (measured ~15 % of one projection GEMM
+                # at E = 64), the masked copy of the level would cost more than the GEMM itself.
+                src = torch.where(inner.view(num_images, 1, 1, h, w), value, 0.0)
+                parts = _project_rows(src, w_all, b_all, None)
+            projected = parts[0] if len(parts) == 1 else torch.cat(parts, 0)
+        else:
+            projected = _GatherProject.apply(value, touched, w_all, b_all)
+            projected = projected.new_zeros(n_pix, e).index_copy(0, touched, projected)
+        heads = _grid_sample_heads(projected.view(num_images, h, w, m, d), image_index, lv.loc, lv.wt)
+        return heads.view(m, q, d).transpose(0, 1)
+    n_rows = n_pix if plan in ("dense", "direct") else u
+    idt = torch.int32 if (n_rows + 1) * m < 2**31 else torch.int64
+    remap = torch.full((num_images, hp, wp), n_rows, dtype=idt, device=dev)  # padding: the zero row
+    if plan in ("dense", "direct"):  # every pixel has a row: its raw pixel id
+        remap[:, 2 : h + 2, 2 : w + 2] = torch.arange(n_pix, dtype=idt, device=dev).view(num_images, h, w)
+    else:  # the touched pixels' rows, in order
+        remap[:, 2 : h + 2, 2 : w + 2].masked_scatter_(inner, torch.arange(u, dtype=idt, device=dev))
+    if plan in ("sample", "direct"):
+        # Sample the D raw channels per head and point from the level's rows (channels-last maps are a
+        # free (I * H * W, D) row table: sampled in place) or from a compact table of the touched rows,
+        # then project per head (Q * D * E) and add the bias times the in-map weight mass. No zero row
+        # here (appending one would copy the table): out-of-map corners get weight 0 and the last row,
+        # or, should that row not be finite, are left out of their bags (_bag_raw).
+        table = _row_table(value) if plan == "direct" else _gather_rows(value, touched)
+        if n_rows == 0:  # (the empty table keeps the image in the graph: zero gradient, not None)
+            table, clamp = value.new_zeros(1, dch) + 0.0 * table.sum(), 0  # (every cell maps to its row 0)
+        else:
+            clamp = n_rows - 1 if bool(torch.isfinite(table[n_rows - 1]).all()) else None
+        raw = _RawLevel(lv, c00.to(cdt), remap.view(-1), wp, table, n_rows, clamp)
+        if defer_projection and w_all is not None:
+            return raw  # the caller bags it with the other levels, in blocks of queries
+        sampled, mass = _bag_raw(raw, 0, q)  # (Q * M, D), (Q, M, 1)
+        if w_all is None:
+            return sampled
+        out = torch.bmm(sampled.view(q, m, dch).transpose(0, 1), w_all.view(m, d, dch).transpose(1, 2))
+        out = out.transpose(0, 1)  # (Q, M, d)
+        return out if b_all is None else out + mass * b_all.view(1, m, d)
+    # (forward only: with gradients these plans returned above) one (rows + 1, E) table whose last row,
+    # the one padding cells read, is zero, viewed ((rows + 1) * M, d): row r * M + head. The head is
+    # folded into the cells (one table of cell -> row per head) rather than added to every corner's row.
+    table = w_all.new_empty(n_rows + 1, e)
+    table[n_rows].zero_()
+    _project_rows(value, w_all, b_all, None if plan == "dense" else touched, out=table[:n_rows])
+    heads = torch.arange(m, dtype=idt, device=dev)
+    remap = torch.addcmul(heads.view(m, 1), remap.view(1, -1), heads.new_full((), m))  # (M, cells): r * M + head
+    c00 = c00.add_((heads.long() * n_cells).view(1, m, 1)).to(cdt)
+    level = _ProjectedLevel(lv, c00, remap.view(-1), wp, table.view(-1, d))
+    return level if defer_projection else _bag_projected(level, 0, q)
