@@ -50,7 +50,10 @@ def ms_deform_sample(
             ``[0, 1]`` reads zeros).
         weights: ``(Q, M, L, P)`` attention weights (any finite values; softmax is the caller's).
         method: ``"fast"`` (embedding-bag over the 4 bilinear corners; O(Q) time and memory),
-            ``"reference"`` (per-level ``F.grid_sample``) or ``"auto"`` (= ``"fast"``).
+            ``"reference"`` (per-level ``F.grid_sample``) or ``"auto"`` (= ``"fast"``). Not the sampling
+            op: the op samples values projected per head from maps shared by the heads, while these
+            values may be per head (``Mv = M``) and are not projected (an identity projection through
+            the op would add ``Q * M * D * D`` multiply-adds), and ``mass`` is no output of the op.
         return_mass: also return ``mass[q, m] = sum_{l, p} weights * (sum of the in-image bilinear
             corner weights)``, the factor of a value-projection bias applied after sampling.
 
@@ -103,7 +106,7 @@ def ms_deform_sample_project(
       (chunk, level) block is recomputed in backward (activation checkpointing), so memory is
       ``O(chunk_size * M * (D + L * P))`` instead of ``O(Q * M * L * P * D)`` at the price of one
       more sampling pass in backward. Cost ``O(Q * M * L * P * 4 * D)`` scattered row reads.
-    * ``"touched"`` (``Mv = 1`` only): per level, mark the pixels that some in-map bilinear corner
+    * ``"touched"`` (``Mv = 1`` only; the sampling op with its CPU backend forced): per level, mark the pixels that some in-map bilinear corner
       reads (``U <= min(I * H_l * W_l, Q * M * P * 4)``) and run the cheapest of four exact plans by a
       cost model measured on a CPU (``docs/fusion.md``): project every pixel, project only the ``U``
       touched pixels (one GEMM for all heads), then sample ``d`` channels per head and point; or
@@ -112,7 +115,8 @@ def ms_deform_sample_project(
       backward and the projected plans sample with ``F.grid_sample`` (cheaper backward). Memory
       ``O(U * M * d + Q * M * P * 4)`` per level (plus the dense projected map with gradients);
       ``chunk_size`` is ignored.
-    * ``"auto"``: ``"touched"`` when ``Mv = 1``, else ``"chunked"``.
+    * ``"auto"``: the sampling op (:func:`~mssf_blocks.functional.deform_sample_project`, the device's
+      backend: ``"touched"`` on the CPU) when ``Mv = 1``, else ``"chunked"``.
 
     Args:
         values, image_index, locations, weights: as :func:`ms_deform_sample` (``Mv`` 1 or ``M``).
