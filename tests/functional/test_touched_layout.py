@@ -15,7 +15,8 @@ import torch
 from mssf_blocks import MSDFF
 from mssf_blocks.functional.deform import touched as touched_mod
 from mssf_blocks.functional.deform.touched import blocks, points
-from mssf_blocks.functional.deform.touched.points import _LevelLoc, _read_pixels, _top_left_cells
+from mssf_blocks.functional.deform.touched.plans import _read_pixels, _top_left_cells
+from mssf_blocks.functional.deform.touched.points import _LevelLoc
 
 
 def _points(q, m, p, h, w, dtype, seed=0):

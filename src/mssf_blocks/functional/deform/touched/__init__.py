@@ -3,12 +3,13 @@
 Read in this order, the order the data takes (each file entered once):
 
 1. ``order.py``: the queries sorted by image, then along a Hilbert curve over the image;
-2. ``points.py``: every level's points in one contiguous block, their bilinear corners and the pixels
-   those read;
-3. ``plans.py``: per level the cheapest exact plan by the cost model of ``functional/plan_costs.py``
-   (project every pixel, project the touched pixels, or sample the touched pixels' raw channels and
-   project per head), with ``rows.py`` (the level's raw rows, gathered and projected);
-4. ``blocks.py``: the levels bagged together in blocks of queries and summed;
+2. ``points.py``: every level's points in one contiguous block of pixel coordinates;
+3. ``plans.py``: per level the pixels the points' bilinear corners read, and the cheapest exact plan by
+   the cost model of ``functional/plan_costs.py`` (project every pixel, project the touched pixels, or
+   sample the touched pixels' raw channels and project per head), with ``rows.py`` (the level's raw
+   rows, gathered and projected);
+4. ``blocks.py``: the four corners of every point, the levels bagged together in blocks of queries and
+   summed;
 
 then :func:`sample_project` puts the sum back in the callers' query order. The inputs are checked
 once, at the op's entry (``functional/deform/op.py``); nothing here checks them again.
@@ -57,6 +58,7 @@ def sample_project(
     # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
     # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
     order = _spatial_order(image_index, locations, [tuple(v.shape[-2:]) for v in levels])
+    restore = _inverse(order)
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
         loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
@@ -78,7 +80,7 @@ def sample_project(
             out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
     if raws or projected:  # the sum of every level
         out = _sum_levels(raws, projected, w_all, b_all, m, needs_grad, base=out)
-    return out.index_select(0, _inverse(order))  # back to the callers' order
+    return out.index_select(0, restore)  # back to the callers' order
 
 
 def sample_points(image: Tensor, batch_index: Tensor, uv: Tensor) -> Tensor:

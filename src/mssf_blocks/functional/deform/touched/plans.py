@@ -4,7 +4,8 @@ Per level, the pixels that some in-map bilinear corner reads are marked (``U`` o
 cheapest exact plan is run: project every pixel (``"dense"``), project only the touched pixels
 (``"project"``), or sample the touched pixels' raw channels from a gathered table (``"sample"``) or in
 place for channels-last levels (``"direct"``) and project per head. The cost constants live in
-``functional/plan_costs.py``.
+``functional/plan_costs.py``. The points' top-left corners are located on the level padded by 2
+pixels (:func:`_top_left_cells`) and the pixels they read marked (:func:`_read_pixels`).
 """
 
 from __future__ import annotations
@@ -25,8 +26,37 @@ from ...plan_costs import (
     _GRID_SAMPLE_COST,
 )
 from .blocks import _bag_projected, _bag_raw, _ProjectedLevel, _RawLevel
-from .points import _LevelLoc, _read_pixels, _top_left_cells
+from .points import _LevelLoc
 from .rows import _gather_rows, _GatherProject, _is_row_table, _project_rows, _row_table
+
+def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int, w: int) -> Tensor:
+    """``(Q, M, P)`` int64 cell of every point's top-left bilinear corner on its image's ``h x w`` level
+    padded by 2 pixels on every side, the corner clamped to ``[-2, W]`` x ``[-2, H]`` (which keeps every
+    in-map decision: ``x0 = -2`` and ``x0 = W`` have both corners outside) so that all four corners
+    ``(0, 1, Wp, Wp + 1)`` away have a cell. Computed in the floating type while every cell id is an
+    exact integer there (three operations instead of seven in int64)."""
+    hp, wp = h + 4, w + 4
+    xc = lv.x0.clamp(-2.0, float(w))
+    yc = lv.y0.clamp(-2.0, float(h))
+    exact = 2**53 if xc.dtype == torch.float64 else 2**24  # (float32 or float64: the sampling dtypes)
+    if num_images * hp * wp < exact:
+        base = ((image_index * hp + 2) * wp + 2).to(xc.dtype).view(-1, 1, 1)
+        return (yc * wp).add_(xc).add_(base).long()
+    return (image_index.view(-1, 1, 1) * hp + yc.long() + 2) * wp + xc.long() + 2
+
+
+def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
+    """``(I, H, W)`` bool: the in-map pixels that some bilinear corner of the points with top-left cells
+    ``c00`` (:func:`_top_left_cells`) reads. The top-left cells are marked in the padded grid (one write
+    per point, not per corner) and a pixel is read iff its cell or the one left, above or above-left of
+    it is marked."""
+    hp, wp = h + 4, w + 4
+    mark = torch.zeros(num_images * hp * wp, dtype=torch.bool, device=c00.device)
+    mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
+    mark = mark.view(num_images, hp, wp)
+    return (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
+        mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
+
 
 def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
     """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.

@@ -1,10 +1,6 @@
-"""The sampling points of the CPU plans and their bilinear corners.
-
-The levels' points in one contiguous ``(Q, L, 2, M, P)`` block (:func:`_sorted_points`), one level's
-:class:`_LevelLoc` (:func:`_level`), their top-left cells on the level padded by 2 pixels
-(:func:`_top_left_cells`), the pixels they read (:func:`_read_pixels`), the four corners' cells and
-weights (:func:`_corner_cells`, :func:`_corner_weights`). Everything is query-major: a query's heads
-are adjacent.
+"""The sampling points of the CPU plans: every level's points in one contiguous ``(Q, L, 2, M, P)``
+block of pixel coordinates (:func:`_sorted_points`), one level's :class:`_LevelLoc` (:func:`_level`).
+Query-major: a query's heads are adjacent.
 """
 
 from __future__ import annotations
@@ -98,62 +94,3 @@ def _level(xy: Tensor, wts: Tensor, lvl: int) -> _LevelLoc:
     """Level ``lvl`` of :func:`_sorted_points`' output as a :class:`_LevelLoc` (``loc``/``wt`` left ``None``)."""
     x, y = xy[:, lvl, 0], xy[:, lvl, 1]
     return _LevelLoc(x, y, x.detach().floor(), y.detach().floor(), wts[:, lvl])
-
-
-def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int, w: int) -> Tensor:
-    """``(Q, M, P)`` int64 cell of every point's top-left bilinear corner on its image's ``h x w`` level
-    padded by 2 pixels on every side, the corner clamped to ``[-2, W]`` x ``[-2, H]`` (which keeps every
-    in-map decision: ``x0 = -2`` and ``x0 = W`` have both corners outside) so that all four corners
-    ``(0, 1, Wp, Wp + 1)`` away have a cell. Computed in the floating type while every cell id is an
-    exact integer there (three operations instead of seven in int64)."""
-    hp, wp = h + 4, w + 4
-    xc = lv.x0.clamp(-2.0, float(w))
-    yc = lv.y0.clamp(-2.0, float(h))
-    exact = 2**53 if xc.dtype == torch.float64 else 2**24  # (float32 or float64: the sampling dtypes)
-    if num_images * hp * wp < exact:
-        base = ((image_index * hp + 2) * wp + 2).to(xc.dtype).view(-1, 1, 1)
-        return (yc * wp).add_(xc).add_(base).long()
-    return (image_index.view(-1, 1, 1) * hp + yc.long() + 2) * wp + xc.long() + 2
-
-
-def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
-    """``(I, H, W)`` bool: the in-map pixels that some bilinear corner of the points with top-left cells
-    ``c00`` (:func:`_top_left_cells`) reads. The top-left cells are marked in the padded grid (one write
-    per point, not per corner) and a pixel is read iff its cell or the one left, above or above-left of
-    it is marked."""
-    hp, wp = h + 4, w + 4
-    mark = torch.zeros(num_images * hp * wp, dtype=torch.bool, device=c00.device)
-    mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
-    mark = mark.view(num_images, hp, wp)
-    return (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
-        mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
-
-
-def _corner_cells(c00: Tensor, wp: int) -> Tensor:
-    """``(Q, M, 4, P)`` cells of the four bilinear corners, offsets ``(0, 1, Wp, Wp + 1)`` from the
-    top-left cells ``c00 (Q, M, P)`` (the order of :func:`_corner_weights`), in ``c00``'s dtype."""
-    out = c00.new_empty(c00.shape[0], c00.shape[1], 4, c00.shape[2])
-    out[:, :, 0] = c00
-    for k, off in enumerate((1, wp, wp + 1), 1):
-        torch.add(c00, off, out=out[:, :, k])
-    return out
-
-
-def _corner_weights(x: Tensor, y: Tensor, x0: Tensor, y0: Tensor, wo: Tensor) -> Tensor:
-    """``(Q, M, 4, P)`` bilinear corner weights times the attention weights ``wo (Q, M, P)`` of the
-    pixel coordinates ``x, y (Q, M, P)`` (floors ``x0, y0``), in the order of the cell offsets
-    ``(0, 1, Wp, Wp + 1)``."""
-    fx = x - x0  # carries d/dx; floor is piecewise constant
-    fy = y - y0
-    ay0, ay1 = (1.0 - fy) * wo, fy * wo
-    ax0 = 1.0 - fx
-    # Contiguous products: several times faster than one broadcasting product on the CPU. Without
-    # autograd they are written straight into the output's slices (no four temporaries and no stack
-    # copy: 1-2 % of the whole forward at 2,500 queries, benchmarks/msdff.py); out= takes no gradients.
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (fx, fy, wo)):
-        return torch.stack((ay0 * ax0, ay0 * fx, ay1 * ax0, ay1 * fx), 2)
-    out = fx.new_empty(fx.shape[0], fx.shape[1], 4, fx.shape[2])
-    for k, (a, b) in enumerate(((ay0, ax0), (ay0, fx), (ay1, ax0), (ay1, fx))):
-        torch.mul(a, b, out=out[:, :, k])
-    return out
-
