@@ -28,7 +28,7 @@ from ._fusion_utils import (
 from ._msdff_pairs import Pairs, reduce_cameras, select_pairs
 from ._static import use_static_path
 from .errors import MSSFError
-from .functional.plan_costs import msdff_auto_method
+from .functional.plan_costs import compiled_training_uses_op, msdff_auto_method
 from .functional.deform import grid, ms_deform_sample
 from .functional.deform.op import sample_project_unchecked
 from .geometry import CentroidProjection
@@ -305,9 +305,9 @@ class MSDFF(nn.Module):
         if method == "auto" or (static and method in ("reference", "triton")):
             method = msdff_auto_method(device_type, static)
             method = "sample_op" if method == "touched" else method  # (the op picks the device's backend)
-            # Under torch.compile the op is one opaque node, except for CPU training: there its backward would
-            # recompute the CPU plans' forward (measured 2.3x eager with aot_eager), so the grid plan stays.
-            opaque = _compiling_only() and (device_type != "cpu" or not torch.is_grad_enabled())
+            # Under torch.compile the op is one opaque node; with gradients, per device, the op or the grid plan
+            # by measurement (plan_costs.COMPILED_TRAINING: the op's backward recomputes its forward).
+            opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from mssf_blocks.functional.deform import touched as touched_mod
+from mssf_blocks.functional.deform.touched import order as order_mod
 from mssf_blocks.functional.deform.touched.order import _hilbert_index, _spatial_order
 from mssf_blocks.functional.plan_costs import _SORT_CELL
 
@@ -113,7 +114,7 @@ def test_touched_results_do_not_depend_on_the_order(monkeypatch):
         ours = touched_mod.sample_project(values, image_index, loc, weights, proj_w, proj_b, plan)
         with monkeypatch.context() as mp:  # the callers' order, and its reverse
             for perm in (torch.arange(q), torch.arange(q).flip(0)):
-                mp.setattr(touched_mod, "_spatial_order", lambda *a, perm=perm: perm)
+                mp.setattr(order_mod, "_spatial_order", lambda *a, perm=perm: perm)
                 other = touched_mod.sample_project(values, image_index, loc, weights, proj_w, proj_b,
                                                               plan)
                 assert torch.equal(ours, other), plan

@@ -6,8 +6,7 @@ Read in this order, the order the data takes (each file entered once):
 2. ``points.py``: every level's points in one contiguous block of pixel coordinates;
 3. ``plans.py``: per level the pixels the points' bilinear corners read, and the cheapest exact plan by
    the cost model of ``functional/plan_costs.py`` (project every pixel, project the touched pixels, or
-   sample the touched pixels' raw channels and project per head), with ``rows.py`` (the level's raw
-   rows, gathered and projected);
+   sample the touched pixels' raw channels and project per head), reading the level's raw rows;
 4. ``blocks.py``: the four corners of every point, the levels bagged together in blocks of queries and
    summed;
 
@@ -25,10 +24,9 @@ import torch
 from torch import Tensor
 
 from .blocks import _ProjectedLevel, _RawLevel, _sum_levels
-from .order import _inverse, _spatial_order
-from .plans import _touched_level
-from .points import _level, _sorted_points
-from .rows import _is_row_table
+from .order import _query_order
+from .plans import _is_row_table, _touched_level
+from .points import _level_points
 
 __all__ = ["sample_project", "sample_points"]
 
@@ -57,17 +55,15 @@ def sample_project(
     )
     # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
     # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
-    order = _spatial_order(image_index, locations, [tuple(v.shape[-2:]) for v in levels])
-    restore = _inverse(order)
+    sizes = [tuple(v.shape[-2:]) for v in levels]
+    order, restore = _query_order(image_index, locations, sizes)
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
         loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
     out = None
     raws: List[_RawLevel] = []
     projected: List[_ProjectedLevel] = []
-    xy, wts = _sorted_points(locations, weights, [tuple(v.shape[-2:]) for v in levels], order)
-    for lvl, val in enumerate(levels):
-        lv = _level(xy, wts, lvl)
+    for lvl, (val, lv) in enumerate(zip(levels, _level_points(locations, weights, sizes, order))):
         if needs_grad:
             lv = lv._replace(loc=loc_sorted[:, :, lvl], wt=wt_sorted[:, :, lvl])
         part = _touched_level(val, image_index, lv, w_all, b_all, m, plan, needs_grad, defer_projection=True,
@@ -90,6 +86,6 @@ def sample_points(image: Tensor, batch_index: Tensor, uv: Tensor) -> Tensor:
     n = uv.shape[0]
     h, w = image.shape[-2:]
     ones = uv.new_ones(n, 1, 1, 1)
-    lv = _level(*_sorted_points(uv.view(n, 1, 1, 1, 2), ones, [(h, w)]), 0)
+    lv = _level_points(uv.view(n, 1, 1, 1, 2), ones, [(h, w)])[0]
     plan = "direct" if _is_row_table(image) else "sample"
     return _touched_level(image, batch_index, lv, None, None, 1, plan)

@@ -99,3 +99,10 @@ def _inverse(order: Tensor) -> Tensor:
     inverse = torch.empty_like(order)
     inverse[order] = torch.arange(order.numel(), device=order.device)
     return inverse
+
+
+def _query_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[int, int]]) -> Tuple[Tensor, Tensor]:
+    """``(order, restore)``: :func:`_spatial_order` and its inverse (which puts results back in the callers'
+    order)."""
+    order = _spatial_order(image_index, locations, sizes)
+    return order, _inverse(order)

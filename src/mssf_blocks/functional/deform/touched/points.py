@@ -5,7 +5,7 @@ Query-major: a query's heads are adjacent.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional, Sequence, Tuple
+from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -94,3 +94,10 @@ def _level(xy: Tensor, wts: Tensor, lvl: int) -> _LevelLoc:
     """Level ``lvl`` of :func:`_sorted_points`' output as a :class:`_LevelLoc` (``loc``/``wt`` left ``None``)."""
     x, y = xy[:, lvl, 0], xy[:, lvl, 1]
     return _LevelLoc(x, y, x.detach().floor(), y.detach().floor(), wts[:, lvl])
+
+
+def _level_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int, int]],
+                  order: Optional[Tensor] = None) -> List[_LevelLoc]:
+    """Every level's :class:`_LevelLoc` (:func:`_sorted_points`, then :func:`_level` per level)."""
+    xy, wts = _sorted_points(locations, weights, sizes, order)
+    return [_level(xy, wts, lvl) for lvl in range(len(sizes))]
