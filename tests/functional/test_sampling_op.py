@@ -261,3 +261,25 @@ def test_bilinear_sample_reads_the_op_backends_pixels():
     torch.testing.assert_close(via_op, naive[:, 0], atol=1e-12, rtol=0)
     for method in ("gather", "grid"):
         torch.testing.assert_close(bilinear_sample(image, uv, batch, method=method)[:, 0], via_op, atol=1e-12, rtol=0)
+
+
+@needs_op
+@pytest.mark.parametrize("backend", ["touched", "grid"])
+def test_level_gradient_skipped_when_only_the_projection_needs_one(monkeypatch, backend):
+    """Frozen levels, trained projection (MSDFF on fixed image features): the op's backward recomputes its
+    forward without the dense level gradient; every other gradient is the float64 reference's."""
+    args = inputs(seed=6)
+    values, image_index = args[0], args[1]
+    loc, wt, pw, pb = (t.detach().clone().requires_grad_() for t in args[2:])
+    recorded = []
+    fn = sampling_op._AUTOGRAD_BACKENDS[backend]
+    monkeypatch.setitem(sampling_op._AUTOGRAD_BACKENDS, backend,
+                        lambda lv, *a: recorded.append([v.requires_grad for v in lv]) or fn(lv, *a))
+    out = torch.ops.mssf_blocks.deform_sample_project(values, image_index, loc, wt, pw, pb, backend)
+    grad = torch.randn(out.shape, dtype=F64, generator=torch.Generator().manual_seed(7))
+    out.backward(grad)
+    assert recorded[-1] == [False] * len(values)  # (the backward's recomputation)
+    _, ref_loc, ref_wt, ref_pw, ref_pb = reference_grads(args, grad)
+    for got, want in ((loc.grad, ref_loc), (wt.grad, ref_wt), (pw.grad, ref_pw), (pb.grad, ref_pb)):
+        torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-8)
+    assert all(v.grad is None for v in values)

@@ -152,8 +152,12 @@ def _autograd_on() -> contextlib.ExitStack:
     return stack
 
 
-def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad):
-    """``(grad levels or [], grad locations, grad weights, grad proj_weight, grad proj_bias)``."""
+def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
+                   levels_grad=True):
+    """``(grad levels or [], grad locations, grad weights, grad proj_weight, grad proj_bias)``: ``value_grad``
+    whether the projection or the levels need gradients, ``levels_grad`` whether the levels do (the
+    recomputed forward then leaves out the dense level gradient, e.g. of a frozen image branch)."""
+    levels_grad = value_grad and levels_grad
     if backend == "triton" and _use_triton():
         from .triton import launch as triton_backend
         try:
@@ -162,7 +166,7 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
                 value_grad)
             if gl is None:
                 return [], gloc, gwt, torch.zeros_like(proj_weight), torch.zeros_like(proj_bias)
-            return [g.view(v.shape) for g, v in zip(gl, levels)], gloc, gwt, gw, gb
+            return [g.view(v.shape) for g, v in zip(gl, levels)] if levels_grad else [], gloc, gwt, gw, gb
         except Exception as exc:  # noqa: BLE001
             if _interpreting():
                 raise
@@ -171,16 +175,16 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
     with _autograd_on():
         loc = locations.detach().requires_grad_()
         wt = weights.detach().requires_grad_()
-        lv = [v.detach().requires_grad_(value_grad) for v in levels]
+        lv = [v.detach().requires_grad_(levels_grad) for v in levels]
         pw = proj_weight.detach().requires_grad_(value_grad)
         pb = proj_bias.detach().requires_grad_(value_grad)
         out = fn(lv, image_index, loc, wt, pw, pb)
-        inputs = [loc, wt] + ([*lv, pw, pb] if value_grad else [])
+        inputs = [loc, wt] + (lv if levels_grad else []) + ([pw, pb] if value_grad else [])
         grads = torch.autograd.grad(out, inputs, grad, allow_unused=True)
     grads = [torch.zeros_like(t) if g is None else g for g, t in zip(grads, inputs)]
     if not value_grad:
         return [], grads[0], grads[1], torch.zeros_like(proj_weight), torch.zeros_like(proj_bias)
-    return grads[2:-2], grads[0], grads[1], grads[-2], grads[-1]
+    return grads[2:-2] if levels_grad else [], grads[0], grads[1], grads[-2], grads[-1]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -196,10 +200,10 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
 
     @torch.library.custom_op("mssf_blocks::deform_sample_project_backward", mutates_args=())
     def _op_backward(grad: Tensor, levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
-                     proj_weight: Tensor, proj_bias: Tensor, backend: str, value_grad: bool
-                     ) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
+                     proj_weight: Tensor, proj_bias: Tensor, backend: str, value_grad: bool,
+                     levels_grad: bool = True) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
         gl, gloc, gwt, gw, gb = _backward_impl(grad.contiguous(), levels, image_index, locations, weights,
-                                               proj_weight, proj_bias, backend, value_grad)
+                                               proj_weight, proj_bias, backend, value_grad, levels_grad)
         # (outputs may not alias inputs: a zero gradient is a fresh tensor)
         return [g.clone() for g in gl], gloc.clone(), gwt.clone(), gw.clone(), gb.clone()
 
@@ -209,14 +213,17 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
                                    dtype=levels[0].dtype)
 
     @_op_backward.register_fake
-    def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad):
-        return ([torch.empty_like(v) for v in levels] if value_grad else [], torch.empty_like(locations),
+    def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
+          levels_grad=True):
+        return ([torch.empty_like(v) for v in levels] if value_grad and levels_grad else [],
+                torch.empty_like(locations),
                 torch.empty_like(weights), torch.empty_like(proj_weight), torch.empty_like(proj_bias))
 
     def _setup_context(ctx, inputs, output):
         levels, image_index, locations, weights, proj_weight, proj_bias, backend = inputs
         ctx.backend, ctx.num_levels = backend, len(levels)
-        ctx.value_grad = any(t.requires_grad for t in (*levels, proj_weight, proj_bias))
+        ctx.levels_grad = any(t.requires_grad for t in levels)
+        ctx.value_grad = ctx.levels_grad or proj_weight.requires_grad or proj_bias.requires_grad
         ctx.save_for_backward(*levels, image_index, locations, weights, proj_weight, proj_bias)
 
     def _backward(ctx, grad):
@@ -224,10 +231,10 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
         n = ctx.num_levels
         levels, (image_index, locations, weights, proj_weight, proj_bias) = list(saved[:n]), saved[n:]
         gl, gloc, gwt, gw, gb = _op_backward(grad, levels, image_index, locations, weights, proj_weight, proj_bias,
-                                             ctx.backend, ctx.value_grad)
+                                             ctx.backend, ctx.value_grad, ctx.levels_grad)
         if not ctx.value_grad:
             return [None] * ctx.num_levels, None, gloc, gwt, None, None, None
-        return list(gl), None, gloc, gwt, gw, gb, None
+        return list(gl) if ctx.levels_grad else [None] * ctx.num_levels, None, gloc, gwt, gw, gb, None
 
     _op.register_autograd(_backward, setup_context=_setup_context)
     _OP = _op
