@@ -78,8 +78,11 @@ SAMPLING_FALLBACK = "grid"
 # Under torch.compile, MSDFF's sampling with gradients per device: "op" (the sampling op, one opaque node;
 # its backward recomputes the backend's forward under autograd: a custom op's implementation keeps no
 # autograd graph) or "grid" (the static grid plan of standard operators, which inductor compiles).
-# Measured with benchmarks/compile.py (FusionBlock(MSDFF), training, inductor; docs/performance.md).
-COMPILED_TRAINING = {"cpu": "grid"}
+# CPU: "op", measured on one core (FusionBlock(MSDFF) of benchmarks/compile.py at 4,100 voxels, inductor,
+# 9 interleaved rounds in one process, load average 7-10, 2026-12-03): a training step 682 ms with the op,
+# 861 ms with the grid plan, 436 ms eager (first call 29 s against 85 s). The script:
+# python benchmarks/compile_training.py (the same measurement).
+COMPILED_TRAINING = {"cpu": "op"}
 
 
 def msdff_auto_method(device_type: str, static: bool) -> str:

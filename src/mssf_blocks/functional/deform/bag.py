@@ -15,6 +15,8 @@ from torch.utils.checkpoint import checkpoint
 from ... import _compat
 from .touched.points import _pixel_coordinate
 
+__all__ = ["sample", "sample_project_chunked"]
+
 
 def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
     # int32 rows halve the index memory and are read natively by embedding_bag.

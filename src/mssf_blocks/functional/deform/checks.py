@@ -11,6 +11,8 @@ from torch import Tensor
 from ..._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
 from ...errors import MSSFError
 
+__all__ = ["check_projection"]
+
 _INT_DTYPES = (torch.int32, torch.int64)
 
 
