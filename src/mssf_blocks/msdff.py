@@ -89,8 +89,9 @@ class MSDFF(nn.Module):
             every pixel, project only the ``U_l`` pixels some bilinear corner reads, or sample those
             pixels' raw channels and project per head; cost
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
-            ``docs/fusion.md``) on the CPU; ``"grid"`` on other devices (CUDA) and while a graph is
-            captured (``torch.compile``, ``torch.export``, ONNX, tracing; ``functional/plan_costs.py``).
+            ``docs/fusion.md``) on the CPU, the sampling op's backend on CUDA; under ``torch.compile``
+            the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``),
+            ``"grid"`` while a graph is exported (``torch.export``, ONNX, tracing).
             ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
             host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
             and keeps its own). ``"fast"`` / ``"reference"``: the literal order of
