@@ -1,8 +1,8 @@
 """Stage of ``benchmarks/gpu_check.py``: the sampling core on View-of-Delft shapes, three implementations.
 
-* ``triton``: the sampling op's Triton kernels (``functional/triton_kernels.py``; forward, and backward
+* ``triton``: the sampling op's Triton kernels (``functional/deform/triton/kernels.py``; forward, and backward
   with the value gradient);
-* ``grid``: the grid path (``functional/static.py``, one ``F.grid_sample`` per level, autograd);
+* ``grid``: the grid path (``functional/deform/grid.py``, one ``F.grid_sample`` per level, autograd);
 * ``mmcv``: mmcv's ``MultiScaleDeformableAttnFunction`` (its CUDA op), where mmcv's compiled ops import.
 
 All read the same values: one ``(1, S, M, d)`` buffer of the ``L`` levels of a 1936 x 1216 image (FPN
@@ -40,7 +40,7 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
 
     import torch
 
-    from mssf_blocks.functional.static import grid_sample_static
+    from mssf_blocks.functional.deform.grid import grid_sample_static
 
     h, w = (64, 96) if smoke else (1216, 1936)
     heads, points = (2, 2) if smoke else (8, 4)
@@ -51,7 +51,7 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
     # (on CPU tensors the kernels run under Triton's interpreter only: the tests check this stage so)
     triton_ok = device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1"
     if triton_ok:
-        from mssf_blocks.functional import triton_kernels as tk
+        from mssf_blocks.functional.deform.triton import kernels as tk
     mmcv_fn, mmcv_why = _mmcv_function() if device.type == "cuda" else (None, "n/a (cpu)")
     time_it = _timer(device)
     rows = []

@@ -75,6 +75,18 @@ def _cases():
     return {"SFF": sff, "MSDFF": msdff, "FusionBlock(MSDFF)": block}
 
 
+def _print_breakdown(name: str, train: bool, compile_s: float) -> None:
+    """The first call's time by phase (dynamo's own timers: tracing, AOT autograd, inductor's codegen,
+    the C++ build), the largest first; phases nest, so they do not add up to ``compile_s``."""
+    from torch._dynamo.utils import compilation_time_metrics
+
+    totals = sorted(((sum(v), len(v), k) for k, v in compilation_time_metrics.items()), reverse=True)
+    compilation_time_metrics.clear()  # (the next case's first call counts its own)
+    print(f"{name} {'train' if train else 'eval'}: first call {compile_s:.1f} s; phases (s, nested):")
+    for total, calls, key in totals[:14]:
+        print(f"  {total:8.2f}  {key} ({calls} call{'s' if calls > 1 else ''})")
+
+
 def _median(fn, repeats: int) -> float:
     return measure(fn, repeats)[0]  # median wall time after one warm-up call
 
@@ -101,9 +113,17 @@ def main() -> None:
     ap.add_argument("--cases", nargs="+", default=["MSDFF"],
                     help="of SFF, MSDFF, 'FusionBlock(MSDFF)' (each costs two inductor compiles, ~5 min each here)")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--specialize-floats", action="store_true",
+                    help="torch._dynamo.config.specialize_float = True: Python float inputs (voxel sizes, the point "
+                         "range, norm eps) become constants instead of symbols that inductor's float pass "
+                         "specialises later, restarting the whole trace once")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="print where each first call's time went (dynamo's per-phase compile times)")
     args = ap.parse_args()
     _compat.require("compile_dynamic", "benchmarks/compile.py")
     torch.set_num_threads(args.threads)
+    if args.specialize_floats:
+        torch._dynamo.config.specialize_float = True
     frames = [_frame(n, seed=i) for i, n in enumerate(args.voxels)]
     rows = []
     for name, build in _cases().items():
@@ -126,6 +146,8 @@ def main() -> None:
             t0 = time.perf_counter()
             _call(compiled, mod, frames[0], train)
             compile_s = time.perf_counter() - t0
+            if args.breakdown:
+                _print_breakdown(name, train, compile_s)
             new_sizes = []
             for f in frames[1:]:
                 t0 = time.perf_counter()

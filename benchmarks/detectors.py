@@ -85,7 +85,7 @@ def msdff_floor(model, frame, repeats: int = 3):
     ``(seconds, [(voxels, seconds) per block])``."""
     from msdff import level_floor  # noqa: E402  (this folder)
     from mssf_blocks import MSDFF
-    from mssf_blocks.functional.touched import _spatial_order
+    from mssf_blocks.functional.deform.touched.order import _spatial_order
 
     calls = []
     hooks = [mod.register_forward_pre_hook(lambda mod, args: calls.append((mod, args)))

@@ -89,7 +89,7 @@ _measure = measure
 from mssf_blocks import MSDFF  # noqa: E402
 from mssf_blocks.functional import ms_deform_sample, ms_deform_sample_project  # noqa: E402
 from mssf_blocks.functional.plan_costs import _RAW_CHUNK_BYTES  # noqa: E402
-from mssf_blocks.functional.touched import _spatial_order  # noqa: E402
+from mssf_blocks.functional.deform.touched.order import _spatial_order  # noqa: E402
 
 STRIDES = (4, 8, 16, 32, 64)
 IMAGE_CHANNELS = 256

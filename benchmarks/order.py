@@ -35,9 +35,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import print_table  # noqa: E402
 from msdff import ImagePath, make_features, voxel_uv  # noqa: E402
 
-from mssf_blocks.functional import touched as touched_mod  # noqa: E402
+from mssf_blocks.functional.deform import touched as touched_mod  # noqa: E402
+from mssf_blocks.functional.deform.touched import order as order_mod  # noqa: E402
 
-LIBRARY_ORDER = touched_mod._spatial_order
+LIBRARY_ORDER = order_mod._spatial_order
 
 
 def bands(image_index, locations, sizes):
@@ -47,7 +48,7 @@ def bands(image_index, locations, sizes):
 
 
 def z_order(image_index, locations, sizes):
-    x, y, bits = touched_mod._sort_cells(locations, sizes, 2.0)  # (the library's cells)
+    x, y, bits = order_mod._sort_cells(locations, sizes, 2.0)  # (the library's cells)
     key = torch.zeros_like(x)
     for b in range(bits):  # interleave the bits of x and y
         key |= ((x >> b) & 1) << (2 * b) | ((y >> b) & 1) << (2 * b + 1)
@@ -92,7 +93,7 @@ def main() -> None:
     first = {}
     try:
         for name, order in ORDERS.items():  # warm-up and agreement
-            touched_mod._spatial_order = order
+            order_mod._spatial_order = order
             for label, path, query, uv in cases:
                 with torch.no_grad():
                     out = path.touched(query, uv, feats)
@@ -104,7 +105,7 @@ def main() -> None:
             for label, path, query, uv in cases:
                 for mode in modes:
                     for name, order in ORDERS.items():
-                        touched_mod._spatial_order = order
+                        order_mod._spatial_order = order
                         t0 = time.process_time()
                         with torch.set_grad_enabled(mode == "fwd+bwd"):
                             out = path.touched(query, uv, feats)
@@ -112,7 +113,7 @@ def main() -> None:
                                 out.square().sum().backward()
                         times[(label, mode, name)].append(time.process_time() - t0)
     finally:
-        touched_mod._spatial_order = LIBRARY_ORDER
+        order_mod._spatial_order = LIBRARY_ORDER
     rows = []
     for label, *_ in cases:
         for mode in modes:

@@ -16,7 +16,7 @@ import torch
 
 from mssf_blocks import MSSFError, SparseVoxels, VoxelCentroidProjector, _compat
 from mssf_blocks.blocks import FusionBlock
-from mssf_blocks.functional import touched
+from mssf_blocks.functional.deform import touched
 from mssf_blocks.functional.geometry import project_points, voxel_centroids, voxel_centroids_reference
 from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit
 from mssf_blocks.geometry import CentroidProjection
@@ -173,7 +173,7 @@ def test_voxel_centroids_refuse_coords_outside_the_grid(fn, row, pattern):
 # ---------------------------------------------------------------------------------------------------
 def run_touched(plan, value, loc, wt, w, b):
     leaves = [t.detach().clone().requires_grad_() for t in (value, loc, wt, w, b)]
-    out = touched._ms_deform_sample_touched([leaves[0]], torch.zeros(loc.shape[0], dtype=torch.long),
+    out = touched.sample_project([leaves[0]], torch.zeros(loc.shape[0], dtype=torch.long),
                                             *leaves[1:], plan)
     (out * torch.linspace(-1, 1, out.numel()).view(out.shape)).sum().backward()
     return [out.detach()] + [t.grad for t in leaves]

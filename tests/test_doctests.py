@@ -10,7 +10,7 @@ import pytest
 import mssf_blocks
 
 # modules that need an optional package at import (imported lazily by the library itself)
-_NEEDS_TRITON = ("mssf_blocks.functional.triton_kernels", "mssf_blocks.functional.triton_backend")
+_NEEDS_TRITON = ("mssf_blocks.functional.deform.triton.kernels", "mssf_blocks.functional.deform.triton.launch")
 _HAS_TRITON = importlib.util.find_spec("triton") is not None
 MODULES = sorted(m.name for m in pkgutil.walk_packages(mssf_blocks.__path__, "mssf_blocks.")
                  if _HAS_TRITON or m.name not in _NEEDS_TRITON)

@@ -241,3 +241,20 @@ def test_msdff_one_camera_matches_reference(method, width, unseen):
     mod.eval()
     assert gradcheck64(lambda q, l0, u: mod(q, [l0, levels[1]], make_projection(u, valid, bidx)),
                        (query, levels[0], uv))
+
+
+def test_compiled_plan_with_gradients_comes_from_the_device_table(monkeypatch):
+    # Under torch.compile (faked here: only the plan is asked) MSDFF's sampling is the op, except with
+    # gradients on a device whose plan_costs.COMPILED_TRAINING entry is "grid" (the measured CPU choice).
+    from mssf_blocks import msdff as msdff_mod
+    from mssf_blocks.functional import plan_costs
+
+    monkeypatch.setattr(msdff_mod, "_compiling_only", lambda: True)
+    monkeypatch.setattr(msdff_mod, "use_static_path", lambda: True)
+    m = MSDFF(8, 8, num_heads=2, num_levels=1, num_points=1)
+    with torch.no_grad():
+        assert m._plan("cpu") == ("sample_op", True)
+    monkeypatch.setitem(plan_costs.COMPILED_TRAINING, "cpu", "grid")
+    assert m._plan("cpu") == ("grid", True)
+    monkeypatch.setitem(plan_costs.COMPILED_TRAINING, "cpu", "op")
+    assert m._plan("cpu") == ("sample_op", True)

@@ -28,10 +28,9 @@ from ._fusion_utils import (
 from ._msdff_pairs import Pairs, reduce_cameras, select_pairs
 from ._static import use_static_path
 from .errors import MSSFError
-from .functional.plan_costs import msdff_auto_method
-from .functional.sampling_op import sample_project_unchecked
-from .functional.sampling import ms_deform_sample
-from .functional.static import grid_sample_static
+from .functional.plan_costs import compiled_training_uses_op, msdff_auto_method
+from .functional.deform import grid, ms_deform_sample
+from .functional.deform.op import sample_project_unchecked
 from .geometry import CentroidProjection
 
 __all__ = ["MSDFF"]
@@ -90,8 +89,9 @@ class MSDFF(nn.Module):
             every pixel, project only the ``U_l`` pixels some bilinear corner reads, or sample those
             pixels' raw channels and project per head; cost
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
-            ``docs/fusion.md``) on the CPU; ``"grid"`` on other devices (CUDA) and while a graph is
-            captured (``torch.compile``, ``torch.export``, ONNX, tracing; ``functional/plan_costs.py``).
+            ``docs/fusion.md``) on the CPU, the sampling op's backend on CUDA; under ``torch.compile``
+            the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``),
+            ``"grid"`` while a graph is exported (``torch.export``, ONNX, tracing).
             ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
             host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
             and keeps its own). ``"fast"`` / ``"reference"``: the literal order of
@@ -99,7 +99,7 @@ class MSDFF(nn.Module):
             (``"reference"`` becomes ``"grid"`` while a graph is captured: it sizes per-image lists by the
             data).
             ``"touched"`` / ``"triton"``: force that backend of the sampling op
-            (:func:`~mssf_blocks.functional.sampling_op.deform_sample_project`; ``"auto"`` lets the op
+            (:func:`~mssf_blocks.functional.deform.op.deform_sample_project`; ``"auto"`` lets the op
             pick the device's, ``plan_costs.SAMPLING_BACKENDS``; ``$MSSF_SAMPLING_BACKEND`` forces one
             for ``"auto"``); ``"triton"`` needs CUDA tensors (or the interpreter) and becomes
             ``"grid"`` while a graph is captured.
@@ -261,7 +261,7 @@ class MSDFF(nn.Module):
             bias = so.bias.to(dtype) * scale[:, 0]
             # Output columns in (L, 2, M, P) order, returned as a (Q, M, L, P, 2) view: one level's x (or
             # y) of all heads and points is then a contiguous run per query, which the samplers copy
-            # as whole rows (functional/raw_blocks.py, _sorted_points).
+            # as whole rows (functional/deform/touched/points.py, _sorted_points).
             perm = torch.arange(m * l * p * 2, device=query.device).view(m, l, p, 2).permute(1, 3, 0, 2).reshape(-1)
             locations = torch.addmm(bias[perm], torch.cat([query, uv], 1), weight[perm].t())
         return locations.view(q, l, 2, m, p).permute(0, 3, 1, 4, 2), weights
@@ -306,9 +306,9 @@ class MSDFF(nn.Module):
         if method == "auto" or (static and method in ("reference", "triton")):
             method = msdff_auto_method(device_type, static)
             method = "sample_op" if method == "touched" else method  # (the op picks the device's backend)
-            # Under torch.compile the op is one opaque node, except for CPU training: there its backward would
-            # recompute the CPU plans' forward (measured 2.3x eager with aot_eager), so the grid plan stays.
-            opaque = _compiling_only() and (device_type != "cpu" or not torch.is_grad_enabled())
+            # Under torch.compile the op is one opaque node; with gradients, per device, the op or the grid plan
+            # by measurement (plan_costs.COMPILED_TRAINING: the op's backward recomputes its forward).
+            opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
@@ -323,13 +323,10 @@ class MSDFF(nn.Module):
         w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
         b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
         raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-        if method == "grid" and static:
-            # Project every pixel (all heads in one GEMM), then grid_sample per head.
-            values = [F.linear(r[:, 0].permute(0, 2, 3, 1), w_heads.flatten(0, 1), b_heads.flatten())
-                      .unflatten(-1, w_heads.shape[:2]).permute(0, 3, 4, 1, 2) for r in raw]  # (I, M, d, H, W)
-            return grid_sample_static(values, image_index, locations, weights)
+        if method == "grid" and static:  # the op's grid path, called directly (standard operators for exporters)
+            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads)
         if method in ("sample_op", "touched", "triton"):
-            # The sampling op: the device's backend (functional/sampling_op.py; CPU: per level the
+            # The sampling op: the device's backend (functional/deform/op.py; CPU: per level the
             # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.
             return sample_project_unchecked(raw, image_index, locations, weights, w_heads, b_heads,
                                             "auto" if method == "sample_op" else method)

@@ -105,7 +105,7 @@ def test_channels_last_branch_same_values_row_layout_and_msdff_reads_rows():
     # channels_last=True (the default): the same features as the NCHW branch (float64, same weights),
     # each level with contiguous per-pixel channel rows, which MSDFF's sampler reads as a free
     # (pixels, C) table.
-    from mssf_blocks.functional.touched import _row_table
+    from mssf_blocks.functional.deform.touched.plans import _row_table
 
     torch.manual_seed(5)
     a = ImageBranch(depth=18, base_channels=4, fpn_channels=8, channels_last=False).double().eval()

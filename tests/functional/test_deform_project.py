@@ -1,4 +1,4 @@
-"""Tests of ``mssf_blocks.functional.deform_project.ms_deform_sample_project`` ("chunked" and every plan of
+"""Tests of ``mssf_blocks.functional.ms_deform_sample_project`` ("chunked" and every plan of
 "touched") against naive loops and the ``ms_deform_sample`` reference followed by the projection by hand,
 gradients included. The sampling itself: ``test_sampling.py``.
 """
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional.deform_project import ms_deform_sample_project
+from mssf_blocks.functional import ms_deform_sample_project
 from mssf_blocks.functional.sampling import ms_deform_sample
 from mssf_blocks.testing import assert_close, gradcheck64
 
@@ -85,11 +85,11 @@ def project_reference(values, image_index, locations, weights, proj_w, proj_b):
 
 def touched(values, image_index, locations, weights, proj_w, proj_b, branch):
     """The "touched" method with its per-level plan forced (or the cost model's, branch "auto")."""
-    from mssf_blocks.functional import touched as sampling
+    from mssf_blocks.functional.deform import touched as sampling
 
     if branch == "auto":
         return ms_deform_sample_project(values, image_index, locations, weights, proj_w, proj_b, method="touched")
-    return sampling._ms_deform_sample_touched(values, image_index, locations, weights, proj_w, proj_b, branch)
+    return sampling.sample_project(values, image_index, locations, weights, proj_w, proj_b, branch)
 
 
 def channels_last(values):

@@ -10,8 +10,10 @@ do not depend on it.
 import pytest
 import torch
 
-from mssf_blocks.functional import touched as touched_mod
-from mssf_blocks.functional.touched import _hilbert_index, _spatial_order
+from mssf_blocks.functional.deform import touched as touched_mod
+from mssf_blocks.functional.deform.touched import order as order_mod
+from mssf_blocks.functional.deform.touched.order import _hilbert_index, _spatial_order
+from mssf_blocks.functional.plan_costs import _SORT_CELL
 
 
 def _curve(bits):
@@ -52,7 +54,7 @@ def _locations(u, v, m=2, levels=1, p=1):
 @pytest.mark.parametrize("size", [(16, 16), (8, 32), (40, 10)])
 def test_spatial_order_walks_the_image_in_neighbouring_cells(size):
     h, w = size
-    cell = touched_mod._SORT_CELL
+    cell = _SORT_CELL
     # one query at the centre of every cell of the curve's grid, in a shuffled order, on two images
     rows, cols = int(h / cell), int(w / cell)
     yy, xx = torch.meshgrid(torch.arange(rows), torch.arange(cols), indexing="ij")
@@ -109,10 +111,10 @@ def test_touched_results_do_not_depend_on_the_order(monkeypatch):
     weights = torch.rand(q, m, len(sizes), p)
     proj_w, proj_b = torch.randn(m, d, dch), torch.randn(m, d)
     for plan in ("dense", "project", "sample", "direct", None):
-        ours = touched_mod._ms_deform_sample_touched(values, image_index, loc, weights, proj_w, proj_b, plan)
+        ours = touched_mod.sample_project(values, image_index, loc, weights, proj_w, proj_b, plan)
         with monkeypatch.context() as mp:  # the callers' order, and its reverse
             for perm in (torch.arange(q), torch.arange(q).flip(0)):
-                mp.setattr(touched_mod, "_spatial_order", lambda *a, perm=perm: perm)
-                other = touched_mod._ms_deform_sample_touched(values, image_index, loc, weights, proj_w, proj_b,
+                mp.setattr(order_mod, "_spatial_order", lambda *a, perm=perm: perm)
+                other = touched_mod.sample_project(values, image_index, loc, weights, proj_w, proj_b,
                                                               plan)
                 assert torch.equal(ours, other), plan

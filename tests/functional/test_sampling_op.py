@@ -14,10 +14,10 @@ import torch
 
 from mssf_blocks import _compat
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional import sampling_op
+from mssf_blocks.functional.deform import op as sampling_op
 from mssf_blocks.functional.plan_costs import SAMPLING_BACKENDS
-from mssf_blocks.functional.sampling import ms_deform_sample_reference
-from mssf_blocks.functional.sampling_op import deform_sample_project, resolve_backend
+from mssf_blocks.functional import bilinear_sample, ms_deform_sample_project, ms_deform_sample_reference
+from mssf_blocks.functional.deform.op import deform_sample_project, resolve_backend
 
 sys.path.insert(0, str(Path(__file__).parent))
 from sampling_references import naive_ms_deform, random_inputs  # noqa: E402
@@ -138,7 +138,7 @@ def test_triton_forced_on_cpu_tensors_without_the_interpreter_is_a_clear_error(m
 def test_triton_failure_warns_once_and_falls_back_to_grid(monkeypatch):
     """A launch that fails (here: a broken backend module) warns once, naming the cause; the grid path
     serves this and every later call, with the grid path's numbers."""
-    from mssf_blocks.functional import triton_backend  # (imports triton: the dev extra has it)
+    from mssf_blocks.functional.deform.triton import launch as triton_backend  # (imports triton: the dev extra has it)
 
     def broken(*args, **kwargs):
         raise RuntimeError("ptxas exited with status 255")
@@ -225,3 +225,61 @@ def test_triton_backend_on_cuda_matches_the_grid_backend(dtype):
                                                     [v.grad for v in ref_args[0]] + [t.grad for t in ref_args[2:]])]:
         err = (got.double() - want.detach()).abs().max().item()
         assert err <= rel * want.abs().max().item() + 1e-6, (name, err)
+
+
+def test_ms_deform_sample_project_goes_through_the_op(monkeypatch):
+    # ms_deform_sample_project's "auto" (shared raw maps) is the op: the backend the op resolves serves it
+    # (forced to the grid path here by the op's environment variable) and matches the float64 loops; a
+    # backend the op refuses is refused there too.
+    args = inputs(seed=3)
+    monkeypatch.setenv(sampling_op.ENV_VAR, "grid")
+    served = []
+    grid_path = sampling_op._AUTOGRAD_BACKENDS["grid"]
+    monkeypatch.setitem(sampling_op._AUTOGRAD_BACKENDS, "grid", lambda *a: served.append(1) or grid_path(*a))
+    out = ms_deform_sample_project(*args, method="auto")
+    assert served == [1]
+    torch.testing.assert_close(out, naive_project(*args), atol=1e-10, rtol=1e-8)
+    monkeypatch.setenv(sampling_op.ENV_VAR, "triton")
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    with pytest.raises(MSSFError, match="'triton' cannot serve these inputs"):
+        ms_deform_sample_project(*args, method="auto")
+
+
+def test_bilinear_sample_reads_the_op_backends_pixels():
+    # bilinear_sample (SFF, QueryInit) does not fit the op's contract (one projection shared by the
+    # levels, attention weights; SFF has a bias once and a separate weight slice per level), but its
+    # "gather" method is the CPU backend's sampling (deform/touched) and equals the op with one point,
+    # one head, weight 1 and an identity projection, and the float64 loops.
+    g = torch.Generator().manual_seed(5)
+    image = torch.randn(2, 3, 4, 5, generator=g, dtype=F64)
+    uv = torch.rand(6, 1, 2, generator=g, dtype=F64) * 1.4 - 0.2  # some outside the image
+    batch = torch.tensor([0, 1, 1, 0, 1, 0])
+    eye = torch.eye(3, dtype=F64).view(1, 3, 3)
+    via_op = deform_sample_project([image.unsqueeze(1)], batch, uv.view(6, 1, 1, 1, 2), torch.ones(6, 1, 1, 1, dtype=F64),
+                                   eye, backend="touched")[:, 0]
+    naive, _ = naive_ms_deform([image.unsqueeze(1)], batch, uv.view(6, 1, 1, 1, 2), torch.ones(6, 1, 1, 1, dtype=F64))
+    torch.testing.assert_close(via_op, naive[:, 0], atol=1e-12, rtol=0)
+    for method in ("gather", "grid"):
+        torch.testing.assert_close(bilinear_sample(image, uv, batch, method=method)[:, 0], via_op, atol=1e-12, rtol=0)
+
+
+@needs_op
+@pytest.mark.parametrize("backend", ["touched", "grid"])
+def test_level_gradient_skipped_when_only_the_projection_needs_one(monkeypatch, backend):
+    """Frozen levels, trained projection (MSDFF on fixed image features): the op's backward recomputes its
+    forward without the dense level gradient; every other gradient is the float64 reference's."""
+    args = inputs(seed=6)
+    values, image_index = args[0], args[1]
+    loc, wt, pw, pb = (t.detach().clone().requires_grad_() for t in args[2:])
+    recorded = []
+    fn = sampling_op._AUTOGRAD_BACKENDS[backend]
+    monkeypatch.setitem(sampling_op._AUTOGRAD_BACKENDS, backend,
+                        lambda lv, *a: recorded.append([v.requires_grad for v in lv]) or fn(lv, *a))
+    out = torch.ops.mssf_blocks.deform_sample_project(values, image_index, loc, wt, pw, pb, backend)
+    grad = torch.randn(out.shape, dtype=F64, generator=torch.Generator().manual_seed(7))
+    out.backward(grad)
+    assert recorded[-1] == [False] * len(values)  # (the backward's recomputation)
+    _, ref_loc, ref_wt, ref_pw, ref_pb = reference_grads(args, grad)
+    for got, want in ((loc.grad, ref_loc), (wt.grad, ref_wt), (pw.grad, ref_pw), (pb.grad, ref_pb)):
+        torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-8)
+    assert all(v.grad is None for v in values)

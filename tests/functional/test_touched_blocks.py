@@ -10,8 +10,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mssf_blocks.functional import raw_blocks
-from mssf_blocks.functional import touched as touched_mod
+from mssf_blocks.functional.deform import touched as touched_mod
+from mssf_blocks.functional.deform.touched import blocks
 from mssf_blocks.functional.sampling import ms_deform_sample
 from mssf_blocks.testing import assert_close
 
@@ -56,11 +56,11 @@ def test_blocks_equal_reference_forward_and_all_gradients(monkeypatch, plan, lay
     values, image_index, locations, weights, proj_w, proj_b = inputs()
     m, d_raw = proj_w.shape[0], proj_w.shape[2]
     # blocks of block_queries queries: M * block * D float64 samples
-    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
+    monkeypatch.setattr(blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
     go = torch.randn(23, m, proj_w.shape[1], dtype=F64, generator=torch.Generator().manual_seed(5))
 
     def ours(vals, ii, loc, wt, pw, pb):
-        return touched_mod._ms_deform_sample_touched(vals, ii, loc, wt, pw, pb, plan)
+        return touched_mod.sample_project(vals, ii, loc, wt, pw, pb, plan)
 
     out_r, g_r = run(reference, values, image_index, locations, weights, proj_w, proj_b, go, layout)
     out_t, g_t = run(ours, values, image_index, locations, weights, proj_w, proj_b, go, layout)
@@ -81,14 +81,14 @@ def test_blocks_keep_a_nan_in_an_unread_last_pixel_out(monkeypatch, block_querie
     values, image_index, locations, weights, proj_w, proj_b = inputs(lo=-0.2, hi=0.8, num_images=1)
     image_index = torch.zeros_like(image_index)
     m, d_raw = proj_w.shape[0], proj_w.shape[2]
-    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
+    monkeypatch.setattr(blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
     clean = [v.clone() for v in values]
     poisoned = [v.clone() for v in values]
     poisoned[0][..., -1, -1] = float("nan")  # bottom-right pixel of the 8 x 16 level: no corner at <= 0.8 reads it
     go = torch.ones(23, m, proj_w.shape[1], dtype=F64)
 
     def ours(vals, ii, loc, wt, pw, pb):
-        return touched_mod._ms_deform_sample_touched(vals, ii, loc, wt, pw, pb, "direct")
+        return touched_mod.sample_project(vals, ii, loc, wt, pw, pb, "direct")
 
     out_r, g_r = run(reference, clean, image_index, locations, weights, proj_w, proj_b, go, "channels_last")
     out_t, g_t = run(ours, poisoned, image_index, locations, weights, proj_w, proj_b, go, "channels_last")
@@ -108,7 +108,7 @@ def test_backward_keeps_no_raw_samples(monkeypatch):
                                                                      sizes=((16, 24), (8, 12)), dtype=torch.float32,
                                                                      lo=0.0, hi=1.0)
     block = 100
-    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 4 * block)
+    monkeypatch.setattr(blocks, "_RAW_CHUNK_BYTES", m * d_raw * 4 * block)
     values = [channels_last(v) for v in values]
     locations.requires_grad_(True)
     proj_w.requires_grad_(True)
@@ -121,7 +121,7 @@ def test_backward_keeps_no_raw_samples(monkeypatch):
         return t
 
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        out = touched_mod._ms_deform_sample_touched(values, image_index, locations, weights, proj_w, proj_b, "direct")
+        out = touched_mod.sample_project(values, image_index, locations, weights, proj_w, proj_b, "direct")
     assert saved, "nothing saved: the test would be vacuous"
     assert max(saved) < m * block * d_raw, f"a saved tensor of {max(saved)} elements (raw samples kept?)"
     out.sum().backward()
@@ -136,7 +136,7 @@ def test_forward_blocks_of_projected_and_raw_levels_equal_reference(monkeypatch,
     # raw-row levels: any mix of plans and any block size gives the reference's output.
     values, image_index, locations, weights, proj_w, proj_b = inputs()
     m, d_raw = proj_w.shape[0], proj_w.shape[2]
-    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
+    monkeypatch.setattr(blocks, "_RAW_CHUNK_BYTES", m * d_raw * 8 * block_queries)
     level_plan = {tuple(v.shape[-2:]): plan for v, plan in zip(values, plans)}
     calls = []
     original = touched_mod._touched_level
@@ -152,7 +152,7 @@ def test_forward_blocks_of_projected_and_raw_levels_equal_reference(monkeypatch,
     want = reference(values, image_index, locations, weights, proj_w, proj_b)
     vals = [channels_last(v) for v in values]
     with torch.no_grad():
-        got = touched_mod._ms_deform_sample_touched(vals, image_index, locations, weights, proj_w, proj_b)
+        got = touched_mod.sample_project(vals, image_index, locations, weights, proj_w, proj_b)
     assert_close(got, want)
     expected = ["_RawLevel" if plan == "direct" else "_ProjectedLevel" for plan in plans]
     assert calls == expected  # every level deferred to the blocks

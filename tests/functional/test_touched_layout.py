@@ -13,9 +13,10 @@ import pytest
 import torch
 
 from mssf_blocks import MSDFF
-from mssf_blocks.functional import raw_blocks
-from mssf_blocks.functional import touched as touched_mod
-from mssf_blocks.functional.raw_blocks import _LevelLoc, _read_pixels, _top_left_cells
+from mssf_blocks.functional.deform import touched as touched_mod
+from mssf_blocks.functional.deform.touched import blocks, points
+from mssf_blocks.functional.deform.touched.plans import _read_pixels, _top_left_cells
+from mssf_blocks.functional.deform.touched.points import _LevelLoc
 
 
 def _points(q, m, p, h, w, dtype, seed=0):
@@ -111,13 +112,13 @@ def test_touched_output_independent_of_the_locations_layout(layout, monkeypatch)
     weights = torch.rand(q, m, len(sizes), p)
     proj_w, proj_b = torch.randn(m, d, dch), torch.randn(m, d)
     for plan in ["dense", "project", "sample", None] + (["direct"] if layout == "channels_last" else []):
-        a = touched_mod._ms_deform_sample_touched(values, image_index, plain, weights, proj_w, proj_b, plan)
-        b = touched_mod._ms_deform_sample_touched(values, image_index, as_view, weights, proj_w, proj_b, plan)
+        a = touched_mod.sample_project(values, image_index, plain, weights, proj_w, proj_b, plan)
+        b = touched_mod.sample_project(values, image_index, as_view, weights, proj_w, proj_b, plan)
         assert torch.equal(a, b), plan
     # and blocks of 7 queries for the raw-row plans give the same values as one block
-    monkeypatch.setattr(raw_blocks, "_RAW_CHUNK_BYTES", m * dch * 4 * 7)
-    c = touched_mod._ms_deform_sample_touched(values, image_index, as_view, weights, proj_w, proj_b, "sample")
-    torch.testing.assert_close(c, touched_mod._ms_deform_sample_touched(values, image_index, plain, weights, proj_w,
+    monkeypatch.setattr(blocks, "_RAW_CHUNK_BYTES", m * dch * 4 * 7)
+    c = touched_mod.sample_project(values, image_index, as_view, weights, proj_w, proj_b, "sample")
+    torch.testing.assert_close(c, touched_mod.sample_project(values, image_index, plain, weights, proj_w,
                                                                         proj_b, "dense"), rtol=1e-5, atol=1e-5)
 
 
@@ -126,13 +127,13 @@ def test_touched_output_independent_of_the_locations_layout(layout, monkeypatch)
                                            (torch.float64, 1, torch.float64), (torch.int32, 2, torch.int64)])
 def test_wide_views_whole_runs_and_moves_the_same_bits(dtype, p, width):
     t = (torch.randn(5, 3, 2, p) * 100).to(dtype)
-    wide = raw_blocks._wide(t)
+    wide = points._wide(t)
     assert wide.dtype == width  # the widest of 16 / 8 / 4 bytes dividing p elements, else t itself
     if wide is not t:
         assert wide.data_ptr() == t.data_ptr()  # a view, no copy
     # a permuted copy through the view equals the plain permuted copy bit for bit (NaNs included)
     t.view(-1)[::7] = float("nan") if dtype.is_floating_point else -1
-    moved = raw_blocks._wide(t).permute(0, 2, 1, 3).contiguous().view(dtype).view(5, 2, 3, p)
+    moved = points._wide(t).permute(0, 2, 1, 3).contiguous().view(dtype).view(5, 2, 3, p)
     expected = t.permute(0, 2, 1, 3).contiguous()
     assert torch.equal(moved.view(torch.uint8) if dtype.is_floating_point else moved,
                        expected.view(torch.uint8) if dtype.is_floating_point else expected)
@@ -140,13 +141,13 @@ def test_wide_views_whole_runs_and_moves_the_same_bits(dtype, p, width):
 
 def test_wide_leaves_what_it_cannot_view_and_what_autograd_records():
     odd = torch.randn(4, 3)  # 12 bytes a row: no wider element divides them
-    assert raw_blocks._wide(odd) is odd
+    assert points._wide(odd) is odd
     strided = torch.randn(4, 8)[:, 1:5]  # a run of 16 bytes at an offset of 4 bytes
-    assert raw_blocks._wide(strided) is strided
+    assert points._wide(strided) is strided
     leaf = torch.randn(4, 4, requires_grad=True)
-    assert raw_blocks._wide(leaf) is leaf
+    assert points._wide(leaf) is leaf
     with torch.no_grad():
-        assert raw_blocks._wide(leaf).dtype == torch.complex128
+        assert points._wide(leaf).dtype == torch.complex128
 
 
 @pytest.mark.parametrize("requires_grad", [False, True])
@@ -156,7 +157,7 @@ def test_sorted_points_weights_are_the_level_major_permutation(requires_grad):
     loc = torch.rand(q, m, lv_, p, 2, generator=g)
     wt = torch.rand(q, m, lv_, p, generator=g).requires_grad_(requires_grad)
     order = torch.tensor([3, 0, 5, 1, 4, 2])
-    _, wts = raw_blocks._sorted_points(loc, wt, [(4, 6), (2, 3)], order)
+    _, wts = points._sorted_points(loc, wt, [(4, 6), (2, 3)], order)
     expected = torch.stack([torch.stack([wt[order[a], :, b] for b in range(lv_)]) for a in range(q)])
     assert torch.equal(wts.detach(), expected.detach())
     assert wts.requires_grad == requires_grad  # (a dtype view would have cut the graph)

@@ -7,7 +7,7 @@ starts it)::
 
 For every CUDA compute capability given, every kernel (forward; backward with and without the value
 gradient), value dtype (float32, bfloat16, float16) and head width ``d`` in ``HEAD_DIMS`` at
-the launch configuration of :func:`mssf_blocks.functional.triton_kernels.launch_config`, it compiles
+the launch configuration of :func:`mssf_blocks.functional.deform.triton.kernels.launch_config`, it compiles
 the kernel to PTX and cubin with ``triton.compile(..., target=GPUTarget("cuda", cc, 32))`` (the wheel
 brings ``ptxas``) and reads the registers and spill stores of the cubin with the wheel's
 ``cuobjdump -res-usage`` (registers, stack frame) and its spills with ``ptxas -v`` on the same PTX.
@@ -32,7 +32,7 @@ import triton  # noqa: E402
 from triton.backends.compiler import GPUTarget  # noqa: E402
 from triton.compiler import ASTSource  # noqa: E402
 
-from mssf_blocks.functional import triton_kernels as tk  # noqa: E402
+from mssf_blocks.functional.deform.triton import kernels as tk  # noqa: E402
 
 DTYPES = {"float32": "fp32", "bfloat16": "bf16", "float16": "fp16"}
 HEAD_DIMS = (32, 64, 256)  # the paper's d = 256 / 8 heads, the tests' 64, MAX_HEAD_DIM

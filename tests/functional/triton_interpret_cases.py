@@ -17,7 +17,7 @@ os.environ["TRITON_INTERPRET"] = "1"
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-from mssf_blocks.functional import triton_kernels as tk  # noqa: E402
+from mssf_blocks.functional.deform.triton import kernels as tk  # noqa: E402
 from mssf_blocks.functional.sampling import ms_deform_sample_reference  # noqa: E402
 
 from sampling_references import border_locations, naive_ms_deform, random_inputs  # noqa: E402
@@ -141,7 +141,7 @@ def test_half_inputs_accumulate_in_float32(dtype):
 # ---------------------------------------------------------------------------------------------------
 def test_op_triton_backend_matches_float64_with_every_gradient():
     """Projection inside the op: gradients of the raw levels, locations, weights, proj weight and bias."""
-    from mssf_blocks.functional.sampling_op import deform_sample_project
+    from mssf_blocks.functional.deform.op import deform_sample_project
 
     q, m, d, c, p = 9, 2, 32, 5, 2
     values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=m, d=c, sizes=SIZES[2], q=q, p=p,

@@ -10,9 +10,8 @@ from .geometry import (
 )
 from .heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .lift import bev_shape_for, pillar_lift, voxelize_points, voxels_to_bev, voxels_to_bev_sparse
-from .deform_project import ms_deform_sample_project
-from .sampling import bilinear_sample, camera_mean, ms_deform_sample, ms_deform_sample_reference
-from .sampling_op import deform_sample_project
+from .deform import deform_sample_project, ms_deform_sample, ms_deform_sample_project, ms_deform_sample_reference
+from .sampling import bilinear_sample, camera_mean
 
 __all__ = [
     "Projection",

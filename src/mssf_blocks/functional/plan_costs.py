@@ -75,11 +75,25 @@ _STATIC = "grid"  # the plan of every other device and of graph capture
 # project every pixel, F.grid_sample per level (every other device, and the fallback).
 SAMPLING_BACKENDS = {"cpu": "touched", "cuda": "triton"}
 SAMPLING_FALLBACK = "grid"
+# Under torch.compile, MSDFF's sampling with gradients per device: "op" (the sampling op, one opaque node;
+# its backward recomputes the backend's forward under autograd: a custom op's implementation keeps no
+# autograd graph) or "grid" (the static grid plan of standard operators, which inductor compiles).
+# CPU: "op", measured on one core (FusionBlock(MSDFF) of benchmarks/compile.py at 4,100 voxels, inductor,
+# 9 interleaved rounds in one process, load average 7-10, 2026-12-03): a training step 682 ms with the op,
+# 861 ms with the grid plan, 436 ms eager (first call 29 s against 85 s). The script:
+# python benchmarks/compile_training.py (the same measurement).
+COMPILED_TRAINING = {"cpu": "op"}
 
 
 def msdff_auto_method(device_type: str, static: bool) -> str:
     """MSDFF's plan for ``method="auto"`` on ``device_type`` (``"touched"`` or ``"grid"``)."""
     return _STATIC if static else _MSDFF_AUTO.get(device_type, _STATIC)
+
+
+def compiled_training_uses_op(device_type: str) -> bool:
+    """Whether MSDFF's sampling with gradients under ``torch.compile`` on ``device_type`` is the sampling op
+    (``COMPILED_TRAINING``; devices without an entry: the op)."""
+    return COMPILED_TRAINING.get(device_type, "op") == "op"
 
 
 def bilinear_auto_method(device_type: str, static: bool) -> str:

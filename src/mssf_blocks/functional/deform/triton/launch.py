@@ -3,7 +3,7 @@
 MSDFF's sampling with value projection, ``out[q, m] = sum_{l,p} w * bilinear(W_m @ raw_l + b_m, loc)``:
 the raw levels are flattened into one ``(I, C, S)`` buffer (``S = sum_l H_l * W_l``), projected by one
 GEMM into the kernels' ``(I, S, M, d)`` value buffer, and sampled by
-:mod:`~mssf_blocks.functional.triton_kernels` (imported here, lazily: this module is imported only when
+:mod:`~mssf_blocks.functional.deform.triton.kernels` (imported here, lazily: this module is imported only when
 the backend runs). The backward recomputes the projection (one GEMM, cheaper on a GPU than keeping the
 projected map between forward and backward), runs the backward kernel and chains the value gradient
 through the projection. No input validation: the op checks at its entry.
@@ -17,7 +17,7 @@ from typing import List, Optional, Tuple
 import torch
 from torch import Tensor
 
-from . import triton_kernels as tk
+from . import kernels as tk
 
 
 @functools.lru_cache(maxsize=64)

@@ -8,9 +8,9 @@ a fake (meta) implementation and an autograd formula, so ``torch.compile`` and `
 opaque node. Inputs are checked once, here, at the entry :func:`deform_sample_project`; the backends
 are not re-checked. Backends, one place each:
 
-* ``"touched"``: the CPU plans (:mod:`~mssf_blocks.functional.touched`, costs in ``plan_costs.py``);
-* ``"grid"``: project every pixel, one ``F.grid_sample`` per level (:mod:`~mssf_blocks.functional.static`);
-* ``"triton"``: project every pixel, the Triton kernels (:mod:`~mssf_blocks.functional.triton_backend`).
+* ``"touched"``: the CPU plans (:mod:`~mssf_blocks.functional.deform.touched`, costs in ``plan_costs.py``);
+* ``"grid"``: project every pixel, one ``F.grid_sample`` per level (:mod:`~mssf_blocks.functional.deform.grid`);
+* ``"triton"``: project every pixel, the Triton kernels (:mod:`~mssf_blocks.functional.deform.triton`).
 
 Which serves which device is :data:`~mssf_blocks.functional.plan_costs.SAMPLING_BACKENDS`; an argument
 (``backend=``) or the environment variable ``MSSF_SAMPLING_BACKEND`` forces one. A Triton compile or
@@ -33,16 +33,14 @@ import warnings
 from typing import List, Optional, Sequence, Tuple
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from .. import _compat
-from .._checks import check_dtype, check_shape, is_tracing
-from ..errors import MSSFError
-from .plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK
-from .sampling import _check_deform_inputs
-from .static import grid_sample_static
-from .touched import _ms_deform_sample_touched
+from ... import _compat
+from ..._checks import is_tracing
+from ...errors import MSSFError
+from ..plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK
+from . import grid, touched
+from .checks import _check_deform_inputs, check_projection
 
 __all__ = ["deform_sample_project", "sample_project_unchecked", "resolve_backend", "BACKENDS", "ENV_VAR", "TRITON_MAX_HEAD_DIM"]
 
@@ -106,18 +104,7 @@ def resolve_backend(backend: Optional[str], device_type: str, dtype: torch.dtype
 # ---------------------------------------------------------------------------------------------------
 # backends (levels (I, 1, C, H_l, W_l), projection (M, d, C) and (M, d))
 # ---------------------------------------------------------------------------------------------------
-def _grid(levels, image_index, locations, weights, proj_weight, proj_bias) -> Tensor:
-    m, d, c = proj_weight.shape
-    values = [F.linear(lvl[:, 0].permute(0, 2, 3, 1), proj_weight.reshape(m * d, c), proj_bias.reshape(m * d))
-              .unflatten(-1, (m, d)).permute(0, 3, 4, 1, 2) for lvl in levels]  # (I, M, d, H, W)
-    return grid_sample_static(values, image_index, locations, weights)
-
-
-def _touched(levels, image_index, locations, weights, proj_weight, proj_bias) -> Tensor:
-    return _ms_deform_sample_touched(list(levels), image_index, locations, weights, proj_weight, proj_bias)
-
-
-_AUTOGRAD_BACKENDS = {"grid": _grid, "touched": _touched}
+_AUTOGRAD_BACKENDS = {"grid": grid.sample_project, "touched": touched.sample_project}
 
 
 def _triton_failed(exc: BaseException) -> None:
@@ -138,7 +125,7 @@ def _use_triton() -> bool:
 
 def _forward_impl(levels, image_index, locations, weights, proj_weight, proj_bias, backend) -> Tensor:
     if backend == "triton" and _use_triton():
-        from . import triton_backend
+        from .triton import launch as triton_backend
         try:
             return triton_backend.forward([v[:, 0] for v in levels], image_index, locations, weights,
                                           proj_weight, proj_bias)
@@ -146,7 +133,7 @@ def _forward_impl(levels, image_index, locations, weights, proj_weight, proj_bia
             if _interpreting():
                 raise
             _triton_failed(exc)
-    fn = _AUTOGRAD_BACKENDS.get(backend, _grid)
+    fn = _AUTOGRAD_BACKENDS.get(backend, grid.sample_project)
     return fn(levels, image_index, locations, weights, proj_weight, proj_bias)
 
 
@@ -165,35 +152,39 @@ def _autograd_on() -> contextlib.ExitStack:
     return stack
 
 
-def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad):
-    """``(grad levels or [], grad locations, grad weights, grad proj_weight, grad proj_bias)``."""
+def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
+                   levels_grad=True):
+    """``(grad levels or [], grad locations, grad weights, grad proj_weight, grad proj_bias)``: ``value_grad``
+    whether the projection or the levels need gradients, ``levels_grad`` whether the levels do (the
+    recomputed forward then leaves out the dense level gradient, e.g. of a frozen image branch)."""
+    levels_grad = value_grad and levels_grad
     if backend == "triton" and _use_triton():
-        from . import triton_backend
+        from .triton import launch as triton_backend
         try:
             gl, gloc, gwt, gw, gb = triton_backend.backward(
                 grad, [v[:, 0] for v in levels], image_index, locations, weights, proj_weight, proj_bias,
                 value_grad)
             if gl is None:
                 return [], gloc, gwt, torch.zeros_like(proj_weight), torch.zeros_like(proj_bias)
-            return [g.view(v.shape) for g, v in zip(gl, levels)], gloc, gwt, gw, gb
+            return [g.view(v.shape) for g, v in zip(gl, levels)] if levels_grad else [], gloc, gwt, gw, gb
         except Exception as exc:  # noqa: BLE001
             if _interpreting():
                 raise
             _triton_failed(exc)
-    fn = _AUTOGRAD_BACKENDS.get(backend, _grid)
+    fn = _AUTOGRAD_BACKENDS.get(backend, grid.sample_project)
     with _autograd_on():
         loc = locations.detach().requires_grad_()
         wt = weights.detach().requires_grad_()
-        lv = [v.detach().requires_grad_(value_grad) for v in levels]
+        lv = [v.detach().requires_grad_(levels_grad) for v in levels]
         pw = proj_weight.detach().requires_grad_(value_grad)
         pb = proj_bias.detach().requires_grad_(value_grad)
         out = fn(lv, image_index, loc, wt, pw, pb)
-        inputs = [loc, wt] + ([*lv, pw, pb] if value_grad else [])
+        inputs = [loc, wt] + (lv if levels_grad else []) + ([pw, pb] if value_grad else [])
         grads = torch.autograd.grad(out, inputs, grad, allow_unused=True)
     grads = [torch.zeros_like(t) if g is None else g for g, t in zip(grads, inputs)]
     if not value_grad:
         return [], grads[0], grads[1], torch.zeros_like(proj_weight), torch.zeros_like(proj_bias)
-    return grads[2:-2], grads[0], grads[1], grads[-2], grads[-1]
+    return grads[2:-2] if levels_grad else [], grads[0], grads[1], grads[-2], grads[-1]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -209,10 +200,10 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
 
     @torch.library.custom_op("mssf_blocks::deform_sample_project_backward", mutates_args=())
     def _op_backward(grad: Tensor, levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
-                     proj_weight: Tensor, proj_bias: Tensor, backend: str, value_grad: bool
-                     ) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
+                     proj_weight: Tensor, proj_bias: Tensor, backend: str, value_grad: bool,
+                     levels_grad: bool = True) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
         gl, gloc, gwt, gw, gb = _backward_impl(grad.contiguous(), levels, image_index, locations, weights,
-                                               proj_weight, proj_bias, backend, value_grad)
+                                               proj_weight, proj_bias, backend, value_grad, levels_grad)
         # (outputs may not alias inputs: a zero gradient is a fresh tensor)
         return [g.clone() for g in gl], gloc.clone(), gwt.clone(), gw.clone(), gb.clone()
 
@@ -222,14 +213,17 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
                                    dtype=levels[0].dtype)
 
     @_op_backward.register_fake
-    def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad):
-        return ([torch.empty_like(v) for v in levels] if value_grad else [], torch.empty_like(locations),
+    def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
+          levels_grad=True):
+        return ([torch.empty_like(v) for v in levels] if value_grad and levels_grad else [],
+                torch.empty_like(locations),
                 torch.empty_like(weights), torch.empty_like(proj_weight), torch.empty_like(proj_bias))
 
     def _setup_context(ctx, inputs, output):
         levels, image_index, locations, weights, proj_weight, proj_bias, backend = inputs
         ctx.backend, ctx.num_levels = backend, len(levels)
-        ctx.value_grad = any(t.requires_grad for t in (*levels, proj_weight, proj_bias))
+        ctx.levels_grad = any(t.requires_grad for t in levels)
+        ctx.value_grad = ctx.levels_grad or proj_weight.requires_grad or proj_bias.requires_grad
         ctx.save_for_backward(*levels, image_index, locations, weights, proj_weight, proj_bias)
 
     def _backward(ctx, grad):
@@ -237,10 +231,10 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
         n = ctx.num_levels
         levels, (image_index, locations, weights, proj_weight, proj_bias) = list(saved[:n]), saved[n:]
         gl, gloc, gwt, gw, gb = _op_backward(grad, levels, image_index, locations, weights, proj_weight, proj_bias,
-                                             ctx.backend, ctx.value_grad)
+                                             ctx.backend, ctx.value_grad, ctx.levels_grad)
         if not ctx.value_grad:
             return [None] * ctx.num_levels, None, gloc, gwt, None, None, None
-        return list(gl), None, gloc, gwt, gw, gb, None
+        return list(gl) if ctx.levels_grad else [None] * ctx.num_levels, None, gloc, gwt, gw, gb, None
 
     _op.register_autograd(_backward, setup_context=_setup_context)
     _OP = _op
@@ -303,12 +297,7 @@ def deform_sample_project(
     levels, dims = _check_deform_inputs(values, image_index, locations, weights)
     if dims["Mv"] != 1:
         raise MSSFError(f"values: expected raw levels (I, 1, C, H_l, W_l) shared by the heads, got Mv = {dims['Mv']}")
-    check_shape(proj_weight, "proj_weight", ("M", None, "D"), dims)
-    check_dtype(proj_weight, "proj_weight", (levels[0].dtype,), hint=" (must match values)")
-    if proj_bias is None:
-        proj_bias = proj_weight.new_zeros(proj_weight.shape[:2])
-    check_shape(proj_bias, "proj_bias", ("M", proj_weight.shape[1]), dims)
-    check_dtype(proj_bias, "proj_bias", (levels[0].dtype,), hint=" (must match values)")
+    check_projection(proj_weight, proj_bias, levels, dims)
     return sample_project_unchecked(levels, image_index, locations, weights, proj_weight, proj_bias, backend)
 
 

@@ -1,143 +1,24 @@
-"""Bilinear corners of the ``"touched"`` plans, and the levels' blocks of queries.
+"""The levels of the CPU plans bagged in blocks of queries, and their sum over the levels.
 
-The corners: the levels' points in one contiguous ``(Q, L, 2, M, P)`` block (:func:`_sorted_points`),
-their top-left cells on the level padded by 2 pixels (:func:`_top_left_cells`), the pixels they read
-(:func:`_read_pixels`), the four corners' cells and weights (:func:`_corner_cells`,
-:func:`_corner_weights`). Everything is query-major: a query's heads are adjacent.
-
-A raw-row level (plans ``"sample"`` / ``"direct"`` of :mod:`~mssf_blocks.functional.touched`) samples
-the ``D`` raw channels of every head's corners and is projected per head afterwards; a projected
-level (plans ``"dense"`` / ``"project"``) samples its head's ``d`` channels of a projected table. In
-forward both are bagged together in blocks of queries (:func:`_sum_levels`), so that the
-``(Q * M, D)`` raw samples never exist whole and every block's corner arrays stay in cache.
+The four bilinear corners of a block's points (:func:`_corner_cells`, :func:`_corner_weights`) are
+made block by block. A raw-row level (plans ``"sample"`` / ``"direct"``) samples the ``D`` raw channels of every head's
+corners and is projected per head afterwards; a projected level (plans ``"dense"`` / ``"project"``)
+samples its head's ``d`` channels of a projected table. In forward both are bagged together in
+blocks of queries (:func:`_sum_levels`), so that the ``(Q * M, D)`` raw samples never exist whole and
+every block's corner arrays stay in cache.
 """
 
 from __future__ import annotations
 
-from typing import List, NamedTuple, Optional, Sequence, Tuple
+from typing import List, NamedTuple, Optional, Tuple
 
 import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from .. import _compat
-from .plan_costs import _RAW_CHUNK_BYTES
-
-
-def _pixel_coordinate(loc: Tensor, size: Tensor, inplace: bool = False) -> Tensor:
-    """Pixel coordinates of normalised locations on a level of ``size`` pixels (broadcast), in place on
-    ``loc`` with ``inplace`` (a private copy; no new tensor per step)."""
-    # Bit for bit the float operations of grid_sample (grid = 2*loc - 1, then ((grid + 1) * size - 1) / 2
-    # with align_corners=False), so that floor() -- and hence the one-sided gradient at integer pixel
-    # coordinates -- agrees with the reference path. The factors 2 and 1/2 are dropped: scaling by a
-    # power of two is exact and commutes with rounding (no overflow or subnormal results at finite
-    # locations and sizes >= 1), so fl(fl(2l - 1) + 1) = 2 fl(fl(l - 1/2) + 1/2) and
-    # fl(fl(2b * s) - 1) / 2 = fl(fl(b * s) - 1/2): four passes instead of six (checked equal on every
-    # pixel boundary +- 4 ulp and 10^8 random locations, float32 and float64).
-    shifted = loc.sub_(0.5) if inplace else loc - 0.5
-    return shifted.add_(0.5).mul_(size).sub_(0.5)
-
-
-def _wide(t: Tensor) -> Tensor:
-    """``t`` with the bytes of its last dimension viewed as the widest elements (16, 8 or 4 bytes) that
-    divide them, or ``t`` itself when none does, its memory does not allow the view, or autograd
-    records it (a dtype view is not differentiable).
-
-    For copies only (gathers, permutes): the bits are moved, never computed on. A copy whose innermost
-    run is short (e.g. the ``P = 4`` points of a head) pays PyTorch's loop overhead per run and per
-    element; as one 16-byte element per run it is a plain strided copy (measured 2.5x faster for the
-    ``(Q, M, L, P) -> (Q, L, M, P)`` weights at 8,000 queries, one core).
-    """
-    if t.dim() == 0 or (t.requires_grad and torch.is_grad_enabled()):
-        return t
-    size = t.shape[-1] * t.element_size()
-    for dtype in (torch.complex128, torch.int64, torch.int32):
-        if dtype.itemsize > t.element_size() and size % dtype.itemsize == 0:
-            try:
-                return t.view(dtype)
-            except RuntimeError:  # (strides or storage offset not a multiple of the wider element)
-                continue
-    return t
-
-
-class _LevelLoc(NamedTuple):
-    """One level's sampling points in the layout of the ``"touched"`` plans: ``x, y (Q, M, P)`` pixel
-    coordinates (differentiable; each query's ``M * P`` values contiguous), ``x0, y0`` their floors
-    (detached), ``wo (Q, M, P)`` attention weights; ``loc (Q, M, P, 2)`` / ``wt (Q, M, P)``: the same
-    points in the callers' layout, for the plans that sample with ``F.grid_sample`` (``None`` when none
-    will)."""
-
-    x: Tensor
-    y: Tensor
-    x0: Tensor
-    y0: Tensor
-    wo: Tensor
-    loc: Optional[Tensor] = None
-    wt: Optional[Tensor] = None
-
-
-def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int, int]],
-                   order: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
-    """Every level's points of ``locations (Q, M, L, P, 2)``, ``weights (Q, M, L, P)`` (queries taken in
-    ``order``, if given) on levels of ``sizes`` ``(H_l, W_l)``: ``(Q, L, 2, M, P)`` pixel coordinates
-    (:func:`_pixel_coordinate`, in place on the copy) and ``(Q, L, M, P)`` weights, both
-    contiguous; :func:`_level` takes one level's :class:`_LevelLoc` out of them.
-
-    Per level and axis, the points of all heads of a query are then one contiguous run: the twenty or so
-    elementwise operations a level does before its first row is read each ran 3-4x slower on strided
-    views of the callers' layout (measured on one core at 8,000 queries). Locations that already are a
-    view of ``(Q, L, 2, M, P)`` memory (what :meth:`MSDFF.sampling_locations_and_weights
-    <mssf_blocks.MSDFF.sampling_locations_and_weights>` returns) are taken by whole rows; others are
-    gathered by rows, then transposed in one copy (2x faster than a strided gather per level).
-    """
-    lp = locations.permute(0, 2, 4, 1, 3)
-    if lp.is_contiguous():
-        lp = lp.index_select(0, order) if order is not None else lp.clone()
-    else:
-        lp = (locations if order is None else locations.index_select(0, order)).permute(0, 2, 4, 1, 3).contiguous()
-    wts = weights if order is None else weights.index_select(0, order)
-    wide = _wide(wts)  # (a head's P weights as one element, when autograd does not record them)
-    moved = wide.permute(0, 2, 1, 3).contiguous()
-    wts = moved if wide is wts else moved.view(wts.dtype)  # (a dtype view, even to the same type, drops autograd)
-    size = torch.tensor([[float(w), float(h)] for h, w in sizes], dtype=lp.dtype,
-                        device=lp.device).view(1, len(sizes), 2, 1, 1)
-    return _pixel_coordinate(lp, size, inplace=True), wts
-
-
-def _level(xy: Tensor, wts: Tensor, lvl: int) -> _LevelLoc:
-    """Level ``lvl`` of :func:`_sorted_points`' output as a :class:`_LevelLoc` (``loc``/``wt`` left ``None``)."""
-    x, y = xy[:, lvl, 0], xy[:, lvl, 1]
-    return _LevelLoc(x, y, x.detach().floor(), y.detach().floor(), wts[:, lvl])
-
-
-def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int, w: int) -> Tensor:
-    """``(Q, M, P)`` int64 cell of every point's top-left bilinear corner on its image's ``h x w`` level
-    padded by 2 pixels on every side, the corner clamped to ``[-2, W]`` x ``[-2, H]`` (which keeps every
-    in-map decision: ``x0 = -2`` and ``x0 = W`` have both corners outside) so that all four corners
-    ``(0, 1, Wp, Wp + 1)`` away have a cell. Computed in the floating type while every cell id is an
-    exact integer there (three operations instead of seven in int64)."""
-    hp, wp = h + 4, w + 4
-    xc = lv.x0.clamp(-2.0, float(w))
-    yc = lv.y0.clamp(-2.0, float(h))
-    exact = 2**53 if xc.dtype == torch.float64 else 2**24  # (float32 or float64: the sampling dtypes)
-    if num_images * hp * wp < exact:
-        base = ((image_index * hp + 2) * wp + 2).to(xc.dtype).view(-1, 1, 1)
-        return (yc * wp).add_(xc).add_(base).long()
-    return (image_index.view(-1, 1, 1) * hp + yc.long() + 2) * wp + xc.long() + 2
-
-
-def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
-    """``(I, H, W)`` bool: the in-map pixels that some bilinear corner of the points with top-left cells
-    ``c00`` (:func:`_top_left_cells`) reads. The top-left cells are marked in the padded grid (one write
-    per point, not per corner) and a pixel is read iff its cell or the one left, above or above-left of
-    it is marked."""
-    hp, wp = h + 4, w + 4
-    mark = torch.zeros(num_images * hp * wp, dtype=torch.bool, device=c00.device)
-    mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
-    mark = mark.view(num_images, hp, wp)
-    return (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
-        mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
-
+from .... import _compat
+from ...plan_costs import _RAW_CHUNK_BYTES
+from .points import _LevelLoc
 
 def _corner_cells(c00: Tensor, wp: int) -> Tensor:
     """``(Q, M, 4, P)`` cells of the four bilinear corners, offsets ``(0, 1, Wp, Wp + 1)`` from the
@@ -254,11 +135,10 @@ def _project_raw_block(raws: List[_RawLevel], start: int, stop: int, w_heads: Te
 
 
 def _sum_levels(raws: List[_RawLevel], projected: List[_ProjectedLevel], w_all: Tensor, b_all: Optional[Tensor],
-                m: int, needs_grad: bool, base: Optional[Tensor] = None, order: Optional[Tensor] = None) -> Tensor:
+                m: int, needs_grad: bool, base: Optional[Tensor] = None) -> Tensor:
     """``(Q, M, d)`` sum over the levels: the ``projected`` levels' samples (forward only), the per-head
     projection of the raw samples of ``raws``, and ``base (Q, M, d)`` (levels sampled otherwise, if
-    any; forward only: summed into in place); with ``order`` (the permutation that sorted the callers'
-    queries) put back in the callers' order.
+    any; forward only: summed into in place), in the plans' (sorted) query order.
 
     Every level's corners are handled a block of queries at a time: the block's cells, rows and
     weights (``(block, M, 4 * P)`` each, a few hundred KiB) are reused from the heap block after
@@ -298,7 +178,7 @@ def _sum_levels(raws: List[_RawLevel], projected: List[_ProjectedLevel], w_all: 
                 out[s:e] = part
             else:
                 out[s:e].add_(part)
-        return out if order is None else out.index_select(0, _inverse(order))
+        return out
     if projected:
         raise RuntimeError("projected levels are sampled per block in forward only")  # (internal)
     outs = []
@@ -308,11 +188,4 @@ def _sum_levels(raws: List[_RawLevel], projected: List[_ProjectedLevel], w_all: 
                                use_reentrant=False, preserve_rng_state=False))
     out = outs[0] if len(outs) == 1 else torch.cat(outs, 0)
     out = out if base is None else base.add_(out)  # (no backward here needs the other levels' sum)
-    return out if order is None else out.index_select(0, _inverse(order))
-
-
-def _inverse(order: Tensor) -> Tensor:
-    """The inverse of the permutation ``order``."""
-    inverse = torch.empty_like(order)
-    inverse[order] = torch.arange(order.numel(), device=order.device)
-    return inverse
+    return out

@@ -1,23 +1,23 @@
-"""The ``"touched"`` plans of :func:`~mssf_blocks.functional.ms_deform_sample_project` (MSDFF's default).
+"""One level of the CPU plans: the cheapest exact plan by the cost model, and its table.
 
-Per level, the pixels that some in-map bilinear corner reads are marked (``U`` of them) and the cheapest
-exact plan is run: project every pixel, project only the touched pixels, or sample the touched pixels'
-raw channels (from a gathered table, or in place for channels-last levels) and project per head. The
-cost constants of the choice live in :mod:`~mssf_blocks.functional.plan_costs`. ``bilinear_sample``'s
-``method="gather"`` reuses the same machinery with a single point per query.
+Per level, the pixels that some in-map bilinear corner reads are marked (``U`` of them) and the
+cheapest exact plan is run: project every pixel (``"dense"``), project only the touched pixels
+(``"project"``), or sample the touched pixels' raw channels from a gathered table (``"sample"``) or in
+place for channels-last levels (``"direct"``) and project per head. The level's raw rows (its
+``(pixels, D)`` row table, the touched rows gathered and projected in pieces) are read here too. The
+cost constants live in ``functional/plan_costs.py``. The points' top-left corners are located on the
+level padded by 2 pixels (:func:`_top_left_cells`) and the pixels they read marked (:func:`_read_pixels`).
 """
 
 from __future__ import annotations
 
-import functools
-import math
-from typing import Iterator, List, Optional, Sequence, Tuple
+from typing import Iterator, Optional
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .plan_costs import (
+from ...plan_costs import (
     _BAG_BACKWARD,
     _BAG_COST,
     _COPY_COST,
@@ -26,52 +26,43 @@ from .plan_costs import (
     _GATHER_COST,
     _GRID_SAMPLE_COST,
     _PROJECT_CHUNK,
-    _SORT_CELL,
 )
-from .raw_blocks import (
-    _bag_projected,
-    _bag_raw,
-    _inverse,
-    _level,
-    _LevelLoc,
-    _ProjectedLevel,
-    _RawLevel,
-    _read_pixels,
-    _sorted_points,
-    _sum_levels,
-    _top_left_cells,
-)
+from .blocks import _bag_projected, _bag_raw, _ProjectedLevel, _RawLevel
+from .points import _LevelLoc
+
+def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int, w: int) -> Tensor:
+    """``(Q, M, P)`` int64 cell of every point's top-left bilinear corner on its image's ``h x w`` level
+    padded by 2 pixels on every side, the corner clamped to ``[-2, W]`` x ``[-2, H]`` (which keeps every
+    in-map decision: ``x0 = -2`` and ``x0 = W`` have both corners outside) so that all four corners
+    ``(0, 1, Wp, Wp + 1)`` away have a cell. Computed in the floating type while every cell id is an
+    exact integer there (three operations instead of seven in int64)."""
+    hp, wp = h + 4, w + 4
+    xc = lv.x0.clamp(-2.0, float(w))
+    yc = lv.y0.clamp(-2.0, float(h))
+    exact = 2**53 if xc.dtype == torch.float64 else 2**24  # (float32 or float64: the sampling dtypes)
+    if num_images * hp * wp < exact:
+        base = ((image_index * hp + 2) * wp + 2).to(xc.dtype).view(-1, 1, 1)
+        return (yc * wp).add_(xc).add_(base).long()
+    return (image_index.view(-1, 1, 1) * hp + yc.long() + 2) * wp + xc.long() + 2
 
 
-def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
-    """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.
-
-    ``maps (I, H, W, M, d)`` (a projected level, e.g. a view of ``(I * H * W, M * d)`` rows),
-    ``loc (Q, M, P, 2)`` normalised, ``wt (Q, M, P)``. Zero padding, ``align_corners=False``: the
-    arithmetic of :func:`ms_deform_sample_reference`, laid out head-major (no per-image gather and
-    index_add for one image). Calling the reference instead gives the same values up to rounding, but
-    not bit for bit, and the demo's 2000 training steps amplify that (+13.42 -> +14.33 mAP).
-    """
-    num_images, _, _, m, d = maps.shape
-    q = loc.shape[0]
-    heads = maps.permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view: grid_sample reads any strides
-    grid = (2.0 * loc - 1.0).transpose(0, 1)  # (M, Q, P, 2)
-    wo = wt.transpose(0, 1)[:, None]  # (M, 1, Q, P)
-
-    def sample(i: int, g: Tensor, w: Tensor) -> Tensor:  # (M, d, q_i, P) -> (M, q_i, d)
-        s = F.grid_sample(heads[i], g, mode="bilinear", padding_mode="zeros", align_corners=False)
-        return (s * w).sum(-1).transpose(1, 2)
-
-    if num_images == 1:
-        return sample(0, grid, wo).reshape(m * q, d)
-    out = maps.new_zeros(m, q, d)
-    for i in range(num_images):
-        sel = (image_index == i).nonzero().squeeze(1)
-        if sel.numel():
-            out = out.index_copy(1, sel, sample(i, grid[:, sel], wo[:, :, sel]))
-    return out.view(m * q, d)
+def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
+    """``(I, H, W)`` bool: the in-map pixels that some bilinear corner of the points with top-left cells
+    ``c00`` (:func:`_top_left_cells`) reads. The top-left cells are marked in the padded grid (one write
+    per point, not per corner) and a pixel is read iff its cell or the one left, above or above-left of
+    it is marked."""
+    hp, wp = h + 4, w + 4
+    mark = torch.zeros(num_images * hp * wp, dtype=torch.bool, device=c00.device)
+    mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
+    mark = mark.view(num_images, hp, wp)
+    return (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
+        mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
 
 
+# ---------------------------------------------------------------------------------------------------
+# the level's raw rows: a (pixels, D) row table, the touched rows gathered in cache-sized pieces, and
+# their projection (an autograd function that gathers them again for the weight gradient)
+# ---------------------------------------------------------------------------------------------------
 def _row_table(value: Tensor) -> Optional[Tensor]:
     """``value (I, 1, D, H, W)`` as a free ``(I * H * W, D)`` table with contiguous rows, or ``None``.
 
@@ -188,6 +179,34 @@ class _GatherProject(torch.autograd.Function):
             grad_value = rows.view(num_images, h, w, 1, dch).permute(0, 3, 4, 1, 2)
         return grad_value, None, grad_weight, grad_bias
 
+
+def _grid_sample_heads(maps: Tensor, image_index: Tensor, loc: Tensor, wt: Tensor) -> Tensor:
+    """``(M * Q, d)`` head-major ``sum_p wt * bilinear(maps[image, :, :, m], loc)`` with ``F.grid_sample``.
+
+    ``maps (I, H, W, M, d)`` (a projected level, e.g. a view of ``(I * H * W, M * d)`` rows),
+    ``loc (Q, M, P, 2)`` normalised, ``wt (Q, M, P)``. Zero padding, ``align_corners=False``: the
+    arithmetic of :func:`ms_deform_sample_reference`, laid out head-major (no per-image gather and
+    index_add for one image). Calling the reference instead gives the same values up to rounding, but
+    not bit for bit, and the demo's 2000 training steps amplify that (+13.42 -> +14.33 mAP).
+    """
+    num_images, _, _, m, d = maps.shape
+    q = loc.shape[0]
+    heads = maps.permute(0, 3, 4, 1, 2)  # (I, M, d, H, W) view: grid_sample reads any strides
+    grid = (2.0 * loc - 1.0).transpose(0, 1)  # (M, Q, P, 2)
+    wo = wt.transpose(0, 1)[:, None]  # (M, 1, Q, P)
+
+    def sample(i: int, g: Tensor, w: Tensor) -> Tensor:  # (M, d, q_i, P) -> (M, q_i, d)
+        s = F.grid_sample(heads[i], g, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return (s * w).sum(-1).transpose(1, 2)
+
+    if num_images == 1:
+        return sample(0, grid, wo).reshape(m * q, d)
+    out = maps.new_zeros(m, q, d)
+    for i in range(num_images):
+        sel = (image_index == i).nonzero().squeeze(1)
+        if sel.numel():
+            out = out.index_copy(1, sel, sample(i, grid[:, sel], wo[:, :, sel]))
+    return out.view(m * q, d)
 
 def _touched_level(
     value: Tensor,
@@ -328,129 +347,3 @@ def _touched_level(
     c00 = c00.add_((heads.long() * n_cells).view(1, m, 1)).to(cdt)
     level = _ProjectedLevel(lv, c00, remap.view(-1), wp, table.view(-1, d))
     return level if defer_projection else _bag_projected(level, 0, q)
-
-
-# The Hilbert curve is walked a few levels at a time: per level, the two bits of a cell (x, y) and
-# the orientation of its sub-square (a swap of x and y, a complement of both: four states) give the
-# level's digit of the curve index and the next state. _HILBERT_LEVELS levels at once are one lookup
-# in a table of 4 * 4**levels entries (made once per device): 0.07 ms for 2,500 cells of 8 levels,
-# against 0.5 ms for the level-by-level arithmetic (one core).
-_HILBERT_LEVELS = 4
-
-
-@functools.lru_cache(maxsize=None)
-def _hilbert_table(levels: int, device: torch.device) -> Tuple[Tensor, Tensor]:
-    """``(digits, states)``, each ``(4 * 4**levels,)`` int64, at ``(state * 2**levels + x) * 2**levels + y``
-    for the ``levels`` bits ``x, y`` of a cell below a sub-square in ``state`` (bit 0: x and y swapped,
-    bit 1: both complemented): the ``2 * levels`` bits of the curve index they add, and the state of
-    the sub-square they lead to."""
-    n = 1 << levels
-    digits, states = [], []
-    for state in range(4):
-        for x in range(n):
-            for y in range(n):
-                st, digit = state, 0
-                for b in range(levels - 1, -1, -1):
-                    rx, ry = (x >> b) & 1, (y >> b) & 1
-                    if st & 1:
-                        rx, ry = ry, rx
-                    if st & 2:
-                        rx, ry = rx ^ 1, ry ^ 1
-                    digit = 4 * digit + ((3 * rx) ^ ry)
-                    if ry == 0:  # the sub-square is turned: swapped, and complemented when rx == 1
-                        st ^= 1 | (rx << 1)
-                digits.append(digit)
-                states.append(st)
-    return (torch.tensor(digits, dtype=torch.int64, device=device),
-            torch.tensor(states, dtype=torch.int64, device=device))
-
-
-def _hilbert_index(x: Tensor, y: Tensor, bits: int) -> Tensor:
-    """Position of the integer cells ``x, y`` (int64, in ``[0, 2**bits)``) along the Hilbert curve that
-    fills the ``2**bits``-sided square from ``(0, 0)`` to ``(2**bits - 1, 0)``: cells close on the
-    curve are close in the plane (unlike a row-major or Z order, the curve never jumps)."""
-    d = torch.zeros_like(x)
-    state = torch.zeros_like(x)
-    done = 0
-    while done < bits:
-        levels = (bits - done) % _HILBERT_LEVELS or _HILBERT_LEVELS  # (the top levels first)
-        shift, mask = bits - done - levels, (1 << levels) - 1
-        digits, states = _hilbert_table(levels, x.device)
-        key = ((state << levels) | ((x >> shift) & mask)) << levels
-        key |= (y >> shift) & mask
-        d = (d << (2 * levels)) | digits.index_select(0, key)
-        state = states.index_select(0, key)
-        done += levels
-    return d
-
-
-def _sort_cells(locations: Tensor, sizes: Sequence[Tuple[int, int]], cell: float) -> Tuple[Tensor, Tensor, int]:
-    """``(x, y, bits)``: the integer cells, in ``[0, 2**bits)``, of each query's first sampling location
-    (near its reference point) on a grid of squares of about ``cell`` pixels of the finest of the
-    levels of ``sizes`` ``(H_l, W_l)``, whose longer side spans the ``2**bits``-sided square."""
-    h, w = max(sizes, key=lambda hw: hw[0] * hw[1])
-    ref = locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
-    longer = max(h, w, 1)
-    bits = min(max(1, math.ceil(math.log2(max(longer / cell, 2.0)))), 15)
-    scale = ((1 << bits) - 1) / longer  # (cells per pixel)
-    return (ref[:, 0] * (w * scale)).round().long(), (ref[:, 1] * (h * scale)).round().long(), bits
-
-
-def _spatial_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[int, int]],
-                   cell: float = _SORT_CELL) -> Tensor:
-    """``(Q,)`` permutation of the queries by image, then along a Hilbert curve over the image
-    (:func:`_hilbert_index`) of the cells (:func:`_sort_cells`) of their first sampling locations.
-
-    The cells are squares of about ``cell`` pixels of the finest level: consecutive queries, and the
-    queries of a block, then lie in one compact patch of the image, whose rows the bags read from cache
-    (the order by bands of rows it replaced let a block span the image's width).
-    """
-    x, y, bits = _sort_cells(locations, sizes, cell)
-    return torch.argsort(image_index * (1 << (2 * bits)) + _hilbert_index(x, y, bits))
-
-
-def _ms_deform_sample_touched(
-    levels: List[Tensor],
-    image_index: Tensor,
-    locations: Tensor,
-    weights: Tensor,
-    proj_weight: Tensor,
-    proj_bias: Optional[Tensor],
-    plan: Optional[str] = None,
-) -> Tensor:
-    q, m, _, p, _ = locations.shape
-    e = proj_weight.shape[0] * proj_weight.shape[1]
-    d = proj_weight.shape[1]
-    w_all = proj_weight.reshape(e, -1)
-    b_all = None if proj_bias is None else proj_bias.reshape(e)
-    if q == 0:  # keep a graph (of zeros) so that an empty batch can still be backpropagated
-        out = locations.new_zeros(0, m, d) + 0.0 * (locations.sum() + weights.sum() + w_all.sum())
-        return out if b_all is None else out + 0.0 * b_all.sum()
-    needs_grad = torch.is_grad_enabled() and any(
-        t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
-    )
-    # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
-    # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
-    order = _spatial_order(image_index, locations, [tuple(v.shape[-2:]) for v in levels])
-    image_index = image_index[order]
-    if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
-        loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
-    out = None
-    raws: List[_RawLevel] = []
-    projected: List[_ProjectedLevel] = []
-    xy, wts = _sorted_points(locations, weights, [tuple(v.shape[-2:]) for v in levels], order)
-    for lvl, val in enumerate(levels):
-        lv = _level(xy, wts, lvl)
-        if needs_grad:
-            lv = lv._replace(loc=loc_sorted[:, :, lvl], wt=wt_sorted[:, :, lvl])
-        part = _touched_level(val, image_index, lv, w_all, b_all, m, plan, needs_grad, defer_projection=True,
-                              projection_paid=bool(raws))
-        if isinstance(part, _RawLevel):  # bagged with the other levels in blocks of queries below
-            raws.append(part)
-        elif isinstance(part, _ProjectedLevel):
-            projected.append(part)
-        else:
-            out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
-    if raws or projected:  # the sum of every level, back in the callers' order
-        return _sum_levels(raws, projected, w_all, b_all, m, needs_grad, base=out, order=order)
-    return out.index_select(0, _inverse(order))  # back to the callers' order

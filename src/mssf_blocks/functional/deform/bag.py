@@ -1,0 +1,133 @@
+"""The embedding-bag path of ``ms_deform_sample`` (any ``Mv``, no projection): the four bilinear corners
+of every point as rows of each level's ``(pixels, D)`` table, reduced by ``embedding_bag(mode="sum")``
+weighted by ``bilinear weight * attention weight`` (never a gathered ``(corners, D)`` tensor); autograd
+carries the per-corner weight gradient back to ``locations`` and ``weights``. Inputs unchecked (the
+public functions check them)."""
+
+from __future__ import annotations
+
+from typing import List, Optional, Sequence, Tuple, Union
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+from ... import _compat
+from .touched.points import _pixel_coordinate
+
+__all__ = ["sample", "sample_project_chunked"]
+
+
+def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
+    # int32 rows halve the index memory and are read natively by embedding_bag.
+    rows = max(v.shape[0] * mv * v.shape[-2] * v.shape[-1] for v in values)
+    return torch.int32 if rows + 2 * max(v.shape[-1] for v in values) < 2**31 else torch.int64
+
+
+def sample(
+    values: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor, return_mass: bool
+) -> Union[Tensor, Tuple[Tensor, Tensor]]:
+    q, m, num_levels, p, _ = locations.shape
+    mv, d = values[0].shape[1:3]
+    dev = locations.device
+    # Work level-major and head-major, (L, M, Q, P): every level's corners are a contiguous slice and
+    # the embedding-bag output comes out as (M, Q, D), the layout a per-head projection (bmm) wants.
+    locs = locations.permute(2, 1, 0, 3, 4)
+    wts = weights.permute(2, 1, 0, 3)
+    hs = torch.tensor([v.shape[-2] for v in values], device=dev).view(num_levels, 1, 1, 1)
+    ws = torch.tensor([v.shape[-1] for v in values], device=dev).view(num_levels, 1, 1, 1)
+    size_w = ws.to(locations.dtype)
+    size_h = hs.to(locations.dtype)
+    x = _pixel_coordinate(locs[..., 0], size_w)  # (L, M, Q, P)
+    y = _pixel_coordinate(locs[..., 1], size_h)
+    x0 = x.detach().floor()
+    y0 = y.detach().floor()
+    fx = x - x0  # carries d/dx; floor is piecewise constant
+    fy = y - y0
+    # Per-axis corner weights, zero where the corner is outside the map (zero padding); the attention
+    # weight is folded into the y factors so that each corner weight is one product.
+    ax0 = (1.0 - fx) * ((x0 >= 0) & (x0 <= size_w - 1))
+    ax1 = fx * ((x0 >= -1) & (x0 <= size_w - 2))
+    ay0 = (1.0 - fy) * ((y0 >= 0) & (y0 <= size_h - 1)) * wts
+    ay1 = fy * ((y0 >= -1) & (y0 <= size_h - 2)) * wts
+    # Corner-major inside each (head, query) bag, (L, M, Q, 4, P): the order within a bag is free and
+    # this layout stacks in blocks of P instead of interleaving single elements.
+    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), -2)  # (L, M, Q, 4, P)
+    mass = ((ay0 + ay1) * (ax0 + ax1)).sum((0, 3)).t() if return_mass else None  # (Q, M)
+
+    # Row of the top-left corner in level l's table (I * Mv * H_l * W_l, D):
+    #   ((image * Mv + head) * H_l + y0) * W_l + x0, computed on points (4x fewer than corners) after
+    # clamping x0, y0 to [-1, size] so that huge coordinates cannot overflow; the corners add
+    # (0, 1, W_l, W_l + 1). A corner outside the map has weight 0 and any row inside the table will
+    # do, hence the final clamp to the table.
+    idt = _index_dtype(values, mv)
+    heads = torch.arange(m, device=dev, dtype=idt)[:, None] if mv > 1 else torch.zeros((m, 1), dtype=idt, device=dev)
+    plane = (image_index.to(idt)[None, :] * mv + heads).view(1, m, q, 1)
+    x0i = torch.minimum(x0.clamp(min=-1.0), size_w).to(idt)
+    y0i = torch.minimum(y0.clamp(min=-1.0), size_h).to(idt)
+    hs_i, ws_i = hs.to(idt), ws.to(idt)
+    base = (plane * hs_i + y0i) * ws_i + x0i  # (L, M, Q, P)
+    corner_offsets = torch.stack([torch.zeros_like(ws_i), torch.ones_like(ws_i), ws_i, ws_i + 1], -2)  # (L,1,1,4,1)
+    last_row = torch.tensor(
+        [v.shape[0] * mv * v.shape[-2] * v.shape[-1] - 1 for v in values], device=dev, dtype=idt
+    ).view(num_levels, 1, 1, 1, 1)
+    rows = torch.clamp(base[..., None, :] + corner_offsets, min=torch.zeros_like(last_row), max=last_row)
+
+    out = None
+    for lvl, val in enumerate(values):
+        # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
+        # along D); otherwise one layout copy of this level.
+        table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
+        part = _compat.embedding_bag(
+            rows[lvl].view(m * q, p * 4), table, per_sample_weights=psw[lvl].view(m * q, p * 4), mode="sum"
+        )  # (M * Q, D)
+        if out is None:
+            out = part
+        else:
+            out += part  # in place: embedding_bag's backward does not need its output
+    out = out.view(m, q, d).transpose(0, 1)  # (Q, M, D) view of head-major memory
+    return (out, mass) if return_mass else out
+
+
+def _sample_project_level(
+    locations: Tensor,
+    weights: Tensor,
+    image_index: Tensor,
+    proj_weight: Tensor,
+    proj_bias: Optional[Tensor],
+    value: Tensor,
+) -> Tensor:
+    """One level of :func:`ms_deform_sample_project` for ``locations (Q, M, 1, P, 2)``."""
+    sampled, mass = sample([value], image_index, locations, weights, True)
+    # sampled is a (Q, M, D) view of head-major (M, Q, D) memory: the per-head bmm reads it in place.
+    out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (Q, M, d)
+    if proj_bias is not None:
+        out = out + mass[..., None] * proj_bias
+    return out
+
+
+def sample_project_chunked(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
+                           proj_weight: Tensor, proj_bias: Optional[Tensor], chunk_size: Optional[int]) -> Tensor:
+    """``ms_deform_sample_project``'s ``"chunked"`` method: this path per (chunk of queries, level), then
+    the per-head projection; with gradients each block is recomputed in backward (checkpointing)."""
+    q = locations.shape[0]
+    step = q if chunk_size is None else chunk_size
+    needs_grad = torch.is_grad_enabled() and any(
+        t is not None and t.requires_grad for t in [locations, weights, proj_weight, proj_bias, *levels]
+    )
+    # One (chunk, level) block at a time: only its corners and one (M, chunk, D) sampled block are
+    # alive; with gradients, each block is recomputed in backward instead of stored.
+    parts = []
+    for start in range(0, max(q, 1), max(step, 1)):
+        sl = slice(start, start + step)
+        acc = None
+        for lvl, val in enumerate(levels):
+            args = (locations[sl, :, lvl : lvl + 1], weights[sl, :, lvl : lvl + 1], image_index[sl],
+                    proj_weight, proj_bias, val)
+            if needs_grad and chunk_size is not None:
+                part = checkpoint(_sample_project_level, *args, use_reentrant=False)
+            else:
+                part = _sample_project_level(*args)
+            acc = part if acc is None else acc + part
+        parts.append(acc)
+    return parts[0] if len(parts) == 1 else torch.cat(parts, 0)
