@@ -65,10 +65,10 @@ _STATIC = "grid"  # the plan of every other device and of graph capture
 
 
 # ---------------------------------------------------------------------------------------------------
-# Backend of the sampling op (functional/sampling_op.py) per device
+# Backend of the sampling op (functional/deform/op.py) per device
 # ---------------------------------------------------------------------------------------------------
 # "touched": the CPU plans above (measured: benchmarks/msdff.py). "triton": the Triton kernels
-# (functional/triton_kernels.py), where triton imports and the inputs suit them (float32 / bfloat16 /
+# (functional/deform/triton/), where triton imports and the inputs suit them (float32 / bfloat16 /
 # float16, heads of at most 256 channels), else the fallback; checked numerically and compiled for
 # sm_80 / sm_90 on a CPU (tests/functional/test_triton_kernels.py), NOT YET TIMED on a GPU: the choice
 # waits for benchmarks/gpu_check.py (`make gpu-check`: Triton op vs grid path vs mmcv's op). "grid":
