@@ -18,6 +18,7 @@ import torch
 
 from mssf_blocks.errors import MSSFError
 from mssf_examples.heads import AnchorHead, BEVGrid, SparseCenterHead
+from mssf_examples.ops.boxes import decode_center
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "integrations"))
 from mmdet3d_vod_tree import require_mmdet3d  # noqa: E402
@@ -145,3 +146,34 @@ def test_multi_class_matches_mmdet3d_box3d_multiclass_nms():
     assert torch.allclose(ours["scores"], t_scores[order])
     assert torch.allclose(ours["boxes"], t_boxes[order])
     assert len(ours["scores"]) > len(head.decode(preds, 0.1, 0.01, 50)[0]["scores"])  # second classes exist
+
+
+def test_voxelnext_switches_match_mmdet3d_nms_bev():
+    require_mmdet3d()
+    from mmdet3d.models.layers import nms_bev
+    from mmdet3d.structures import LiDARInstance3DBoxes, xywhr2xyxyr
+
+    torch.manual_seed(1)
+    grid = BEVGrid(0.0, -4.0, 8.0, 4.0, 16, 16)
+    head = SparseCenterHead(4, grid, num_classes=3)
+    coords = torch.stack(torch.meshgrid(torch.zeros(1, dtype=torch.long), torch.arange(16), torch.arange(16),
+                                        indexing="ij"), -1).reshape(-1, 3)
+    m = coords.shape[0]
+    preds = {"hm": torch.randn(m, 3) * 2 - 2, "center": torch.rand(m, 2) * 3 - 1, "center_z": torch.randn(m, 1),
+             "dim": torch.randn(m, 3) * 0.3 + 0.3, "rot": torch.randn(m, 2), "coords": coords, "batch_size": 1}
+    rng = (0.5, -3.5, -1.0, 7.5, 3.5, 1.0)
+    ours = head.decode(preds, 0.02, 0.2, 83, class_agnostic_nms=True, center_range=rng)[0]
+    # theirs: VoxelNeXtBBoxCoder.decode (top 500 (voxel, class), score > thr, centre in range) then one nms_bev
+    heat = torch.sigmoid(preds["hm"]).flatten()
+    scores, idx = heat.topk(500)
+    all_boxes = decode_center(head._codes(preds), coords[:, [2, 1]], (grid.cell_x, grid.cell_y),
+                              (grid.x_min, grid.y_min))  # every voxel's box (the decoding is tested elsewhere)
+    cand, labels = all_boxes[idx // 3], idx % 3
+    r = torch.tensor(rng)
+    keep = (scores > 0.02) & (cand[:, :3] >= r[:3]).all(1) & (cand[:, :3] <= r[3:]).all(1)
+    cand, scores, labels = cand[keep], scores[keep], labels[keep]
+    sel = nms_bev(xywhr2xyxyr(LiDARInstance3DBoxes(cand).bev), scores, 0.2, pre_max_size=1000, post_max_size=83)
+    assert 10 < len(sel) < len(cand) and int(keep.sum()) < 500
+    assert ours["labels"].tolist() == labels[sel].tolist()
+    assert torch.allclose(ours["scores"], scores[sel])
+    assert torch.allclose(ours["boxes"], cand[sel])
