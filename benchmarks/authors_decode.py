@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
 
-from demo_steps import demo_preset, ground_truths, predict, train  # noqa: E402
+from demo_steps import demo_preset, ground_truths, predict, scene_collate, train  # noqa: E402
 from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.evaluation import evaluate  # noqa: E402
 from mssf_examples.heads.authors import AUTHORS_DECODE, authors_decode_options  # noqa: E402
@@ -46,6 +46,24 @@ def _compare(base, other) -> dict:
             "only_switched": sum(len(y - x) for x, y in zip(a, b))}
 
 
+@torch.no_grad()
+def _second_class_candidates(model, scenes, batch_size: int, threshold: float) -> dict:
+    """Anchor head, before NMS: among the ``nms_pre`` anchors of highest best-class score, how many
+    (anchor, class) pairs score above ``threshold`` and how many of them are not the anchor's best class."""
+    model.eval()
+    collate, pairs, second = scene_collate(scenes), 0, 0
+    for i in range(0, len(scenes), batch_size):
+        preds = model.extract(collate(list(range(i, min(i + batch_size, len(scenes))))))[0]
+        probs = torch.sigmoid(preds["cls"])
+        best = probs.max(dim=-1).values
+        for b in range(probs.shape[0]):
+            top = best[b].topk(min(model.head.nms_pre, best.shape[1])).indices
+            above = probs[b, top] > threshold
+            pairs += int(above.sum())
+            second += int(above.sum()) - int(above.any(dim=1).sum())
+    return {"pairs_above_threshold": pairs, "second_class_pairs": second}
+
+
 def _ap(preds, gts) -> dict:
     res = evaluate(preds, gts, CLASS_NAMES)["entire_area"]
     return {k: round(res[k]["AP3D_R40"], 3) for k in (*CLASS_NAMES, "mAP")}
@@ -60,6 +78,8 @@ def main(argv=None) -> int:
     ap.add_argument("--lr", type=float, default=3e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--detectors", nargs="+", choices=("pointpillars", "voxelnext"),
+                    default=["pointpillars", "voxelnext"])
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -78,7 +98,7 @@ def main(argv=None) -> int:
                                     "class_agnostic_nms": {"class_agnostic_nms": True},
                                     "authors (both)": authors_decode_options("voxelnext", preset.point_cloud_range)}),
     }
-    for name, (head, switched) in variants.items():
+    for name, (head, switched) in ((k, v) for k, v in variants.items() if k in args.detectors):
         torch.manual_seed(args.seed)
         thr, nms, top = AUTHORS_DECODE[head]
         model = build_detector(name, preset, num_fusion_blocks=0, score_threshold=thr, nms_iou=nms,
@@ -88,6 +108,8 @@ def main(argv=None) -> int:
         train(model, train_scenes, args.steps, args.batch_size, args.lr, args.seed, name)
         base = predict(model, val_scenes, args.batch_size, f"{name} default")
         entry = {"default": {"boxes": sum(len(d["scores"]) for d in base), "AP3D_R40": _ap(base, gts)}}
+        if head == "anchor":
+            entry["before_nms"] = _second_class_candidates(model, val_scenes, args.batch_size, thr)
         for label, options in switched.items():
             model.decode_options = options
             preds = predict(model, val_scenes, args.batch_size, f"{name} {label}")
