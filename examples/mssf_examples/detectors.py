@@ -244,12 +244,18 @@ class MSSFDetector(nn.Module):
 
             decode_options = authors_decode_options("anchor" if name == "pointpillars" else "voxelnext",
                                                     p.point_cloud_range)
+        if decode_options is not None and not isinstance(decode_options, dict):
+            raise MSSFError(f"decode_options: expected None or a dict, got {type(decode_options).__name__}")
         decode_options = dict(decode_options or {})
         allowed = getattr(self.head, "DECODE_OPTIONS", ())
         unknown = sorted(set(decode_options) - set(allowed))
         if unknown:
             raise MSSFError(f"decode_options: expected keys among {allowed} ({type(self.head).__name__}), "
                             f"got {unknown}")
+        if decode_options.get("center_range") is not None:
+            from .heads.common import check_center_range
+
+            check_center_range(decode_options["center_range"])
         self.decode_options = decode_options
 
     # -- pieces -------------------------------------------------------------------------------------

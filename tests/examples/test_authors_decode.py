@@ -116,6 +116,10 @@ def test_detector_decode_options_default_per_layout():
     assert authors.decode_options == {"class_agnostic_nms": True, "center_range": tuple(p.point_cloud_range)}
     with pytest.raises(MSSFError, match="decode_options"):
         build_detector("voxelnext", p, num_fusion_blocks=0, decode_options={"multi_class": True})
+    with pytest.raises(MSSFError, match="center_range"):
+        build_detector("voxelnext", p, num_fusion_blocks=0, decode_options={"center_range": (0, 1)})
+    with pytest.raises(MSSFError, match="decode_options"):
+        build_detector("voxelnext", p, num_fusion_blocks=0, decode_options=[("class_agnostic_nms", True)])
 
 
 def test_multi_class_matches_mmdet3d_box3d_multiclass_nms():
