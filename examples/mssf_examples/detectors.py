@@ -114,6 +114,10 @@ class MSSFDetector(nn.Module):
         image_features: ``"backbone"`` runs the image branch on ``batch.images``; ``"precomputed"`` takes
             ``batch.image_features`` (``L`` levels of ``fpn_channels``), as with the paper's frozen branch.
         score_threshold, nms_iou, max_detections: decoding settings in eval mode.
+        decode_options: the head's further decoding switches (its ``DECODE_OPTIONS``: ``multi_class`` for
+            the anchor heads, ``class_agnostic_nms`` and ``center_range`` for VoxelNeXt); ``None``: none
+            for ``layout="paper"``, the authors' for ``layout="authors"``
+            (:func:`~mssf_examples.heads.authors.authors_decode_options`).
 
     ``forward(batch: RadarCameraBatch)`` returns, in training mode, a dict of scalar losses with
     ``"loss"`` the total (``det_*`` from the head, ``seg`` from the semantic-guided head when ``n > 0``)
@@ -134,6 +138,7 @@ class MSSFDetector(nn.Module):
         head_position: str = "after_fusion",
         pillar_layout: str = "paper",
         layout: str = "paper",
+        decode_options: Optional[dict] = None,
     ) -> None:
         super().__init__()
         if layout not in ("paper", "authors"):
@@ -234,6 +239,24 @@ class MSSFDetector(nn.Module):
                 else:
                     self.head = CenterHead(self.neck.out_channels, bev_grid, p.num_classes, head_channels=p.head_channels)
         self.bev_grid = bev_grid
+        if decode_options is None and layout == "authors":
+            from .heads.authors import authors_decode_options
+
+            decode_options = authors_decode_options("anchor" if name == "pointpillars" else "voxelnext",
+                                                    p.point_cloud_range)
+        if decode_options is not None and not isinstance(decode_options, dict):
+            raise MSSFError(f"decode_options: expected None or a dict, got {type(decode_options).__name__}")
+        decode_options = dict(decode_options or {})
+        allowed = getattr(self.head, "DECODE_OPTIONS", ())
+        unknown = sorted(set(decode_options) - set(allowed))
+        if unknown:
+            raise MSSFError(f"decode_options: expected keys among {allowed} ({type(self.head).__name__}), "
+                            f"got {unknown}")
+        if decode_options.get("center_range") is not None:
+            from .heads.common import check_center_range
+
+            check_center_range(decode_options["center_range"])
+        self.decode_options = decode_options
 
     # -- pieces -------------------------------------------------------------------------------------
     def _image_features(self, batch: RadarCameraBatch) -> List[Tensor]:
@@ -302,7 +325,8 @@ class MSSFDetector(nn.Module):
         preds = _float32(preds)
         with _autocast_disabled(pts.device.type):
             if not self.training:
-                return self.head.decode(preds, self.score_threshold, self.nms_iou, self.max_detections)
+                return self.head.decode(preds, self.score_threshold, self.nms_iou, self.max_detections,
+                                        **self.decode_options)
             if batch.gt_boxes is None:
                 raise MSSFError("batch.gt_boxes: required in training mode, got None")
             losses: Dict[str, Tensor] = {f"det_{k}": v for k, v in

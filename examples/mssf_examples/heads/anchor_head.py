@@ -255,6 +255,9 @@ class AnchorHead(nn.Module):
             boxes = torch.cat([boxes[..., :6], yaw[..., None]], dim=-1)
         return torch.cat([boxes[..., :6], limit_period(boxes[..., 6:], 0.5, 2 * math.pi)], dim=-1)
 
+    #: The switches of :meth:`decode` beyond the common settings (``MSSFDetector(decode_options=...)``).
+    DECODE_OPTIONS = ("multi_class",)
+
     @torch.no_grad()
     def decode(
         self,
@@ -262,12 +265,33 @@ class AnchorHead(nn.Module):
         score_threshold: float = 0.1,
         nms_iou: float | None = 0.5,
         max_detections: int = 100,
+        multi_class: bool = False,
     ) -> List[dict]:
-        """Detections per sample: ``dict(boxes (K, 7), scores (K,), labels (K,))``, best first."""
+        """Detections per sample: ``dict(boxes (K, 7), scores (K,), labels (K,))``, best first.
+
+        Default: each anchor is one candidate, labelled with its best class (score = that class's
+        probability). ``multi_class=True`` is mmdet3d's ``Anchor3DHead`` (the MSSF authors' MSSF-PP): the
+        ``nms_pre`` anchors of highest best-class score, then every (anchor, class) with a probability
+        ``> score_threshold`` is a candidate, so one anchor may give a box for two classes (the same box).
+        Either way: per-class rotated NMS, then the ``max_detections`` best.
+        """
         check_decode_args(score_threshold, nms_iou, max_detections)
+        if not isinstance(multi_class, bool):
+            raise MSSFError(f"multi_class: expected a bool, got {multi_class!r}")
         boxes = self.decode_boxes(preds)
-        scores, labels = torch.sigmoid(preds["cls"]).max(dim=-1)
-        return [
-            select_detections(boxes[b], scores[b], labels[b], score_threshold, nms_iou, max_detections, self.nms_pre)
-            for b in range(boxes.shape[0])
-        ]
+        probs = torch.sigmoid(preds["cls"])
+        scores, labels = probs.max(dim=-1)
+        if not multi_class:
+            return [
+                select_detections(boxes[b], scores[b], labels[b], score_threshold, nms_iou, max_detections,
+                                  self.nms_pre)
+                for b in range(boxes.shape[0])
+            ]
+        out = []
+        for b in range(boxes.shape[0]):
+            top = torch.sort(scores[b], descending=True, stable=True).indices[: self.nms_pre]
+            anchor, label = torch.nonzero(probs[b, top] > score_threshold, as_tuple=True)
+            anchor = top[anchor]
+            out.append(select_detections(boxes[b, anchor], probs[b, anchor, label], label, score_threshold, nms_iou,
+                                         max_detections))
+        return out

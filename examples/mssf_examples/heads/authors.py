@@ -34,6 +34,7 @@ from .common import BEVGrid
 from .sparse_center_head import SparseCenterHead
 
 __all__ = ["AUTHORS_CLASS_ORDER", "AUTHORS_ANCHOR_BOTTOMS", "AUTHORS_DECODE", "AUTHORS_HEAD_NAMES",
+           "authors_decode_options",
            "AuthorsVoxelNeXtHead", "SubMConv2dSpconvLayout", "authors_anchor_head_kwargs",
            "authors_anchor_z_centers", "class_permutation", "submanifold_neighbours"]
 
@@ -87,6 +88,24 @@ def authors_anchor_head_kwargs() -> dict:
 #: ``score_thr 0.1, nms_thr 0.01, max_num 50``; MSSF-V (``vx_mm_r50_ablation_n2m4``) ``score_threshold 0.02,
 #: nms_thr 0.2, post_max_size 83``.
 AUTHORS_DECODE = {"anchor": (0.1, 0.01, 50), "voxelnext": (0.02, 0.2, 83)}
+
+
+def authors_decode_options(head: str, point_cloud_range: Sequence[float]) -> dict:
+    """The switches of their test-time decoding beyond :data:`AUTHORS_DECODE` (the head's ``decode``
+    keywords; ``MSSFDetector(layout="authors")`` uses them unless given ``decode_options``):
+
+    * ``"anchor"`` (mmdet3d ``Anchor3DHead._predict_by_feat_single`` + ``box3d_multiclass_nms``):
+      ``multi_class``: after the top ``nms_pre`` anchors by best class score, every class above the
+      threshold gives a box.
+    * ``"voxelnext"`` (their ``VoxelNeXtBBoxCoder.decode`` + ``VoxelNeXtHead.get_task_detections``):
+      ``center_range``: their ``post_center_range`` (= their point-cloud range, the preset's here), and
+      ``class_agnostic_nms``: one ``nms_bev`` over all classes.
+    """
+    if head == "anchor":
+        return {"multi_class": True}
+    if head == "voxelnext":
+        return {"class_agnostic_nms": True, "center_range": tuple(float(v) for v in point_cloud_range)}
+    raise MSSFError(f"head: expected one of {tuple(AUTHORS_DECODE)}, got {head!r}")
 
 
 def submanifold_neighbours(coords: Tensor, ny: int, nx: int, kernel_size: int) -> Tensor:

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
-from ..ops.nms import batched_nms_bev
+from ..ops.nms import batched_nms_bev, nms_bev
 
 __all__ = [
     "BEVGrid",
@@ -29,6 +29,8 @@ __all__ = [
     "check_gt_lists",
     "select_detections",
     "check_decode_args",
+    "check_center_range",
+    "centers_in_range",
 ]
 
 
@@ -136,6 +138,8 @@ def select_detections(
     nms_iou: float | None,
     max_detections: int,
     nms_pre: int | None = None,
+    class_agnostic_nms: bool = False,
+    center_range=None,
 ) -> dict:
     """Score threshold (``> score_threshold``), per-class rotated NMS and the final cap, for one sample.
 
@@ -145,6 +149,10 @@ def select_detections(
         nms_iou: per-class BEV NMS threshold, or ``None`` for no NMS.
         max_detections: keep at most this many (best first).
         nms_pre: keep at most this many best boxes before NMS.
+        class_agnostic_nms: one NMS over all labels (a box suppresses overlapping boxes of any class), as
+            the MSSF authors' VoxelNeXt head; default per class.
+        center_range: ``(x0, y0, z0, x1, y1, z1)``: before NMS, drop boxes whose centre is outside it
+            (bounds inclusive), as the authors' VoxelNeXt box coder; default no filter.
 
     Returns:
         ``dict(boxes (K, 7), scores (K,), labels (K,))`` sorted by descending score.
@@ -153,8 +161,13 @@ def select_detections(
     keep = keep[torch.sort(scores[keep], descending=True, stable=True).indices]
     if nms_pre is not None:
         keep = keep[:nms_pre]
+    if center_range is not None:
+        keep = keep[centers_in_range(boxes[keep], center_range)]
     if nms_iou is not None and keep.numel():
-        keep = keep[batched_nms_bev(boxes[keep].detach(), scores[keep].detach(), labels[keep], nms_iou)]
+        if class_agnostic_nms:
+            keep = keep[nms_bev(boxes[keep].detach(), scores[keep].detach(), nms_iou)]
+        else:
+            keep = keep[batched_nms_bev(boxes[keep].detach(), scores[keep].detach(), labels[keep], nms_iou)]
     keep = keep[:max_detections]
     return {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
 
@@ -167,3 +180,22 @@ def check_decode_args(score_threshold: float, nms_iou: float | None, max_detecti
         raise MSSFError(f"nms_iou: expected None or a value in [0, 1], got {nms_iou}")
     if isinstance(max_detections, bool) or not isinstance(max_detections, int) or max_detections < 0:
         raise MSSFError(f"max_detections: expected a non-negative int, got {max_detections!r}")
+
+
+def check_center_range(center_range) -> tuple:
+    """``center_range`` as six floats ``(x0, y0, z0, x1, y1, z1)`` with ``x0 <= x1`` etc., or a clear error."""
+    try:
+        values = tuple(float(v) for v in center_range)
+    except (TypeError, ValueError):
+        raise MSSFError(f"center_range: expected six numbers (x0, y0, z0, x1, y1, z1), got {center_range!r}") from None
+    if len(values) != 6 or not all(math.isfinite(v) for v in values) or any(
+            values[i] > values[i + 3] for i in range(3)):
+        raise MSSFError(f"center_range: expected six finite numbers (x0, y0, z0, x1, y1, z1) with lower <= upper, "
+                        f"got {center_range!r}")
+    return values
+
+
+def centers_in_range(boxes: Tensor, center_range) -> Tensor:
+    """``(N,)`` bool: the centre ``boxes[:, :3]`` lies inside ``center_range`` (bounds inclusive)."""
+    r = torch.tensor(check_center_range(center_range), dtype=boxes.dtype, device=boxes.device)
+    return ((boxes[:, :3] >= r[:3]) & (boxes[:, :3] <= r[3:])).all(dim=1)

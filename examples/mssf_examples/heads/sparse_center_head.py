@@ -24,7 +24,7 @@ from mssf_blocks.errors import MSSFError
 from ..ops.boxes import decode_center
 from ..ops.targets import sparse_center_targets
 from .center_head import _CenterHeadBase
-from .common import BEVGrid, check_decode_args, check_gt_lists, select_detections
+from .common import BEVGrid, check_center_range, check_decode_args, check_gt_lists, select_detections
 
 __all__ = ["SparseCenterHead"]
 
@@ -121,6 +121,9 @@ class SparseCenterHead(_CenterHeadBase):
             target_rows.append(t.regression)
         return self._weighted_losses(hm, heatmap, pred_rows, target_rows)
 
+    #: The switches of :meth:`decode` beyond the common settings (``MSSFDetector(decode_options=...)``).
+    DECODE_OPTIONS = ("class_agnostic_nms", "center_range")
+
     @torch.no_grad()
     def decode(
         self,
@@ -128,9 +131,21 @@ class SparseCenterHead(_CenterHeadBase):
         score_threshold: float = 0.1,
         nms_iou: float | None = 0.5,
         max_detections: int = 100,
+        class_agnostic_nms: bool = False,
+        center_range: Sequence[float] | None = None,
     ) -> List[dict]:
-        """Detections per sample: ``dict(boxes (K, 7), scores (K,), labels (K,))``, best first."""
+        """Detections per sample: ``dict(boxes (K, 7), scores (K,), labels (K,))``, best first.
+
+        The ``nms_pre`` best (voxel, class) scores, ``> score_threshold``, rotated NMS (per class, or over
+        all classes with ``class_agnostic_nms=True``), the ``max_detections`` best. ``center_range``
+        ``(x0, y0, z0, x1, y1, z1)`` drops, before NMS, boxes whose centre lies outside it (bounds
+        inclusive). The MSSF authors' ``VoxelNeXtHead`` has both switches on (their point-cloud range).
+        """
         check_decode_args(score_threshold, nms_iou, max_detections)
+        if not isinstance(class_agnostic_nms, bool):
+            raise MSSFError(f"class_agnostic_nms: expected a bool, got {class_agnostic_nms!r}")
+        if center_range is not None:
+            check_center_range(center_range)
         hm, coords, batch_size = preds["hm"], preds["coords"], preds["batch_size"]
         heat = torch.sigmoid(hm)
         boxes_all = decode_center(
@@ -145,5 +160,6 @@ class SparseCenterHead(_CenterHeadBase):
             scores, idx = flat.topk(k)
             voxel, labels = idx // self.num_classes, idx % self.num_classes
             boxes = boxes_all[rows[voxel]]
-            out.append(select_detections(boxes, scores, labels, score_threshold, nms_iou, max_detections))
+            out.append(select_detections(boxes, scores, labels, score_threshold, nms_iou, max_detections,
+                                         class_agnostic_nms=class_agnostic_nms, center_range=center_range))
         return out
