@@ -28,6 +28,10 @@ PY_TESTS=(tests/test_compat_torch.py tests/test_fusion.py tests/test_msdff.py te
           tests/test_geometry.py)
 TEST_DEPS=(einops pytest hypothesis)
 FRAMEWORK_DEPS=(shapely pyyaml easydict "spconv>=2.3" tqdm pillow addict yapf termcolor rich)
+# what OpenPCDet's code (tests/integrations, the archive in ../shared) imports at module level, as the Makefile
+# installs it (av2 and kornia --no-deps below), and the optional packages of a few core tests (ONNX, plots)
+OPENPCDET_DEPS=(scipy scikit-image SharedArray pyquaternion tensorboardX numba pandas pyarrow universal_pathlib)
+OPTIONAL_DEPS=(onnx onnxruntime onnxscript matplotlib)
 
 find_python() {  # python3.X on PATH, else pyenv's
   local v=$1 p
@@ -44,13 +48,14 @@ version_of() { "$1/bin/python" -c 'import torch, sys; print(f"torch {torch.__ver
 # make_torch_env NAME TORCH_SPEC NUMPY_SPEC: Python 3.11, the torch, the test and framework dependencies
 make_torch_env() {
   local name=$1 torch_spec=$2 numpy_spec=$3 env=$COMPAT_DIR/$1 t0=$SECONDS
-  local stamp="3.11 $torch_spec $numpy_spec ${TEST_DEPS[*]} ${FRAMEWORK_DEPS[*]}"
+  local stamp="3.11 $torch_spec $numpy_spec ${TEST_DEPS[*]} ${FRAMEWORK_DEPS[*]} ${OPENPCDET_DEPS[*]} ${OPTIONAL_DEPS[*]}"
   [ -f "$env/.stamp" ] && [ "$(cat "$env/.stamp")" = "$stamp" ] && { echo "  $name: reused ($(version_of "$env"))"; return; }
   rm -rf "$env" && "$(find_python 3.11)" -m venv "$env"
-  "$env/bin/pip" install --quiet "$torch_spec" "$numpy_spec" "${TEST_DEPS[@]}" "${FRAMEWORK_DEPS[@]}"
+  "$env/bin/pip" install --quiet "$torch_spec" "$numpy_spec" "${TEST_DEPS[@]}" "${FRAMEWORK_DEPS[@]}" \
+    "${OPENPCDET_DEPS[@]}" "${OPTIONAL_DEPS[@]}"
   # mmdet3d's registry only, as the Makefile installs it (--no-deps: no compiled mmcv, no opencv-python)
   "$env/bin/pip" install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0 \
-    "opencv-python-headless$([ "$numpy_spec" = "numpy<2" ] && echo '<4.11')"
+    "opencv-python-headless$([ "$numpy_spec" = "numpy<2" ] && echo '<4.11')" av2==0.3.6 kornia==0.6.8
   echo "$stamp" > "$env/.stamp"
   echo "  $name: installed in $((SECONDS - t0)) s ($(version_of "$env"))"
 }
