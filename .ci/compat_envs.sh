@@ -4,7 +4,7 @@
 # blocks' forward and backward (+ import) on every Python version pyproject.toml declares.
 # Each environment is a venv under $COMPAT_DIR, reused while its package list (stamp) is unchanged: they
 # hold only third-party packages (the library is taken from src/ via PYTHONPATH), so the default lies in
-# the user's cache, shared by every clone: only the first run installs (about 10 GB; docs/compatibility.md).
+# the user's cache, shared by every clone: only the first run installs (about 19 GB; docs/compatibility.md).
 # Prints one line of test counts per environment and fails when any environment has a failure.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -75,3 +75,20 @@ def test_is_compiling_is_false_eagerly_and_true_under_compile():
     assert not _compat.is_compiling()
     f = torch.compile(lambda x: x + 1 if _compat.is_compiling() else x - 1, backend="eager")
     assert f(torch.zeros(1)).item() == 1.0
+
+
+class _Checkpointed:
+    """A plain class in a checkpoint (as OpenPCDet's numpy scalars are)."""
+
+    def __init__(self, x):
+        self.x = x
+
+
+def test_add_safe_globals_lets_a_checkpoint_load(tmp_path):
+    path = tmp_path / "ckpt.pth"
+    torch.save({"obj": _Checkpointed(3)}, path)
+    if _compat.add_safe_globals([_Checkpointed]):  # torch >= 2.4: the allow-list, used by weights_only loads
+        assert torch.load(path, weights_only=True)["obj"].x == 3
+    else:  # older torch: no allow-list; its default load (weights_only=False) takes the class as it is
+        assert not hasattr(torch.serialization, "add_safe_globals")
+        assert torch.load(path)["obj"].x == 3
