@@ -97,22 +97,19 @@ run_env() {
   return $rc
 }
 
-# chain TORCH_ENV TORCH_SPEC NUMPY_SPEC PYTHON_VERSION...: that torch environment; then its suite while the
-# Python environments on its torch install beside it (network and disk while the suite takes a core); then
-# their checks. The floor's and the newest's chains run side by side (one torch thread per suite, 2 cores).
+# chain TORCH_ENV TORCH_SPEC NUMPY_SPEC PYTHON_VERSION...: that torch environment; then its suite, and beside it
+# the Python environments on its torch, each installed (network and disk) and then checked, so that no core
+# idles while another chain still runs. The floor's and the newest's chains run side by side (one torch
+# thread per pytest, 2 cores).
 chain() {
-  local base=$1 torch_spec=$2 numpy_spec=$3 pyv rc=0 item; shift 3
-  local installs=() runs=()
+  local base=$1 torch_spec=$2 numpy_spec=$3 pyv rc=0 item runs=(); shift 3
   make_torch_env "$base" "$torch_spec" "$numpy_spec" > "$COMPAT_DIR/$base.install.log" 2>&1 &
   installed "$base" $! || return 1
   for pyv in "$@"; do
-    make_py_env "py$pyv" "$pyv" "$base" "$numpy_spec" > "$COMPAT_DIR/py$pyv.install.log" 2>&1 &
-    installs+=("py$pyv:$!")
+    { make_py_env "py$pyv" "$pyv" "$base" "$numpy_spec" > "$COMPAT_DIR/py$pyv.install.log" 2>&1 &
+      installed "py$pyv" $! && run_env "py$pyv" "${PY_TESTS[@]}"; } & runs+=($!)
   done
   run_env "$base" "${CORE_TESTS[@]}" || rc=1
-  for item in "${installs[@]}"; do
-    if installed "${item%%:*}" "${item#*:}"; then run_env "${item%%:*}" "${PY_TESTS[@]}" & runs+=($!); else rc=1; fi
-  done
   for item in "${runs[@]}"; do wait "$item" || rc=1; done
   return $rc
 }
