@@ -78,7 +78,7 @@ gpu-check: $(STAMP)
 
 # The declared floors, tested (docs/compatibility.md): the core and integration tests on the floor torch
 # (2.1.2) and the newest torch on the registry, the core blocks on every declared Python; counts per
-# environment. Environments in ~/.cache/mssf-blocks/compat-envs (about 15 GB), reused while unchanged. .ci/run runs it.
+# environment. Environments in ~/.cache/mssf-blocks/compat-envs (about 19 GB), reused while unchanged. .ci/run runs it.
 .PHONY: test-compat
 test-compat:
 	bash .ci/compat_envs.sh

@@ -4,7 +4,7 @@
 # blocks' forward and backward (+ import) on every Python version pyproject.toml declares.
 # Each environment is a venv under $COMPAT_DIR, reused while its package list (stamp) is unchanged: they
 # hold only third-party packages (the library is taken from src/ via PYTHONPATH), so the default lies in
-# the user's cache, shared by every clone: only the first run installs (about 10 GB; docs/compatibility.md).
+# the user's cache, shared by every clone: only the first run installs (about 19 GB; docs/compatibility.md).
 # Prints one line of test counts per environment and fails when any environment has a failure.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,6 +28,10 @@ PY_TESTS=(tests/test_compat_torch.py tests/test_fusion.py tests/test_msdff.py te
           tests/test_geometry.py)
 TEST_DEPS=(einops pytest hypothesis)
 FRAMEWORK_DEPS=(shapely pyyaml easydict "spconv>=2.3" tqdm pillow addict yapf termcolor rich)
+# what OpenPCDet's code (tests/integrations, the archive in ../shared) imports at module level, as the Makefile
+# installs it (av2 and kornia --no-deps below), and the optional packages of a few core tests (ONNX, plots)
+OPENPCDET_DEPS=(scipy scikit-image SharedArray pyquaternion tensorboardX numba pandas universal_pathlib)
+OPTIONAL_DEPS=(onnx onnxruntime onnxscript matplotlib)
 
 find_python() {  # python3.X on PATH, else pyenv's
   local v=$1 p
@@ -44,13 +48,19 @@ version_of() { "$1/bin/python" -c 'import torch, sys; print(f"torch {torch.__ver
 # make_torch_env NAME TORCH_SPEC NUMPY_SPEC: Python 3.11, the torch, the test and framework dependencies
 make_torch_env() {
   local name=$1 torch_spec=$2 numpy_spec=$3 env=$COMPAT_DIR/$1 t0=$SECONDS
-  local stamp="3.11 $torch_spec $numpy_spec ${TEST_DEPS[*]} ${FRAMEWORK_DEPS[*]}"
+  # with numpy 1 (the floor), the last releases built for it: opencv < 4.11; pyarrow 24+ requires numpy 2
+  # (23.0.1 tested)
+  local pins=(pyarrow opencv-python-headless)
+  [ "$numpy_spec" != "numpy<2" ] || pins=("pyarrow<24" "opencv-python-headless<4.11")
+  local stamp="3.11 $torch_spec $numpy_spec ${pins[*]} ${TEST_DEPS[*]} ${FRAMEWORK_DEPS[*]} ${OPENPCDET_DEPS[*]} ${OPTIONAL_DEPS[*]} vod-tudelft"
   [ -f "$env/.stamp" ] && [ "$(cat "$env/.stamp")" = "$stamp" ] && { echo "  $name: reused ($(version_of "$env"))"; return; }
   rm -rf "$env" && "$(find_python 3.11)" -m venv "$env"
-  "$env/bin/pip" install --quiet "$torch_spec" "$numpy_spec" "${TEST_DEPS[@]}" "${FRAMEWORK_DEPS[@]}"
-  # mmdet3d's registry only, as the Makefile installs it (--no-deps: no compiled mmcv, no opencv-python)
+  "$env/bin/pip" install --quiet "$torch_spec" "$numpy_spec" "${TEST_DEPS[@]}" "${FRAMEWORK_DEPS[@]}" \
+    "${OPENPCDET_DEPS[@]}" "${pins[0]}" "${OPTIONAL_DEPS[@]}"
+  # mmdet3d's registry only, as the Makefile installs it (--no-deps: no compiled mmcv, no opencv-python), and
+  # OpenPCDet's av2 / kornia and the VoD kit (the oracle of OpenPCDet's VoD evaluation) as the Makefile does
   "$env/bin/pip" install --quiet --no-deps mmengine==0.10.7 mmdet3d==1.4.0 mmdet==3.3.0 mmcv-lite==2.1.0 \
-    "opencv-python-headless$([ "$numpy_spec" = "numpy<2" ] && echo '<4.11')"
+    "${pins[1]}" av2==0.3.6 kornia==0.6.8 vod-tudelft==1.0.3
   echo "$stamp" > "$env/.stamp"
   echo "  $name: installed in $((SECONDS - t0)) s ($(version_of "$env"))"
 }
@@ -78,7 +88,7 @@ run_env() {
   local env=$COMPAT_DIR/$name t0=$SECONDS rc=0
   # CI unset: what cannot run in these environments skips with its reason (counted, -rs) instead of failing as
   # it must in `make test`: the real mmdet3d (the mmcv wheel with compiled ops is built for the pinned torch
-  # only), OpenPCDet's code (its packages are installed by the Makefile), the Triton kernels (run by make test)
+  # only), the Triton kernels and the CUDA test (make test, the device check; docs/compatibility.md)
   env -u CI "$env/bin/python" -m pytest -q -p no:cacheprovider -rs --ignore=tests/functional/test_triton_kernels.py \
     "$@" > "$COMPAT_DIR/$name.log" 2>&1 || rc=$?
   local summary; summary=$(tail -n 1 "$COMPAT_DIR/$name.log" | sed 's/=//g; s/^ *//; s/ *$//')
@@ -87,42 +97,39 @@ run_env() {
   return $rc
 }
 
-mkdir -p "$COMPAT_DIR"
-echo "compat_envs: installing (logs in $COMPAT_DIR/*.install.log)"
-t_install=$SECONDS fail=0
-ORDER=(torch-floor torch-newest py3.9 py3.10 py3.12 py3.13)
-# wait_all NAME:PID ...: the install lines, or the log's tail of a failed install
-wait_all() {
-  local item
-  for item in "$@"; do
-    if wait "${item#*:}"; then grep -h "^  " "$COMPAT_DIR/${item%%:*}.install.log" || true
-    else echo "  ${item%%:*}: install FAILED"; tail -n 20 "$COMPAT_DIR/${item%%:*}.install.log"; fail=1; fi
+# chain TORCH_ENV TORCH_SPEC NUMPY_SPEC PYTHON_VERSION...: that torch environment; then its suite, and beside it
+# the Python environments on its torch, each installed (network and disk) and then checked, so that no core
+# idles while another chain still runs. The floor's and the newest's chains run side by side (one torch
+# thread per pytest, 2 cores).
+chain() {
+  local base=$1 torch_spec=$2 numpy_spec=$3 pyv rc=0 item runs=(); shift 3
+  make_torch_env "$base" "$torch_spec" "$numpy_spec" > "$COMPAT_DIR/$base.install.log" 2>&1 &
+  installed "$base" $! || return 1
+  for pyv in "$@"; do
+    { make_py_env "py$pyv" "$pyv" "$base" "$numpy_spec" > "$COMPAT_DIR/py$pyv.install.log" 2>&1 &
+      installed "py$pyv" $! && run_env "py$pyv" "${PY_TESTS[@]}"; } & runs+=($!)
   done
+  run_env "$base" "${CORE_TESTS[@]}" || rc=1
+  for item in "${runs[@]}"; do wait "$item" || rc=1; done
+  return $rc
 }
-make_torch_env torch-floor "$FLOOR_TORCH" "numpy<2" > "$COMPAT_DIR/torch-floor.install.log" 2>&1 & a=$!
-make_torch_env torch-newest "$NEWEST_TORCH" numpy > "$COMPAT_DIR/torch-newest.install.log" 2>&1 & b=$!
-wait_all "torch-floor:$a" "torch-newest:$b"
-[ $fail = 0 ] || exit 1
-jobs=()
-for spec in "py3.9 3.9 torch-floor numpy<2" "py3.10 3.10 torch-floor numpy<2" "py3.12 3.12 torch-newest numpy" \
-            "py3.13 3.13 torch-newest numpy"; do
-  # shellcheck disable=SC2086
-  set -- $spec
-  make_py_env "$@" > "$COMPAT_DIR/$1.install.log" 2>&1 &
-  jobs+=("$1:$!")
+
+# installed NAME PID: waits for that install; prints its line, or the log's tail when it failed
+installed() {
+  if wait "$2"; then grep -h "^  " "$COMPAT_DIR/$1.install.log" || true
+  else echo "  $1: install FAILED"; tail -n 20 "$COMPAT_DIR/$1.install.log"; return 1; fi
+}
+
+mkdir -p "$COMPAT_DIR"
+rm -f "$COMPAT_DIR"/*.summary
+echo "compat_envs: installing and testing (logs in $COMPAT_DIR/*.log)"
+t0=$SECONDS fail=0
+chain torch-floor "$FLOOR_TORCH" "numpy<2" 3.9 3.10 & a=$!
+chain torch-newest "$NEWEST_TORCH" numpy 3.12 3.13 & b=$!
+wait $a || fail=1; wait $b || fail=1
+
+echo "compat_envs: test counts per environment (the pinned torch: make test above); $((SECONDS - t0)) s in all"
+for name in torch-floor torch-newest py3.9 py3.10 py3.12 py3.13; do
+  cat "$COMPAT_DIR/$name.summary" 2>/dev/null || echo "$name: not run (its install failed)"
 done
-wait_all "${jobs[@]}"
-echo "compat_envs: environments ready in $((SECONDS - t_install)) s"
-[ $fail = 0 ] || exit 1
-
-# two suites at a time (one torch thread each: the 2-core CI machine), then the Python checks
-run_env torch-floor "${CORE_TESTS[@]}" & p1=$!
-run_env torch-newest "${CORE_TESTS[@]}" & p2=$!
-wait $p1 || fail=1; wait $p2 || fail=1
-pys=()
-for name in py3.9 py3.10 py3.12 py3.13; do run_env "$name" "${PY_TESTS[@]}" & pys+=($!); done
-for p in "${pys[@]}"; do wait "$p" || fail=1; done
-
-echo "compat_envs: test counts per environment (the pinned torch: make test above)"
-for name in "${ORDER[@]}"; do cat "$COMPAT_DIR/$name.summary"; done
 exit $fail

@@ -144,6 +144,7 @@ _TRACE_SCRIPT = textwrap.dedent(
     """
     import io, sys, torch
     from torch import nn
+    from mssf_blocks import _compat
     from mssf_blocks.functional import bilinear_sample
     from mssf_blocks.fusion import SFF, MSDFF
     from mssf_blocks.geometry import CentroidProjection
@@ -172,7 +173,9 @@ _TRACE_SCRIPT = textwrap.dedent(
         w = Wrap(fusion).eval()
         t = torch.jit.trace(w, args)
         print(type(fusion).__name__, (t(*args) - w(*args)).abs().max().item())
-        torch.onnx.export(w, args, io.BytesIO(), dynamo=False, opset_version=17)  # the legacy exporter traces
+        # the legacy exporter traces; before torch 2.5 (no dynamo= argument) it is the only one
+        legacy = {"dynamo": False} if _compat.has("onnx_dynamo") else {}
+        torch.onnx.export(w, args, io.BytesIO(), opset_version=17, **legacy)
         print("legacy onnx ok")
     """
 )

@@ -24,7 +24,7 @@ from .errors import MSSFError
 
 __all__ = [
     "TORCH_VERSION", "FEATURES", "has", "missing", "require", "is_compiling", "is_exporting", "is_fake",
-    "autocast_enabled", "grad_scaler", "register_pytree_node",
+    "autocast_enabled", "grad_scaler", "register_pytree_node", "add_safe_globals",
 ]
 
 
@@ -189,6 +189,17 @@ def grad_scaler(device_type: str, enabled: bool = True) -> Any:
         raise MSSFError(f"grad_scaler: a float16 loss scaler on {device_type!r} needs torch >= 2.3 "
                         f"(torch.amp.GradScaler); this is torch {torch.__version__}")
     return torch.cuda.amp.GradScaler(enabled=enabled)
+
+
+def add_safe_globals(objects: list) -> bool:
+    """Allow-list ``objects`` for ``torch.load(weights_only=True)``: ``torch.serialization.add_safe_globals``
+    from torch 2.4. Before it there is no allow-list and nothing to do: ``torch.load`` defaults to
+    ``weights_only=False`` there (until 2.6), which loads them. Returns whether they were registered."""
+    register = getattr(torch.serialization, "add_safe_globals", None)
+    if register is None:
+        return False
+    register(list(objects))
+    return True
 
 
 def register_pytree_node(cls: type, flatten: Callable, unflatten: Callable, *, serialized_type_name: str,

@@ -38,14 +38,16 @@ def allow_numpy_scalars_in_checkpoints() -> None:
     state); torch >= 2.6 loads with ``weights_only=True`` by default and refuses them in ``test.py`` /
     ``--ckpt``. Allow-list exactly those types (numpy scalars and float / int dtypes), nothing else."""
     import numpy as np
-    import torch
+
+    from mssf_blocks import _compat
 
     try:
         from numpy._core.multiarray import scalar
     except ImportError:  # numpy < 2
         from numpy.core.multiarray import scalar
     kinds = [np.float64, np.float32, np.int64, np.int32, np.bool_]
-    torch.serialization.add_safe_globals([scalar, np.dtype] + [type(np.dtype(k)) for k in kinds])
+    # torch < 2.4 has no allow-list and loads them anyway (weights_only=False by default there)
+    _compat.add_safe_globals([scalar, np.dtype] + [type(np.dtype(k)) for k in kinds])
 
 
 def main(argv=None) -> None:
