@@ -22,7 +22,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import require_mmdet3d, write_tj4d_tree  # noqa: E402
+from mmdet3d_vod_tree import evaluate_ground_truth, require_mmdet3d, write_tj4d_tree  # noqa: E402
 from test_mmdet3d_docs import REPO, RUN_TJ4D  # noqa: E402
 from test_mmdet3d_train import recording_runners, run, small_cfg  # noqa: E402
 
@@ -105,25 +105,6 @@ def test_fusion_removed_is_the_radar_only_twin(data_root, tmp_path):
     assert cfg.model == twin.model
 
 
-def _metric(cfg, shift=0.0):
-    from mmdet3d.registry import DATASETS, METRICS
-    from mmengine.registry import init_default_scope
-
-    init_default_scope("mmdet3d")
-    ds = DATASETS.build(cfg.val_dataloader.dataset)
-    metric = METRICS.build(cfg.val_evaluator)
-    metric.dataset_meta = ds.metainfo
-    for i in range(len(ds)):
-        ann = ds.get_data_info(i)["eval_ann_info"]
-        boxes = ann["gt_bboxes_3d"].clone()
-        boxes.tensor[:, 0] += shift
-        n = len(boxes)
-        metric.process({}, [{"sample_idx": i, "pred_instances_3d": {
-            "bboxes_3d": boxes, "scores_3d": torch.linspace(1.0, 0.5, n),
-            "labels_3d": torch.as_tensor(ann["gt_labels_3d"])}}])
-    return metric.evaluate(len(ds))
-
-
 def _reference(data_root):
     """The project's TJ4D evaluation of the label files' own lines given back with scores (no info file, no
     mmdet3d box conversion)."""
@@ -147,9 +128,9 @@ def _reference(data_root):
 def test_metric_matches_the_label_files(data_root, tmp_path):
     cfg = small_cfg(MSSF, data_root, tmp_path)
     assert cfg.val_evaluator.type == "TJ4DMetric"
-    got, ref = _metric(cfg), _reference(data_root)
+    got, ref = evaluate_ground_truth(cfg), _reference(data_root)
     assert set(got) == set(ref)
     for k in ref:
         assert (math.isnan(got[k]) and math.isnan(ref[k])) or got[k] == pytest.approx(ref[k], abs=1e-9), k
     assert ref["TJ4D/range_0_70/Truck/AP3D_R40"] > 0.0 and ref["TJ4D/range_0_70/Car/AP3D_R40"] > 0.0
-    assert _metric(cfg, shift=3.0)["TJ4D/range_0_70/mAP/AP3D_R40"] == 0.0
+    assert evaluate_ground_truth(cfg, shift=3.0)["TJ4D/range_0_70/mAP/AP3D_R40"] == 0.0

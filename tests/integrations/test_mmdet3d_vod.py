@@ -21,7 +21,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import require_mmdet3d, write_tree  # noqa: E402
+from mmdet3d_vod_tree import evaluate_ground_truth, require_mmdet3d, val_dataset, write_tree  # noqa: E402
 from test_mmdet3d_train import small_cfg  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -31,31 +31,6 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 def data_root(tmp_path_factory):
     require_mmdet3d()
     return write_tree(tmp_path_factory.mktemp("vod"))
-
-
-def _val_dataset(cfg):
-    from mmdet3d.registry import DATASETS
-    from mmengine.registry import init_default_scope
-
-    init_default_scope("mmdet3d")
-
-    return DATASETS.build(cfg.val_dataloader.dataset)
-
-
-def _metric(cfg, shift=0.0):
-    from mmdet3d.registry import METRICS
-
-    ds = _val_dataset(cfg)
-    metric = METRICS.build(cfg.val_evaluator)
-    metric.dataset_meta = ds.metainfo
-    for i in range(len(ds)):
-        ann = ds.get_data_info(i)["eval_ann_info"]
-        boxes = ann["gt_bboxes_3d"].clone()
-        boxes.tensor[:, 0] += shift
-        n = len(boxes)
-        metric.process({}, [{"sample_idx": i, "pred_instances_3d": {
-            "bboxes_3d": boxes, "scores_3d": torch.linspace(1.0, 0.5, n), "labels_3d": torch.as_tensor(ann["gt_labels_3d"])}}])
-    return metric.evaluate(len(ds))
 
 
 def _reference(data_root, split="val"):
@@ -85,7 +60,7 @@ def _reference(data_root, split="val"):
 
 def test_metric_matches_the_label_files(data_root, tmp_path):
     cfg = small_cfg("mssf_pointpillars_vod.py", data_root, tmp_path)
-    got = _metric(cfg)
+    got = evaluate_ground_truth(cfg)
     ref = _reference(data_root)
     assert set(got) == set(ref)
     defined = [k for k, v in ref.items() if not math.isnan(v)]
@@ -94,7 +69,7 @@ def test_metric_matches_the_label_files(data_root, tmp_path):
         assert (math.isnan(got[k]) and math.isnan(ref[k])) or got[k] == pytest.approx(ref[k], abs=1e-9), k
     # (the kit fills one precision slot per counted object, so a perfect score on a few objects is small)
     assert ref["VoD/entire_area/mAP/AP3D_R40"] > 0.0
-    moved = _metric(cfg, shift=3.0)
+    moved = evaluate_ground_truth(cfg, shift=3.0)
     assert moved["VoD/entire_area/mAP/AP3D_R40"] == 0.0
 
 
@@ -196,4 +171,4 @@ def test_infos_without_calibration(data_root, tmp_path):
     cfg = small_cfg("mssf_second_vod.py", data_root, tmp_path)
     cfg.val_dataloader.dataset.ann_file = "no_calib.pkl"
     with pytest.raises(MSSFError, match="cam2img"):
-        _val_dataset(cfg)
+        val_dataset(cfg)
