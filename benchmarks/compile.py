@@ -7,8 +7,10 @@ a 384 x 640 image with four 64-channel FPN levels (strides 8-64), forward in eva
 * ``compile_s``: the first call of ``torch.compile(module, fullgraph=True, dynamic=True)`` (inductor
   unless ``--backend``), i.e. tracing + code generation + the C++ build;
 * ``new_sizes_s``: the median call at four further voxel counts (no recompilation: close to steady);
-* ``compiles``: graphs compiled over all the voxel counts (1: no recompile), the counts including 64
-  and 80, equal to the channels and to the finest level's width;
+* ``first_graphs``: graphs the first call compiled (2: dynamo restarted its analysis once, e.g. when
+  inductor specialised a Python float input such as a norm's ``eps``; not a recompile);
+* ``recompiles``: graphs compiled by the calls at the other voxel counts (0: none), the counts including
+  64 and 80, equal to the channels and to the finest level's width;
 * ``compiled_ms`` / ``eager_ms`` / ``static_ms``: the median steady-state call of the compiled module,
   of the eager module (the default CPU plans) and of the eager static-shape path (``static_path()``,
   the formulation the compiled graph contains), and the ratio eager / compiled.
@@ -146,6 +148,7 @@ def main() -> None:
             t0 = time.perf_counter()
             _call(compiled, mod, frames[0], train)
             compile_s = time.perf_counter() - t0
+            first_graphs = len(graphs)
             if args.breakdown:
                 _print_breakdown(name, train, compile_s)
             new_sizes = []
@@ -169,7 +172,7 @@ def main() -> None:
                 "compile_s": round(compile_s, 1), "new_sizes_s": round(new_sizes[len(new_sizes) // 2], 3),
                 "compiled_ms": round(1e3 * comp, 1), "eager_ms": round(1e3 * eager, 1),
                 "static_ms": round(1e3 * static, 1), "eager/compiled": round(eager / comp, 2),
-                "compiles": len(graphs), "voxel_counts": len(frames),
+                "first_graphs": first_graphs, "recompiles": len(graphs) - first_graphs, "voxel_counts": len(frames),
             })
             print(rows[-1], flush=True)
     print_table(rows, list(rows[0]) if rows else [])

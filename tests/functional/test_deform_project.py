@@ -245,6 +245,49 @@ def test_touched_all_outside_empty_and_batch_independence():
         assert not torch.equal(out[image_index == j], base[image_index == j])
 
 
+@pytest.mark.parametrize("branch", ["project", "sample", "dense", "direct"])
+def test_touched_leaves_out_only_the_queries_that_read_nothing(branch, monkeypatch):
+    # MSDFF's static layout puts invalid (voxel, camera) pairs at uv = -1: such queries read no pixel and
+    # are left out. Queries with one point just inside the last reading position must stay: pixel
+    # coordinate x = -0.999 (a corner at x = 0, weight 0.001), x = W - 0.001, and exactly x = -1 (corner
+    # weight 0 but a non-zero location gradient), each with every other point far outside.
+    from mssf_blocks.functional.deform import touched as touched_mod
+
+    sizes = ((6, 8), (3, 4))
+    values, image_index, locations, weights = random_inputs(num_images=2, mv=1, m=2, d=3, sizes=sizes, q=12, p=2,
+                                                            seed=21, spread=0.1)
+    if branch == "direct":
+        values = channels_last(values)
+    locations = locations.clone()
+    locations[6:] = -1.0 + 0.2 * locations[6:]  # the far-outside queries: every point outside every level
+    edge = {8: (1, -0.999), 9: (0, 8 - 0.001), 10: (1, -1.0)}  # query: (level, pixel x of one point)
+    for qi, (lvl, x) in edge.items():
+        w = sizes[lvl][1]
+        locations[qi, 1, lvl, 0] = torch.tensor([(x + 0.5) / w, 0.5], dtype=F64)
+    g = torch.Generator().manual_seed(22)
+    proj_w, proj_b = torch.randn(2, 4, 3, generator=g, dtype=F64), torch.randn(2, 4, generator=g, dtype=F64)
+    go = torch.randn(12, 2, 4, generator=g, dtype=F64)
+    seen = []
+    real = touched_mod._level_points
+    monkeypatch.setattr(touched_mod, "_level_points", lambda loc, *a: seen.append(loc.shape[0]) or real(loc, *a))
+
+    def run(fn):
+        inputs = [t.clone().requires_grad_(True) for t in (locations, weights, proj_w, proj_b)]
+        out = fn(values, image_index, *inputs)
+        return out, torch.autograd.grad((out * go).sum(), inputs)
+
+    out_t, grads_t = run(lambda *a: touched_mod.sample_project(*a, branch, skip_unread=True))
+    assert seen == [9]  # the 6 inside + the 3 edge queries; the other 3 never reach the plans
+    out_r, grads_r = run(project_reference)
+    assert_close(out_t, out_r)
+    for name, a, b in zip(("locations", "weights", "proj_weight", "proj_bias"), grads_t, grads_r):
+        assert_close(a, b, msg=f"grad {name}")
+    assert torch.equal(out_t[[6, 7, 11]], torch.zeros(3, 2, 4, dtype=F64))
+    for qi in edge:  # not vacuous: each edge query reads (x = -1: through its location gradient only)
+        assert bool(grads_r[0][qi, 1].abs().sum() > 0), qi
+    assert bool(out_r[8].abs().sum() > 0) and bool(out_r[9].abs().sum() > 0)
+
+
 def test_project_methods_auto_and_errors():
     values, image_index, locations, weights = random_inputs(num_images=2, mv=2, m=2, d=2, q=5, seed=14)
     proj_w = torch.randn(2, 3, 2, dtype=F64)

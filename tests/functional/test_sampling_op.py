@@ -272,8 +272,8 @@ def test_level_gradient_skipped_when_only_the_projection_needs_one(monkeypatch, 
     values, image_index = args[0], args[1]
     loc, wt, pw, pb = (t.detach().clone().requires_grad_() for t in args[2:])
     recorded = []
-    fn = sampling_op._AUTOGRAD_BACKENDS[backend]
-    monkeypatch.setitem(sampling_op._AUTOGRAD_BACKENDS, backend,
+    fn = sampling_op._OP_BACKENDS[backend]
+    monkeypatch.setitem(sampling_op._OP_BACKENDS, backend,
                         lambda lv, *a: recorded.append([v.requires_grad for v in lv]) or fn(lv, *a))
     out = torch.ops.mssf_blocks.deform_sample_project(values, image_index, loc, wt, pw, pb, backend)
     grad = torch.randn(out.shape, dtype=F64, generator=torch.Generator().manual_seed(7))

@@ -39,7 +39,7 @@ from ... import _compat
 from ..._checks import is_tracing
 from ...errors import MSSFError
 from ..plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK
-from . import grid, touched
+from . import grid, kept, touched
 from .checks import _check_deform_inputs, check_projection
 
 __all__ = ["deform_sample_project", "sample_project_unchecked", "resolve_backend", "BACKENDS", "ENV_VAR", "TRITON_MAX_HEAD_DIM"]
@@ -104,7 +104,15 @@ def resolve_backend(backend: Optional[str], device_type: str, dtype: torch.dtype
 # ---------------------------------------------------------------------------------------------------
 # backends (levels (I, 1, C, H_l, W_l), projection (M, d, C) and (M, d))
 # ---------------------------------------------------------------------------------------------------
-_AUTOGRAD_BACKENDS = {"grid": grid.sample_project, "touched": touched.sample_project}
+def _touched_skipping(*args) -> Tensor:
+    """The CPU plans, the queries that read no pixel left out first: inside the registered op, which
+    serves graph capture, i.e. MSDFF's static layout, whose invalid (voxel, camera) pairs sit at
+    ``uv = -1`` (at 25 % invalid pairs, 130 -> 75 ms for a training step's sampling)."""
+    return touched.sample_project(*args, skip_unread=True)
+
+
+_AUTOGRAD_BACKENDS = {"grid": grid.sample_project, "touched": touched.sample_project}  # (called directly)
+_OP_BACKENDS = {"grid": grid.sample_project, "touched": _touched_skipping}  # (inside the registered ops)
 
 
 def _triton_failed(exc: BaseException) -> None:
@@ -133,7 +141,7 @@ def _forward_impl(levels, image_index, locations, weights, proj_weight, proj_bia
             if _interpreting():
                 raise
             _triton_failed(exc)
-    fn = _AUTOGRAD_BACKENDS.get(backend, grid.sample_project)
+    fn = _OP_BACKENDS.get(backend, grid.sample_project)
     return fn(levels, image_index, locations, weights, proj_weight, proj_bias)
 
 
@@ -152,11 +160,33 @@ def _autograd_on() -> contextlib.ExitStack:
     return stack
 
 
+def _grad_inputs(levels, locations, weights, proj_weight, proj_bias, value_grad, levels_grad):
+    """Detached copies of the op's inputs, those that need gradients marked, and the list of those."""
+    loc = locations.detach().requires_grad_()
+    wt = weights.detach().requires_grad_()
+    lv = [v.detach().requires_grad_(levels_grad) for v in levels]
+    pw = proj_weight.detach().requires_grad_(value_grad)
+    pb = proj_bias.detach().requires_grad_(value_grad)
+    return (lv, loc, wt, pw, pb), [loc, wt] + (lv if levels_grad else []) + ([pw, pb] if value_grad else [])
+
+
+def _forward_keep_impl(levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
+                       levels_grad):
+    """The forward of an autograd backend run under autograd, its graph kept for the backward (``kept.py``)."""
+    levels_grad = value_grad and levels_grad
+    with _autograd_on():
+        (lv, loc, wt, pw, pb), inputs = _grad_inputs(levels, locations, weights, proj_weight, proj_bias, value_grad,
+                                                     levels_grad)
+        out = _OP_BACKENDS[backend](lv, image_index, loc, wt, pw, pb)
+    return out.detach(), kept.keep(out, inputs, (backend, value_grad, levels_grad))
+
+
 def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
-                   levels_grad=True):
+                   levels_grad=True, graph_key=None):
     """``(grad levels or [], grad locations, grad weights, grad proj_weight, grad proj_bias)``: ``value_grad``
     whether the projection or the levels need gradients, ``levels_grad`` whether the levels do (the
-    recomputed forward then leaves out the dense level gradient, e.g. of a frozen image branch)."""
+    recomputed forward then leaves out the dense level gradient, e.g. of a frozen image branch);
+    ``graph_key``: the key of the graph the forward kept (``kept.py``), if it did."""
     levels_grad = value_grad and levels_grad
     if backend == "triton" and _use_triton():
         from .triton import launch as triton_backend
@@ -171,15 +201,14 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
             if _interpreting():
                 raise
             _triton_failed(exc)
-    fn = _AUTOGRAD_BACKENDS.get(backend, grid.sample_project)
+    fn = _OP_BACKENDS.get(backend, grid.sample_project)
+    graph = None if graph_key is None else kept.take(graph_key, (backend, value_grad, levels_grad))
     with _autograd_on():
-        loc = locations.detach().requires_grad_()
-        wt = weights.detach().requires_grad_()
-        lv = [v.detach().requires_grad_(levels_grad) for v in levels]
-        pw = proj_weight.detach().requires_grad_(value_grad)
-        pb = proj_bias.detach().requires_grad_(value_grad)
-        out = fn(lv, image_index, loc, wt, pw, pb)
-        inputs = [loc, wt] + (lv if levels_grad else []) + ([pw, pb] if value_grad else [])
+        if graph is None:  # (no graph kept: the forward again, under autograd)
+            (lv, loc, wt, pw, pb), inputs = _grad_inputs(levels, locations, weights, proj_weight, proj_bias,
+                                                         value_grad, levels_grad)
+            graph = fn(lv, image_index, loc, wt, pw, pb), inputs
+        out, inputs = graph
         grads = torch.autograd.grad(out, inputs, grad, allow_unused=True)
     grads = [torch.zeros_like(t) if g is None else g for g, t in zip(grads, inputs)]
     if not value_grad:
@@ -190,7 +219,7 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
 # ---------------------------------------------------------------------------------------------------
 # registration
 # ---------------------------------------------------------------------------------------------------
-_OP = None
+_OP = _OP_KEEP = None
 if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backends itself
 
     @torch.library.custom_op("mssf_blocks::deform_sample_project", mutates_args=())
@@ -198,46 +227,66 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
             proj_bias: Tensor, backend: str) -> Tensor:
         return _forward_impl(levels, image_index, locations, weights, proj_weight, proj_bias, backend)
 
+    @torch.library.custom_op("mssf_blocks::deform_sample_project_keep", mutates_args=())
+    def _op_keep(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor, proj_weight: Tensor,
+                 proj_bias: Tensor, backend: str, value_grad: bool, levels_grad: bool) -> Tuple[Tensor, Tensor]:
+        """The op's forward for the autograd backends that keeps its graph for the backward (``kept.py``):
+        ``(out, key)``, the key a 0-d int64 tensor. Used under ``torch.compile`` with gradients."""
+        return _forward_keep_impl(levels, image_index, locations, weights, proj_weight, proj_bias, backend,
+                                  value_grad, levels_grad)
+
     @torch.library.custom_op("mssf_blocks::deform_sample_project_backward", mutates_args=())
     def _op_backward(grad: Tensor, levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
                      proj_weight: Tensor, proj_bias: Tensor, backend: str, value_grad: bool,
-                     levels_grad: bool = True) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
+                     levels_grad: bool = True, graph_key: Optional[Tensor] = None,
+                     ) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
         gl, gloc, gwt, gw, gb = _backward_impl(grad.contiguous(), levels, image_index, locations, weights,
-                                               proj_weight, proj_bias, backend, value_grad, levels_grad)
+                                               proj_weight, proj_bias, backend, value_grad, levels_grad, graph_key)
         # (outputs may not alias inputs: a zero gradient is a fresh tensor)
         return [g.clone() for g in gl], gloc.clone(), gwt.clone(), gw.clone(), gb.clone()
 
-    @_op.register_fake
-    def _(levels, image_index, locations, weights, proj_weight, proj_bias, backend):
+    def _fake_out(locations, weights, levels, proj_weight):
         return locations.new_empty(locations.shape[0], proj_weight.shape[0], proj_weight.shape[1],
                                    dtype=levels[0].dtype)
 
+    @_op.register_fake
+    def _(levels, image_index, locations, weights, proj_weight, proj_bias, backend):
+        return _fake_out(locations, weights, levels, proj_weight)
+
+    @_op_keep.register_fake
+    def _(levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad, levels_grad):
+        return _fake_out(locations, weights, levels, proj_weight), locations.new_empty((), dtype=torch.int64)
+
     @_op_backward.register_fake
     def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
-          levels_grad=True):
+          levels_grad=True, graph_key=None):
         return ([torch.empty_like(v) for v in levels] if value_grad and levels_grad else [],
                 torch.empty_like(locations),
                 torch.empty_like(weights), torch.empty_like(proj_weight), torch.empty_like(proj_bias))
 
-    def _setup_context(ctx, inputs, output):
-        levels, image_index, locations, weights, proj_weight, proj_bias, backend = inputs
-        ctx.backend, ctx.num_levels = backend, len(levels)
+    def _save(ctx, inputs, graph_key=None):
+        levels, image_index, locations, weights, proj_weight, proj_bias, backend = inputs[:7]
+        ctx.backend, ctx.num_levels, ctx.extra_inputs = backend, len(levels), len(inputs) - 7
         ctx.levels_grad = any(t.requires_grad for t in levels)
         ctx.value_grad = ctx.levels_grad or proj_weight.requires_grad or proj_bias.requires_grad
-        ctx.save_for_backward(*levels, image_index, locations, weights, proj_weight, proj_bias)
+        ctx.save_for_backward(*levels, image_index, locations, weights, proj_weight, proj_bias,
+                              *([] if graph_key is None else [graph_key]))
 
-    def _backward(ctx, grad):
+    def _backward(ctx, grad, *_):
         saved = ctx.saved_tensors
         n = ctx.num_levels
-        levels, (image_index, locations, weights, proj_weight, proj_bias) = list(saved[:n]), saved[n:]
+        levels, (image_index, locations, weights, proj_weight, proj_bias) = list(saved[:n]), saved[n:n + 5]
+        graph_key = saved[n + 5] if len(saved) > n + 5 else None
         gl, gloc, gwt, gw, gb = _op_backward(grad, levels, image_index, locations, weights, proj_weight, proj_bias,
-                                             ctx.backend, ctx.value_grad, ctx.levels_grad)
+                                             ctx.backend, ctx.value_grad, ctx.levels_grad, graph_key)
+        rest = (None,) * (1 + ctx.extra_inputs)  # (backend and the keeping op's flags)
         if not ctx.value_grad:
-            return [None] * ctx.num_levels, None, gloc, gwt, None, None, None
-        return list(gl) if ctx.levels_grad else [None] * ctx.num_levels, None, gloc, gwt, gw, gb, None
+            return ([None] * ctx.num_levels, None, gloc, gwt, None, None) + rest
+        return (list(gl) if ctx.levels_grad else [None] * ctx.num_levels, None, gloc, gwt, gw, gb) + rest
 
-    _op.register_autograd(_backward, setup_context=_setup_context)
-    _OP = _op
+    _op.register_autograd(_backward, setup_context=lambda ctx, inputs, output: _save(ctx, inputs))
+    _op_keep.register_autograd(_backward, setup_context=lambda ctx, inputs, output: _save(ctx, inputs, output[1]))
+    _OP, _OP_KEEP = _op, _op_keep
 
 
 class _TritonFunction(torch.autograd.Function):  # (torch < 2.4 only: no custom_op)
@@ -312,6 +361,11 @@ def sample_project_unchecked(levels: List[Tensor], image_index: Tensor, location
     if choice in _AUTOGRAD_BACKENDS and not is_tracing():
         return _AUTOGRAD_BACKENDS[choice](*args)  # native autograd: no second forward in backward (module doc)
     if _OP is not None:
+        if choice in _AUTOGRAD_BACKENDS and _compat.is_compiling() and not _compat.is_exporting():
+            levels_grad = any(t.requires_grad for t in levels)
+            value_grad = levels_grad or proj_weight.requires_grad or proj_bias.requires_grad
+            if torch.is_grad_enabled() and (value_grad or locations.requires_grad or weights.requires_grad):
+                return _OP_KEEP(*args, choice, value_grad, levels_grad)[0]  # (no second forward: kept.py)
         return _OP(*args, choice)
     if choice == "triton":
         return _TritonFunction.apply(image_index, locations, weights, proj_weight, proj_bias, *levels)

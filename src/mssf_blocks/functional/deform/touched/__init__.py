@@ -26,7 +26,7 @@ from torch import Tensor
 from .blocks import _ProjectedLevel, _RawLevel, _sum_levels
 from .order import _query_order
 from .plans import _is_row_table, _touched_level
-from .points import _level_points
+from .points import _level_points, _live_queries, _take_queries
 
 __all__ = ["sample_project", "sample_points"]
 
@@ -39,9 +39,12 @@ def sample_project(
     proj_weight: Tensor,
     proj_bias: Optional[Tensor],
     plan: Optional[str] = None,
+    skip_unread: bool = False,
 ) -> Tensor:
     """``(Q, M, d)``: the op's formula for raw levels ``(I, 1, D, H_l, W_l)``, projection ``(M, d, D)``
-    and ``(M, d)`` (or ``None``), per level by ``plan`` (``None``: the cheapest by the cost model)."""
+    and ``(M, d)`` (or ``None``), per level by ``plan`` (``None``: the cheapest by the cost model).
+    ``skip_unread``: first leave out the queries that read no pixel (zero rows; exact, see ``points.py``):
+    the op's choice for static layouts, whose invalid (voxel, camera) pairs read nothing."""
     q, m, _, p, _ = locations.shape
     e = proj_weight.shape[0] * proj_weight.shape[1]
     d = proj_weight.shape[1]
@@ -50,12 +53,17 @@ def sample_project(
     if q == 0:  # keep a graph (of zeros) so that an empty batch can still be backpropagated
         out = locations.new_zeros(0, m, d) + 0.0 * (locations.sum() + weights.sum() + w_all.sum())
         return out if b_all is None else out + 0.0 * b_all.sum()
+    sizes = [tuple(v.shape[-2:]) for v in levels]
+    live = _live_queries(locations, sizes) if skip_unread else None
+    if live is not None:  # queries that read no pixel: zero output and gradients, left out (points.py)
+        part = sample_project(levels, image_index.index_select(0, live), _take_queries(locations, live),
+                              weights.index_select(0, live), proj_weight, proj_bias, plan, skip_unread=False)
+        return part.new_zeros(q, m, d).index_copy(0, live, part)
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
     )
     # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
     # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
-    sizes = [tuple(v.shape[-2:]) for v in levels]
     order, restore = _query_order(image_index, locations, sizes)
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)

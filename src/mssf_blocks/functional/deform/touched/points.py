@@ -90,6 +90,32 @@ def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int
     return _pixel_coordinate(lp, size, inplace=True), wts
 
 
+def _live_queries(locations: Tensor, sizes: Sequence[Tuple[int, int]]) -> Optional[Tensor]:
+    """The queries of ``locations (Q, M, L, P, 2)`` that may read a pixel, or ``None`` when all may.
+
+    A point reads nothing when, on its level, its pixel coordinate ``x = u * W - 0.5`` is below ``-1``
+    or at least ``W`` (both of its columns outside the map), or the same holds for ``y``: its bilinear
+    value is then zero, and so are its gradients (zero padding: they stay zero in a neighbourhood). A
+    query all of whose points read nothing has a zero output and zero gradients w.r.t. every input, so
+    the plans may leave it out. The test here keeps a half-pixel margin on each side (``u`` in
+    ``[-1 / W, 1 + 1 / W]``, far beyond float rounding), and keeps NaN: only queries that certainly
+    read nothing are dropped, e.g. MSDFF's invalid (voxel, camera) pairs, which the static layout
+    places at ``uv = -1``.
+    """
+    lp = locations.detach().permute(0, 2, 4, 1, 3)  # (Q, L, 2, M, P): MSDFF's locations are contiguous so
+    inv = [[1.0 / w, 1.0 / h] for h, w in sizes]
+    lo = torch.tensor(inv, dtype=lp.dtype, device=lp.device).view(1, len(sizes), 2, 1, 1)
+    outside = (lp < -lo).logical_or_(lp > 1.0 + lo)  # (NaN: neither)
+    live = ~outside.any(dim=2).flatten(1).all(dim=1)
+    return None if bool(live.all()) else live.nonzero().squeeze(1)
+
+
+def _take_queries(locations: Tensor, index: Tensor) -> Tensor:
+    """The queries ``index`` of ``locations (Q, M, L, P, 2)``, gathered in the ``(Q, L, 2, M, P)`` memory
+    order that :func:`_sorted_points` takes by whole rows."""
+    return locations.permute(0, 2, 4, 1, 3).index_select(0, index).permute(0, 3, 1, 4, 2)
+
+
 def _level(xy: Tensor, wts: Tensor, lvl: int) -> _LevelLoc:
     """Level ``lvl`` of :func:`_sorted_points`' output as a :class:`_LevelLoc` (``loc``/``wt`` left ``None``)."""
     x, y = xy[:, lvl, 0], xy[:, lvl, 1]
