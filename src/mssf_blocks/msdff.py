@@ -307,7 +307,7 @@ class MSDFF(nn.Module):
             method = msdff_auto_method(device_type, static)
             method = "sample_op" if method == "touched" else method  # (the op picks the device's backend)
             # Under torch.compile the op is one opaque node; with gradients, per device, the op or the grid plan
-            # by measurement (plan_costs.COMPILED_TRAINING: the op's backward recomputes its forward).
+            # by measurement (plan_costs.COMPILED_TRAINING).
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every

@@ -76,12 +76,12 @@ _STATIC = "grid"  # the plan of every other device and of graph capture
 SAMPLING_BACKENDS = {"cpu": "touched", "cuda": "triton"}
 SAMPLING_FALLBACK = "grid"
 # Under torch.compile, MSDFF's sampling with gradients per device: "op" (the sampling op, one opaque node;
-# its backward recomputes the backend's forward under autograd: a custom op's implementation keeps no
-# autograd graph) or "grid" (the static grid plan of standard operators, which inductor compiles).
-# CPU: "op", measured on one core (FusionBlock(MSDFF) of benchmarks/compile.py at 4,100 voxels, inductor,
-# 9 interleaved rounds in one process, load average 7-10, 2026-12-03): a training step 682 ms with the op,
-# 861 ms with the grid plan, 436 ms eager (first call 29 s against 85 s). The script:
-# python benchmarks/compile_training.py (the same measurement).
+# its forward runs the backend under autograd and keeps the graph for the backward, functional/deform/kept.py)
+# or "grid" (the static grid plan of standard operators, which inductor compiles).
+# CPU: "op", measured on one core (FusionBlock(MSDFF) of benchmarks/compile.py at 4,100 voxels, a quarter
+# of them outside the image, inductor, 11 interleaved rounds in one process, load average about 1,
+# 2026-12-03): a training step 126 ms with the op, 251 ms with the grid plan, 116 ms eager (first call
+# 12 s against 9 s). The script: python benchmarks/compile_training.py (the same measurement).
 COMPILED_TRAINING = {"cpu": "op"}
 
 

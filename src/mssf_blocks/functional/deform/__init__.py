@@ -6,7 +6,8 @@ and zero padding (pixel ``x = u * W_l - 0.5``; corners outside the map read zero
 
 * ``op.py``: the op ``torch.ops.mssf_blocks.deform_sample_project`` (sampling of per-head projected
   values, MSDFF's form): inputs checked once at its entry (``checks.py``), the backend chosen by
-  device (``plan_costs.SAMPLING_BACKENDS``), registration for ``torch.compile`` / ``torch.export``;
+  device (``plan_costs.SAMPLING_BACKENDS``), registration for ``torch.compile`` / ``torch.export``, with
+  ``kept.py`` (the autograd graphs its forward keeps for its backward under ``torch.compile``);
 * the backends, each one place: ``touched/`` (the CPU plans), ``grid.py`` (project every pixel,
   ``F.grid_sample``), ``triton/`` (the Triton kernels);
 * ``reference.py``: the float64 reference (Deformable DETR's per-level ``F.grid_sample``) the tests

@@ -17,11 +17,13 @@ Which serves which device is :data:`~mssf_blocks.functional.plan_costs.SAMPLING_
 launch failure on a GPU warns once, naming the cause, and the grid path serves from then on.
 
 The op's backward is a second op. For ``"triton"`` it runs the backward kernel; the other backends
-recompute their forward under autograd inside it (a custom op's implementation runs without
-autograd). So that eager training does not pay that second forward, the entry calls the
+differentiate their forward under autograd inside it (a custom op's implementation runs without
+autograd). Under ``torch.compile`` with gradients, a third op, ``deform_sample_project_keep``, runs
+that forward once, under autograd, and keeps its graph for the backward (``kept.py``); the plain op's
+backward runs the forward again. So that eager training does neither, the entry calls the
 ``"touched"`` and ``"grid"`` code directly (same code, same numbers, native autograd) unless a graph
-is being captured; the registered op is what ``torch.compile`` / ``torch.export`` see and what serves
-``"triton"``.
+is being captured. Inside the registered ops the CPU plans first leave out the queries that read no
+pixel (MSDFF's static layout puts its invalid pairs at ``uv = -1``).
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ from torch import Tensor
 from .blocks import _ProjectedLevel, _RawLevel, _sum_levels
 from .order import _query_order
 from .plans import _is_row_table, _touched_level
-from .points import _level_points, _live_queries, _take_queries
+from .points import _level_points, _live_queries
 
 __all__ = ["sample_project", "sample_points"]
 
@@ -50,21 +50,18 @@ def sample_project(
     d = proj_weight.shape[1]
     w_all = proj_weight.reshape(e, -1)
     b_all = None if proj_bias is None else proj_bias.reshape(e)
-    if q == 0:  # keep a graph (of zeros) so that an empty batch can still be backpropagated
-        out = locations.new_zeros(0, m, d) + 0.0 * (locations.sum() + weights.sum() + w_all.sum())
-        return out if b_all is None else out + 0.0 * b_all.sum()
     sizes = [tuple(v.shape[-2:]) for v in levels]
+    # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
+    # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order);
+    # with skip_unread, the order leaves out the queries that read no pixel (points.py).
     live = _live_queries(locations, sizes) if skip_unread else None
-    if live is not None:  # queries that read no pixel: zero output and gradients, left out (points.py)
-        part = sample_project(levels, image_index.index_select(0, live), _take_queries(locations, live),
-                              weights.index_select(0, live), proj_weight, proj_bias, plan, skip_unread=False)
-        return part.new_zeros(q, m, d).index_copy(0, live, part)
+    order, restore = _query_order(image_index, locations, sizes, live)
+    if order.numel() == 0:  # keep a graph (of zeros) so that it can still be backpropagated
+        out = locations.new_zeros(q, m, d) + 0.0 * (locations.sum() + weights.sum() + w_all.sum())
+        return out if b_all is None else out + 0.0 * b_all.sum()
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
     )
-    # Queries in image order: neighbouring queries then read neighbouring rows, which are still in
-    # cache (the backward's per-corner dot products read the rows of 100-MiB levels in that order).
-    order, restore = _query_order(image_index, locations, sizes)
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
         loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
@@ -84,6 +81,8 @@ def sample_project(
             out = part if out is None else out.add_(part)  # (no backward here needs these outputs)
     if raws or projected:  # the sum of every level
         out = _sum_levels(raws, projected, w_all, b_all, m, needs_grad, base=out)
+    if order.numel() < q:  # (the left-out queries' zero row)
+        out = torch.cat([out, out.new_zeros(1, m, d)])
     return out.index_select(0, restore)  # back to the callers' order
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
@@ -101,8 +101,15 @@ def _inverse(order: Tensor) -> Tensor:
     return inverse
 
 
-def _query_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[int, int]]) -> Tuple[Tensor, Tensor]:
+def _query_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[int, int]],
+                 live: Optional[Tensor] = None) -> Tuple[Tensor, Tensor]:
     """``(order, restore)``: :func:`_spatial_order` and its inverse (which puts results back in the callers'
-    order)."""
+    order). With ``live`` (``(Q,)`` bool), ``order`` takes only the live queries, and ``restore`` sends
+    every other query to row ``len(order)``, one past the results (for a zero row)."""
     order = _spatial_order(image_index, locations, sizes)
-    return order, _inverse(order)
+    if live is None:
+        return order, _inverse(order)
+    order = order[live[order]]
+    restore = torch.full_like(live, order.numel(), dtype=order.dtype)
+    restore[order] = torch.arange(order.numel(), device=order.device)
+    return order, restore
