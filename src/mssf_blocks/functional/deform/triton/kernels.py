@@ -51,6 +51,42 @@ def _corner(row_base, cx, cy, w_l, h_l, cols, col_mask, qmask, M: tl.constexpr, 
 
 
 @triton.jit
+def _block(index_ptr, Q, D: tl.constexpr, BLOCK_Q: tl.constexpr, BLOCK_D: tl.constexpr):
+    """The program's block of queries and the head's channels: ``(q64, qmask, cols, col_mask, img)``."""
+    qs = tl.program_id(0) * BLOCK_Q + tl.arange(0, BLOCK_Q)
+    qmask = qs < Q
+    cols = tl.arange(0, BLOCK_D)
+    img = tl.load(index_ptr + qs, mask=qmask, other=0).to(tl.int64)
+    return qs.to(tl.int64), qmask, cols, cols < D, img
+
+
+@triton.jit
+def _level(shapes_ptr, starts_ptr, img, S, lvl):
+    """Level ``lvl``'s ``(h_l, w_l)`` and the row of its first pixel in every query's image."""
+    h_l = tl.load(shapes_ptr + 2 * lvl)
+    w_l = tl.load(shapes_ptr + 2 * lvl + 1)
+    start = tl.load(starts_ptr + lvl).to(tl.int64)
+    return h_l, w_l, img * S + start
+
+
+@triton.jit
+def _point(loc_ptr, wt_ptr, q64, qmask, m, lvl, pt, h_l, w_l,
+           loc_sq, loc_sm, loc_sl, loc_sp, loc_sc, wt_sq, wt_sm, wt_sl, wt_sp):
+    """One sampling point of a block of queries: its attention weight, the fractions ``fx, fy`` of its
+    pixel coordinates and its top-left corner ``x0, y0``."""
+    loc_off = q64 * loc_sq + m * loc_sm + lvl * loc_sl + pt * loc_sp
+    u = tl.load(loc_ptr + loc_off, mask=qmask, other=0.0).to(tl.float32)
+    v = tl.load(loc_ptr + loc_off + loc_sc, mask=qmask, other=0.0).to(tl.float32)
+    aw = tl.load(wt_ptr + q64 * wt_sq + m * wt_sm + lvl * wt_sl + pt * wt_sp, mask=qmask, other=0.0).to(tl.float32)
+    # pixel coordinates, clamped to [-2, size + 1] (same corners, no integer overflow)
+    x = tl.minimum(tl.maximum(u * w_l - 0.5, -2.0), w_l + 1.0)
+    y = tl.minimum(tl.maximum(v * h_l - 0.5, -2.0), h_l + 1.0)
+    xf = tl.floor(x)
+    yf = tl.floor(y)
+    return aw, x - xf, y - yf, xf.to(tl.int32), yf.to(tl.int32)
+
+
+@triton.jit
 def forward_kernel(
     value_ptr, shapes_ptr, starts_ptr, index_ptr, loc_ptr, wt_ptr, out_ptr,
     Q, S,
@@ -60,36 +96,15 @@ def forward_kernel(
     M: tl.constexpr, D: tl.constexpr,
     BLOCK_Q: tl.constexpr, BLOCK_D: tl.constexpr,
 ):
-    pid_q = tl.program_id(0)
     m = tl.program_id(1)
-    qs = pid_q * BLOCK_Q + tl.arange(0, BLOCK_Q)
-    qmask = qs < Q
-    cols = tl.arange(0, BLOCK_D)
-    col_mask = cols < D
-    q64 = qs.to(tl.int64)
-    img = tl.load(index_ptr + qs, mask=qmask, other=0).to(tl.int64)
+    q64, qmask, cols, col_mask, img = _block(index_ptr, Q, D, BLOCK_Q, BLOCK_D)
     acc = tl.zeros((BLOCK_Q, BLOCK_D), dtype=tl.float32)
     head_off = m * D
     for lvl in range(L):
-        h_l = tl.load(shapes_ptr + 2 * lvl)
-        w_l = tl.load(shapes_ptr + 2 * lvl + 1)
-        start = tl.load(starts_ptr + lvl).to(tl.int64)
-        row_base = img * S + start
+        h_l, w_l, row_base = _level(shapes_ptr, starts_ptr, img, S, lvl)
         for pt in range(P):
-            loc_off = q64 * loc_sq + m * loc_sm + lvl * loc_sl + pt * loc_sp
-            u = tl.load(loc_ptr + loc_off, mask=qmask, other=0.0).to(tl.float32)
-            v = tl.load(loc_ptr + loc_off + loc_sc, mask=qmask, other=0.0).to(tl.float32)
-            aw = tl.load(wt_ptr + q64 * wt_sq + m * wt_sm + lvl * wt_sl + pt * wt_sp, mask=qmask,
-                         other=0.0).to(tl.float32)
-            # pixel coordinates, clamped to [-2, size + 1] (same corners, no integer overflow)
-            x = tl.minimum(tl.maximum(u * w_l - 0.5, -2.0), w_l + 1.0)
-            y = tl.minimum(tl.maximum(v * h_l - 0.5, -2.0), h_l + 1.0)
-            xf = tl.floor(x)
-            yf = tl.floor(y)
-            fx = x - xf
-            fy = y - yf
-            x0 = xf.to(tl.int32)
-            y0 = yf.to(tl.int32)
+            aw, fx, fy, x0, y0 = _point(loc_ptr, wt_ptr, q64, qmask, m, lvl, pt, h_l, w_l, loc_sq, loc_sm, loc_sl,
+                                        loc_sp, loc_sc, wt_sq, wt_sm, wt_sl, wt_sp)
             for corner in tl.static_range(4):
                 dx = corner % 2
                 dy = corner // 2
@@ -116,36 +131,16 @@ def backward_kernel(
     """Gradients of :func:`forward_kernel`; ``grad_loc (Q, M, L, P, 2)`` and ``grad_wt (Q, M, L, P)``
     contiguous float32, ``grad_value`` a float32 buffer shaped like ``value`` (unused unless
     ``VALUE_GRAD``)."""
-    pid_q = tl.program_id(0)
     m = tl.program_id(1)
-    qs = pid_q * BLOCK_Q + tl.arange(0, BLOCK_Q)
-    qmask = qs < Q
-    cols = tl.arange(0, BLOCK_D)
-    col_mask = cols < D
-    q64 = qs.to(tl.int64)
-    img = tl.load(index_ptr + qs, mask=qmask, other=0).to(tl.int64)
+    q64, qmask, cols, col_mask, img = _block(index_ptr, Q, D, BLOCK_Q, BLOCK_D)
     g_offs = ((q64 * M + m) * D)[:, None] + cols[None, :]
     g = tl.load(grad_out_ptr + g_offs, mask=qmask[:, None] & col_mask[None, :], other=0.0).to(tl.float32)
     head_off = m * D
     for lvl in range(L):
-        h_l = tl.load(shapes_ptr + 2 * lvl)
-        w_l = tl.load(shapes_ptr + 2 * lvl + 1)
-        start = tl.load(starts_ptr + lvl).to(tl.int64)
-        row_base = img * S + start
+        h_l, w_l, row_base = _level(shapes_ptr, starts_ptr, img, S, lvl)
         for pt in range(P):
-            loc_off = q64 * loc_sq + m * loc_sm + lvl * loc_sl + pt * loc_sp
-            u = tl.load(loc_ptr + loc_off, mask=qmask, other=0.0).to(tl.float32)
-            v = tl.load(loc_ptr + loc_off + loc_sc, mask=qmask, other=0.0).to(tl.float32)
-            aw = tl.load(wt_ptr + q64 * wt_sq + m * wt_sm + lvl * wt_sl + pt * wt_sp, mask=qmask,
-                         other=0.0).to(tl.float32)
-            x = tl.minimum(tl.maximum(u * w_l - 0.5, -2.0), w_l + 1.0)
-            y = tl.minimum(tl.maximum(v * h_l - 0.5, -2.0), h_l + 1.0)
-            xf = tl.floor(x)
-            yf = tl.floor(y)
-            fx = x - xf
-            fy = y - yf
-            x0 = xf.to(tl.int32)
-            y0 = yf.to(tl.int32)
+            aw, fx, fy, x0, y0 = _point(loc_ptr, wt_ptr, q64, qmask, m, lvl, pt, h_l, w_l, loc_sq, loc_sm, loc_sl,
+                                        loc_sp, loc_sc, wt_sq, wt_sm, wt_sl, wt_sp)
             sampled = tl.zeros((BLOCK_Q,), dtype=tl.float32)  # <g, bilinear sample>
             gx = tl.zeros((BLOCK_Q,), dtype=tl.float32)  # <g, d sample / d fx>
             gy = tl.zeros((BLOCK_Q,), dtype=tl.float32)
