@@ -218,6 +218,17 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
     return grads[2:-2] if levels_grad else [], grads[0], grads[1], grads[-2], grads[-1]
 
 
+def _unaliased(t: Tensor, taken: set) -> Tensor:
+    """``t``, or a copy where its memory is an input's or an earlier output's (a custom op's outputs may
+    alias neither); ``taken`` collects the storages handed out."""
+    ptr = t.untyped_storage().data_ptr()
+    if ptr in taken or not t.numel():  # (empty tensors: no address to tell them apart)
+        t = t.clone()
+        ptr = t.untyped_storage().data_ptr()
+    taken.add(ptr)
+    return t
+
+
 # ---------------------------------------------------------------------------------------------------
 # registration
 # ---------------------------------------------------------------------------------------------------
@@ -244,8 +255,8 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
                      ) -> Tuple[List[Tensor], Tensor, Tensor, Tensor, Tensor]:
         gl, gloc, gwt, gw, gb = _backward_impl(grad.contiguous(), levels, image_index, locations, weights,
                                                proj_weight, proj_bias, backend, value_grad, levels_grad, graph_key)
-        # (outputs may not alias inputs: a zero gradient is a fresh tensor)
-        return [g.clone() for g in gl], gloc.clone(), gwt.clone(), gw.clone(), gb.clone()
+        taken = {t.untyped_storage().data_ptr() for t in (grad, *levels, locations, weights, proj_weight, proj_bias)}
+        return [_unaliased(g, taken) for g in gl], *(_unaliased(g, taken) for g in (gloc, gwt, gw, gb))
 
     def _fake_out(locations, weights, levels, proj_weight):
         return locations.new_empty(locations.shape[0], proj_weight.shape[0], proj_weight.shape[1],
