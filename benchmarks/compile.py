@@ -13,7 +13,8 @@ a 384 x 640 image with four 64-channel FPN levels (strides 8-64), forward in eva
   64 and 80, equal to the channels and to the finest level's width;
 * ``compiled_ms`` / ``eager_ms`` / ``static_ms``: the median steady-state call of the compiled module,
   of the eager module (the default CPU plans) and of the eager static-shape path (``static_path()``,
-  the formulation the compiled graph contains), and the ratio eager / compiled.
+  the formulation the compiled graph contains), the three interleaved call by call, and the ratio
+  eager / compiled.
 
 Run: ``python benchmarks/compile.py [--threads 1] [--backend inductor] [--cases MSDFF SFF "FusionBlock(MSDFF)"]
 [--json out.json]`` (default: MSDFF only). The machine
@@ -25,13 +26,14 @@ from __future__ import annotations
 import argparse
 import copy
 import os
+import statistics
 import sys
 import time
 
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import measure, print_table, write_json  # noqa: E402
+from _common import print_table, write_json  # noqa: E402
 
 from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels, static_path  # noqa: E402
 from mssf_blocks import _compat  # noqa: E402
@@ -89,8 +91,18 @@ def _print_breakdown(name: str, train: bool, compile_s: float) -> None:
         print(f"  {total:8.2f}  {key} ({calls} call{'s' if calls > 1 else ''})")
 
 
-def _median(fn, repeats: int) -> float:
-    return measure(fn, repeats)[0]  # median wall time after one warm-up call
+def _interleaved(fns, repeats: int):
+    """Median wall time of each of ``fns`` after one warm-up call each, the calls interleaved round by
+    round (on a shared machine a drift of the load then weighs on every one alike)."""
+    for fn in fns:
+        fn()
+    times = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, t in zip(fns, times):
+            t0 = time.perf_counter()
+            fn()
+            t.append(time.perf_counter() - t0)
+    return [statistics.median(t) for t in times]
 
 
 def _call(run, mod, frame, train: bool):
@@ -158,15 +170,14 @@ def main() -> None:
                 new_sizes.append(time.perf_counter() - t0)
             new_sizes.sort()
             mid = frames[len(frames) // 2]
-            comp = _median(lambda: _call(compiled, mod, mid, train), args.repeats)
             eager_mod = copy.deepcopy(base)
-            eager = _median(lambda: _call(run, eager_mod, mid, train), args.repeats)
 
             def static_call():
                 with static_path():
                     return _call(run, eager_mod, mid, train)
 
-            static = _median(static_call, args.repeats)
+            comp, eager, static = _interleaved([lambda: _call(compiled, mod, mid, train),
+                                                lambda: _call(run, eager_mod, mid, train), static_call], args.repeats)
             rows.append({
                 "module": name, "mode": "fwd+bwd train" if train else "fwd eval", "N": mid[0].num_voxels,
                 "compile_s": round(compile_s, 1), "new_sizes_s": round(new_sizes[len(new_sizes) // 2], 3),
