@@ -7,6 +7,7 @@ compile time and speed are measured by ``benchmarks/compile.py``, not here.
 """
 
 import copy
+import gc
 
 import pytest
 import torch
@@ -22,6 +23,7 @@ from mssf_blocks import (
     SparseVoxels,
 )
 from mssf_blocks import _compat
+from mssf_blocks.functional.deform import kept
 from mssf_blocks.geometry import CentroidProjection
 
 torch._dynamo = pytest.importorskip("torch._dynamo")
@@ -124,6 +126,9 @@ def _check_compiled(name, training, backend):
             torch.testing.assert_close(a, e, atol=1e-12, rtol=1e-12)
     # one compilation, at the first voxel count; none of the other four counts recompiles
     assert frames[0] >= 1 and frames == [frames[0]] * len(VOXEL_COUNTS), frames
+    # the sampling graphs kept by compiled forwards (functional/deform/kept.py) were all taken or freed
+    gc.collect()
+    assert kept.waiting() == 0
 
 
 @pytest.mark.parametrize("name", list(CASES))
