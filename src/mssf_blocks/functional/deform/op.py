@@ -258,17 +258,17 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
         taken = {t.untyped_storage().data_ptr() for t in (grad, *levels, locations, weights, proj_weight, proj_bias)}
         return [_unaliased(g, taken) for g in gl], *(_unaliased(g, taken) for g in (gloc, gwt, gw, gb))
 
-    def _fake_out(locations, weights, levels, proj_weight):
+    def _fake_out(locations, levels, proj_weight):
         return locations.new_empty(locations.shape[0], proj_weight.shape[0], proj_weight.shape[1],
                                    dtype=levels[0].dtype)
 
     @_op.register_fake
     def _(levels, image_index, locations, weights, proj_weight, proj_bias, backend):
-        return _fake_out(locations, weights, levels, proj_weight)
+        return _fake_out(locations, levels, proj_weight)
 
     @_op_keep.register_fake
     def _(levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad, levels_grad):
-        return _fake_out(locations, weights, levels, proj_weight), locations.new_empty((), dtype=torch.int64)
+        return _fake_out(locations, levels, proj_weight), locations.new_empty((), dtype=torch.int64)
 
     @_op_backward.register_fake
     def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
