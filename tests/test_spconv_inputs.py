@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 import torch
 
@@ -108,23 +112,34 @@ def test_float64_on_several_cpu_threads_is_refused_before_spconv():
         torch.set_num_threads(n)
 
 
+_TWO_THREADS = """
+import torch, spconv.pytorch as spconv
+gen = torch.Generator().manual_seed(0)
+worst = 0.0
+for draw in range(20):  # (about 3 draws in 4 are wrong: stop at the first)
+    idx = torch.unique(torch.randint(0, 20, (400, 3), generator=gen), dim=0)
+    coords = torch.cat([torch.zeros(len(idx), 1, dtype=torch.int64), idx], 1).int()
+    feats = torch.randn(len(idx), 16, dtype=torch.float64, generator=gen)
+    conv = spconv.SubMConv3d(16, 32, 3, indice_key="t", bias=False).double()
+    out = []
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        out.append(conv(spconv.SparseConvTensor(feats, coords, [20, 20, 20], 1)).features)
+    worst = max(worst, (out[0] - out[1]).abs().max().item())
+    if worst > 1e-6:
+        break
+print(worst, draw + 1)
+"""
+
+
 def test_spconv_float64_on_two_threads_is_still_wrong():
-    """Why the check above exists; when a newer spconv is right on two threads, this fails: drop the check."""
-    spconv = pytest.importorskip("spconv.pytorch")
-    gen = torch.Generator().manual_seed(0)
-    n = torch.get_num_threads()
-    worst = 0.0
-    try:
-        for _ in range(5):
-            idx = torch.unique(torch.randint(0, 20, (400, 3), generator=gen), dim=0)
-            coords = torch.cat([torch.zeros(len(idx), 1, dtype=torch.int64), idx], 1).int()
-            feats = torch.randn(len(idx), 16, dtype=torch.float64, generator=gen)
-            conv = spconv.SubMConv3d(16, 32, 3, indice_key="t", bias=False).double()
-            out = []
-            for threads in (1, 2):
-                torch.set_num_threads(threads)
-                out.append(conv(spconv.SparseConvTensor(feats, coords, [20, 20, 20], 1)).features)
-            worst = max(worst, (out[0] - out[1]).abs().max().item())
-    finally:
-        torch.set_num_threads(n)
-    assert worst > 1e-6, f"spconv's float64 CPU results agree on one and two threads (max diff {worst:.1e})"
+    """Why the check above exists; when a newer spconv is right on two threads, this fails: drop the check.
+
+    Run in a fresh interpreter: inside the whole suite one CI run saw five draws agree (what earlier tests
+    leave behind can keep the second thread from running alongside the first)."""
+    pytest.importorskip("spconv.pytorch")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    done = subprocess.run([sys.executable, "-c", _TWO_THREADS], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    worst, draws = done.stdout.split()[-2:]
+    assert float(worst) > 1e-6, f"spconv's float64 CPU results agree on one and two threads ({draws} draws, max diff {worst})"
