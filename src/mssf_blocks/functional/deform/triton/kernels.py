@@ -42,12 +42,20 @@ __all__ = ["deform_sample_forward", "deform_sample_backward", "launch_config", "
 
 
 @triton.jit
-def _corner(row_base, cx, cy, w_l, h_l, cols, col_mask, qmask, M: tl.constexpr, D: tl.constexpr):
-    """Offsets into ``value`` and the in-map mask of one bilinear corner for a block of queries."""
+def _corner(value_ptr, head_off, row_base, x0, y0, fx, fy, w_l, h_l, cols, col_mask, qmask,
+            CORNER: tl.constexpr, M: tl.constexpr, D: tl.constexpr):
+    """Bilinear corner ``CORNER`` (0-3: ``x0 + CORNER % 2``, ``y0 + CORNER // 2``) of a block of points:
+    its weights along x and y, its ``(BLOCK_Q, BLOCK_D)`` values in float32 (zero outside the map), and
+    their offsets into ``value`` and mask."""
+    cx = x0 + CORNER % 2
+    cy = y0 + CORNER // 2
+    wx = fx if CORNER % 2 == 1 else 1.0 - fx
+    wy = fy if CORNER // 2 == 1 else 1.0 - fy
     inside = qmask & (cx >= 0) & (cx < w_l) & (cy >= 0) & (cy < h_l)
     row = row_base + (cy * w_l + cx).to(tl.int64)  # (BLOCK_Q,) pixel row of (image, level)
-    offs = (row * M)[:, None] * D + cols[None, :]
-    return offs, inside[:, None] & col_mask[None, :]
+    offs = (row * M)[:, None] * D + head_off + cols[None, :]
+    mask = inside[:, None] & col_mask[None, :]
+    return wx, wy, tl.load(value_ptr + offs, mask=mask, other=0.0).to(tl.float32), offs, mask
 
 
 @triton.jit
@@ -106,12 +114,8 @@ def forward_kernel(
             aw, fx, fy, x0, y0 = _point(loc_ptr, wt_ptr, q64, qmask, m, lvl, pt, h_l, w_l, loc_sq, loc_sm, loc_sl,
                                         loc_sp, loc_sc, wt_sq, wt_sm, wt_sl, wt_sp)
             for corner in tl.static_range(4):
-                dx = corner % 2
-                dy = corner // 2
-                wx = fx if dx == 1 else 1.0 - fx
-                wy = fy if dy == 1 else 1.0 - fy
-                offs, mask = _corner(row_base, x0 + dx, y0 + dy, w_l, h_l, cols, col_mask, qmask, M, D)
-                val = tl.load(value_ptr + offs + head_off, mask=mask, other=0.0).to(tl.float32)
+                wx, wy, val, _, _ = _corner(value_ptr, head_off, row_base, x0, y0, fx, fy, w_l, h_l, cols, col_mask,
+                                            qmask, corner, M, D)
                 acc += (aw * wx * wy)[:, None] * val
     out_offs = ((q64 * M + m) * D)[:, None] + cols[None, :]
     tl.store(out_ptr + out_offs, acc.to(out_ptr.dtype.element_ty), mask=qmask[:, None] & col_mask[None, :])
@@ -145,20 +149,16 @@ def backward_kernel(
             gx = tl.zeros((BLOCK_Q,), dtype=tl.float32)  # <g, d sample / d fx>
             gy = tl.zeros((BLOCK_Q,), dtype=tl.float32)
             for corner in tl.static_range(4):
-                dx = corner % 2
-                dy = corner // 2
-                wx = fx if dx == 1 else 1.0 - fx
-                wy = fy if dy == 1 else 1.0 - fy
-                sx = 1.0 if dx == 1 else -1.0  # d wx / d fx
-                sy = 1.0 if dy == 1 else -1.0
-                offs, mask = _corner(row_base, x0 + dx, y0 + dy, w_l, h_l, cols, col_mask, qmask, M, D)
-                val = tl.load(value_ptr + offs + head_off, mask=mask, other=0.0).to(tl.float32)
+                wx, wy, val, offs, mask = _corner(value_ptr, head_off, row_base, x0, y0, fx, fy, w_l, h_l, cols,
+                                                  col_mask, qmask, corner, M, D)
+                sx = 1.0 if corner % 2 == 1 else -1.0  # d wx / d fx
+                sy = 1.0 if corner // 2 == 1 else -1.0
                 dot = tl.sum(val * g, axis=1)
                 sampled += wx * wy * dot
                 gx += sx * wy * dot
                 gy += sy * wx * dot
                 if VALUE_GRAD:
-                    tl.atomic_add(grad_value_ptr + offs + head_off, (aw * wx * wy)[:, None] * g, mask=mask)
+                    tl.atomic_add(grad_value_ptr + offs, (aw * wx * wy)[:, None] * g, mask=mask)
             out_off = ((q64 * M + m) * L + lvl) * P + pt
             tl.store(grad_wt_ptr + out_off, sampled, mask=qmask)
             tl.store(grad_loc_ptr + 2 * out_off, aw * gx * w_l, mask=qmask)
@@ -174,7 +174,7 @@ def launch_config(d: int, backward: bool) -> Tuple[int, int, int]:
 
     1,024 elements of the ``(BLOCK_Q, BLOCK_D)`` tile over 8 warps (4 per thread): measured with
     ``tests/functional/triton_aot.py`` (``ptxas -v`` of the sm_80 compile, float32), the forward at
-    d = 32 used 128 registers and the backward 224, no spills; 8 elements per thread (4 warps) took
+    d = 32 used 128 registers and the backward 220, no spills; 8 elements per thread (4 warps) took
     the forward to 239 registers and spilled the backward (52 bytes); 16 per thread (block 64 x 32,
     4 warps) spilled both (1.2 / 1.7 KB). The compile test asserts no spill for every variant on
     sm_80 and sm_90. Not yet timed on a GPU (``benchmarks/gpu_check.py``).
