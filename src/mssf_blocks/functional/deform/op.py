@@ -162,6 +162,12 @@ def _autograd_on() -> contextlib.ExitStack:
     return stack
 
 
+def _grad_flags(levels, proj_weight, proj_bias) -> Tuple[bool, bool]:
+    """``(value_grad, levels_grad)``: whether the projection or the levels need gradients, and the levels."""
+    levels_grad = any(t.requires_grad for t in levels)
+    return levels_grad or proj_weight.requires_grad or proj_bias.requires_grad, levels_grad
+
+
 def _grad_inputs(levels, locations, weights, proj_weight, proj_bias, value_grad, levels_grad):
     """Detached copies of the op's inputs, those that need gradients marked, and the list of those."""
     loc = locations.detach().requires_grad_()
@@ -280,8 +286,7 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
     def _save(ctx, inputs, graph_key=None):
         levels, image_index, locations, weights, proj_weight, proj_bias, backend = inputs[:7]
         ctx.backend, ctx.num_levels, ctx.extra_inputs = backend, len(levels), len(inputs) - 7
-        ctx.levels_grad = any(t.requires_grad for t in levels)
-        ctx.value_grad = ctx.levels_grad or proj_weight.requires_grad or proj_bias.requires_grad
+        ctx.value_grad, ctx.levels_grad = _grad_flags(levels, proj_weight, proj_bias)
         ctx.save_for_backward(*levels, image_index, locations, weights, proj_weight, proj_bias,
                               *([] if graph_key is None else [graph_key]))
 
@@ -375,8 +380,7 @@ def sample_project_unchecked(levels: List[Tensor], image_index: Tensor, location
         return _AUTOGRAD_BACKENDS[choice](*args)  # native autograd: no second forward in backward (module doc)
     if _OP is not None:
         if choice in _AUTOGRAD_BACKENDS and _compat.is_compiling() and not _compat.is_exporting():
-            levels_grad = any(t.requires_grad for t in levels)
-            value_grad = levels_grad or proj_weight.requires_grad or proj_bias.requires_grad
+            value_grad, levels_grad = _grad_flags(levels, proj_weight, proj_bias)
             if torch.is_grad_enabled() and (value_grad or locations.requires_grad or weights.requires_grad):
                 return _OP_KEEP(*args, choice, value_grad, levels_grad)[0]  # (no second forward: kept.py)
         return _OP(*args, choice)
