@@ -94,10 +94,13 @@ def _spatial_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple
     return torch.argsort(image_index * (1 << (2 * bits)) + _hilbert_index(x, y, bits))
 
 
-def _inverse(order: Tensor) -> Tensor:
-    """The inverse of the permutation ``order``."""
-    inverse = torch.empty_like(order)
-    inverse[order] = torch.arange(order.numel(), device=order.device)
+def _inverse(order: Tensor, size: Optional[int] = None) -> Tensor:
+    """The inverse of the permutation ``order``; with ``size`` (``order`` then takes ``len(order)`` of
+    ``size`` items), the positions ``order`` leaves out map to ``len(order)``, one past its end."""
+    n = order.numel()
+    inverse = torch.empty_like(order) if size is None else torch.full((size,), n, dtype=order.dtype,
+                                                                      device=order.device)
+    inverse[order] = torch.arange(n, device=order.device)
     return inverse
 
 
@@ -110,6 +113,4 @@ def _query_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[i
     if live is None:
         return order, _inverse(order)
     order = order[live[order]]
-    restore = torch.full_like(live, order.numel(), dtype=order.dtype)
-    restore[order] = torch.arange(order.numel(), device=order.device)
-    return order, restore
+    return order, _inverse(order, live.numel())

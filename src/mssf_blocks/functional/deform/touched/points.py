@@ -102,7 +102,7 @@ def _live_queries(locations: Tensor, sizes: Sequence[Tuple[int, int]]) -> Tensor
     read nothing are dropped, e.g. MSDFF's invalid (voxel, camera) pairs, which the static layout
     places at ``uv = -1``.
     """
-    lp = locations.detach().permute(0, 2, 4, 1, 3)  # (Q, L, 2, M, P): MSDFF's locations are contiguous so
+    lp = locations.detach().permute(0, 2, 4, 1, 3)  # (Q, L, 2, M, P): contiguous for MSDFF's locations
     half = torch.tensor([[0.5 + 1.0 / w, 0.5 + 1.0 / h] for h, w in sizes], dtype=lp.dtype, device=lp.device)
     # |u - 1/2| > 1/2 + 1/W, as 0 / 1 in the floating type (NaN: 0): 10x faster than boolean operations
     outside = (lp - 0.5).abs_().gt_(half.view(1, len(sizes), 2, 1, 1))
