@@ -57,6 +57,19 @@ def test_keep_op_runs_the_forward_once_and_matches_the_reference(monkeypatch, ba
     _check_grads(args, targs, grad)
 
 
+def test_the_key_is_a_cpu_tensor_for_inputs_on_any_device():
+    """The fake implementation must give the key the device the real one does (the CPU), also for CUDA
+    inputs (the grid backend serves CUDA without triton); meta inputs run the fake implementation."""
+    values, image_index, locations, weights, proj_w, proj_b = (
+        [t.to("meta") for t in a] if isinstance(a, list) else a.to("meta") for a in inputs(seed=5))
+    out, key = torch.ops.mssf_blocks.deform_sample_project_keep(values, image_index, locations, weights, proj_w, proj_b,
+                                                                "grid", True, True)
+    assert out.device.type == "meta" and out.shape == (7, 2, 3)
+    assert key.device.type == "cpu" and key.dtype == torch.int64 and key.dim() == 0
+    _, real_key = torch.ops.mssf_blocks.deform_sample_project_keep(*with_grad(inputs(seed=5)), "grid", True, True)
+    assert real_key.device == key.device
+
+
 @pytest.mark.parametrize("why", ["evicted", "other_inputs"])
 def test_backward_recomputes_when_no_graph_fits(monkeypatch, why):
     args = inputs(seed=4)

@@ -274,7 +274,8 @@ if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backend
 
     @_op_keep.register_fake
     def _(levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad, levels_grad):
-        return _fake_out(locations, levels, proj_weight), locations.new_empty((), dtype=torch.int64)
+        # (the key lives on the CPU whatever the inputs' device: kept.keep makes it there, no device sync)
+        return _fake_out(locations, levels, proj_weight), torch.empty((), dtype=torch.int64, device="cpu")
 
     @_op_backward.register_fake
     def _(grad, levels, image_index, locations, weights, proj_weight, proj_bias, backend, value_grad,
