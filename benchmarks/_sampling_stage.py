@@ -3,7 +3,8 @@
 * ``triton``: the sampling op's Triton kernels (``functional/deform/triton/kernels.py``; forward, and backward
   with the value gradient);
 * ``grid``: the grid path (``functional/deform/grid.py``, one ``F.grid_sample`` per level, autograd);
-* ``mmcv``: mmcv's ``MultiScaleDeformableAttnFunction`` (its CUDA op), where mmcv's compiled ops import.
+* ``mmcv``: mmcv's ``MultiScaleDeformableAttnFunction`` (its CUDA op), where mmcv's compiled ops import;
+  else, given an mmcv source archive (``mmcv_src``), its CUDA op built alone from it (``_mmcv_build.py``).
 
 All read the same values: one ``(1, S, M, d)`` buffer of the ``L`` levels of a 1936 x 1216 image (FPN
 strides 4-32 or 4-64), the grid path through ``(1, M, d, H_l, W_l)`` views of it. N = 2,500 / 8,000 /
@@ -19,23 +20,35 @@ grid path's. ``smoke`` (CPU): toy sizes, the grid path only (the kernels need a 
 from __future__ import annotations
 
 import os
-from typing import Dict, List
+from pathlib import Path
+from typing import Dict, List, Optional
 
 from _gpu_stages import _peak, _timer  # benchmarks/ (the script's folder) is on sys.path
 
 __all__ = ["sampling_benchmark"]
 
 
-def _mmcv_function():
+def _mmcv_function(mmcv_src: Optional[Path], build_dir: Path):
+    """``(mmcv's autograd function, None)`` or ``(None, why not)``: mmcv's own where its compiled ops
+    import, else the op built from ``mmcv_src`` when given."""
     try:
         from mmcv.ops.multi_scale_deform_attn import MultiScaleDeformableAttnFunction, ext_module  # noqa: F401
     except Exception as exc:  # noqa: BLE001 - not installed, or a build without compiled ops
-        return None, f"n/a ({type(exc).__name__}: {str(exc)[:80]})"
+        if mmcv_src is None:
+            return None, (f"n/a ({type(exc).__name__}: {str(exc)[:80]}; --mmcv-src ARCHIVE builds its op from "
+                          "mmcv's source)")
+        import _mmcv_build
+
+        print(f"  mmcv's compiled ops do not import: building its CUDA op from {mmcv_src}", flush=True)
+        return _mmcv_build.function(mmcv_src, build_dir)
     return MultiScaleDeformableAttnFunction, None
 
 
-def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0) -> List[Dict[str, object]]:
-    """One row per (levels, d, dtype, N); rows past ``budget_s`` seconds are listed as skipped."""
+def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0, mmcv_src: Optional[Path] = None,
+                       build_dir: Optional[Path] = None) -> List[Dict[str, object]]:
+    """One row per (levels, d, dtype, N); rows past ``budget_s`` seconds are listed as skipped. ``mmcv_src``:
+    an mmcv source archive to build mmcv's op from where mmcv's compiled ops do not import (into
+    ``build_dir``; the build's time is not counted in ``budget_s``)."""
     import time
 
     import torch
@@ -52,7 +65,8 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
     triton_ok = device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1"
     if triton_ok:
         from mssf_blocks.functional.deform.triton import kernels as tk
-    mmcv_fn, mmcv_why = _mmcv_function() if device.type == "cuda" else (None, "n/a (cpu)")
+    mmcv_fn, mmcv_why = (_mmcv_function(mmcv_src, build_dir or Path("outputs/mmcv_build"))
+                         if device.type == "cuda" else (None, "n/a (cpu)"))
     time_it = _timer(device)
     rows = []
     g = torch.Generator().manual_seed(0)

@@ -2,7 +2,7 @@
 
 Run on a GPU machine from the repository root (``make gpu-check``)::
 
-    python benchmarks/gpu_check.py [--out outputs/gpu_check] [--skip-install]
+    python benchmarks/gpu_check.py [--out outputs/gpu_check] [--skip-install] [--mmcv-src mmcv-2.1.0.tar.gz]
 
 From a bare machine it first makes sure the packages it needs import (torch with CUDA, einops,
 numpy, pytest, spconv for the GPU's CUDA version, tqdm, pillow): missing ones are installed with pip
@@ -24,7 +24,8 @@ on one modern GPU (8 when nothing needs installing):
    warm-up), peak memory (``torch.cuda.max_memory_allocated``), the output difference;
 2b. the sampling core at VoD shapes (N = 2,500 / 8,000 / 20,000, 4-5 FPN levels of 1936 x 1216, 8 heads,
    4 points, d = 32 and 256, float32 and bfloat16): the sampling op's Triton kernels, the grid path and
-   mmcv's ``MultiScaleDeformableAttnFunction`` where its compiled ops import; forward, forward +
+   mmcv's ``MultiScaleDeformableAttnFunction`` where its compiled ops import (else, with ``--mmcv-src``,
+   mmcv's CUDA op built alone from its source archive, ``benchmarks/_mmcv_build.py``); forward, forward +
    backward, peak memory, outputs against the grid path's (``benchmarks/_sampling_stage.py``);
 3. one training step (forward + backward + AdamW step) of each example detector (VoD paper preset,
    n = 2 MSDFF blocks) on a VoD-sized synthetic frame (2,500 radar points, 1216 x 1936 image): median
@@ -229,6 +230,10 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-install", action="store_true", help="do not pip-install missing packages, report them")
     ap.add_argument("--skip-tests", action="store_true")
     ap.add_argument("--repeats", type=int, default=None, help="timed repeats (default 5; 2 with --smoke)")
+    ap.add_argument("--mmcv-src", type=Path, default=os.environ.get("MSSF_MMCV_SRC") or None,
+                    help="an mmcv source archive (e.g. mmcv-2.1.0.tar.gz) or tree: where mmcv's compiled ops do not "
+                         "import, stage 2b builds mmcv's deformable-attention CUDA op from it with nvcc, for the "
+                         "comparison (default: $MSSF_MMCV_SRC)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     try:  # a machine without a GPU is told so at once, before any install
@@ -267,7 +272,8 @@ def main(argv=None) -> int:
     print("2/4 MSDFF benchmark", flush=True)
     result["msdff"] = msdff_benchmark(device, args.smoke, repeats)
     print("2b/4 sampling core: Triton op / grid path / mmcv", flush=True)
-    result["sampling"] = sampling_benchmark(device, args.smoke, repeats, BUDGET_S["sampling"])
+    result["sampling"] = sampling_benchmark(device, args.smoke, repeats, BUDGET_S["sampling"], args.mmcv_src,
+                                            args.out / "mmcv_build")
     if "spconv" in missing:
         result["detectors"] = [dict(detector="all", error=packages["spconv"])]
     else:

@@ -97,6 +97,9 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
                      "--sync-bn --out /shared/outputs/vod_cp_16gpu"): "two nodes of 8 GPUs; " + _GPU,
     ("docs/gpus.md", "make gpu-check"): "the device check for a GPU machine; tests/test_gpu_check.py runs its "
                                         "--smoke --device cpu mode",
+    ("docs/gpus.md", "python benchmarks/gpu_check.py --skip-install --mmcv-src mmcv-2.1.0.tar.gz --out "
+                     "outputs/gpu_check"): "the device check with mmcv's op built from its source archive: a GPU "
+                                           "machine; tests/test_mmcv_build.py checks the sources it takes and the binding",
     ("docs/differences.md", "python -m mssf_examples convert-authors mssf_pp_vod.pth --out converted/mssf_pp.pt "
                             "--layout mssf_pp"): _AUTHORS,
     ("docs/differences.md", "python -m mssf_examples eval --checkpoint converted/mssf_pp.pt --data-root "
