@@ -24,7 +24,7 @@ import tarfile
 from pathlib import Path
 from typing import Optional, Tuple
 
-__all__ = ["MMCV_CU", "prepare_sources", "build", "BINDING"]
+__all__ = ["MMCV_CU", "BINDING", "prepare_sources", "build", "function"]
 
 #: mmcv's CUDA file of the op, relative to its ``mmcv/ops/csrc`` folder (it includes ``common/``'s headers).
 MMCV_CU = "pytorch/cuda/ms_deform_attn_cuda.cu"
