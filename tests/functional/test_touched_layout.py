@@ -164,3 +164,29 @@ def test_sorted_points_weights_are_the_level_major_permutation(requires_grad):
     if requires_grad:
         (grad,) = torch.autograd.grad((wts * expected.detach()).sum(), wt)
         assert torch.equal(grad, wt.detach())
+
+
+@pytest.mark.parametrize("layout", ["msdff_view", "contiguous", "sliced", "expanded"])
+def test_rows_gathers_in_memory_order_with_index_selects_values_and_gradients(layout):
+    """``points._rows`` (the plans' query gather) equals a per-row Python loop, values and gradients; for
+    MSDFF's ``(Q, M, L, P, 2)`` view of ``(Q, L, 2, M, P)`` memory it gathers whole rows of that memory
+    (the result is the same view of gathered rows), not element by element."""
+    q, m, lv, p = 9, 3, 2, 4
+    g = torch.Generator().manual_seed(3)
+    base = torch.randn(q, lv, 2, m, p, generator=g, dtype=torch.float64, requires_grad=True)
+    make = {
+        "msdff_view": lambda b: b.permute(0, 3, 1, 4, 2),
+        "contiguous": lambda b: b.permute(0, 3, 1, 4, 2).contiguous(),
+        "sliced": lambda b: b[:, :, :, 1:],  # (Q, L, 2, M - 1, P): not dense
+        "expanded": lambda b: b[:, :1, :1, :1, :1].expand(q, m, lv, p, 2),  # stride 0
+    }[layout]
+    index = torch.tensor([4, 0, 8, 2, 7])
+    out = points._rows(make(base), index)
+    expected = torch.stack([make(base)[i] for i in index.tolist()])
+    assert out.shape == expected.shape and torch.equal(out, expected)
+    if layout == "msdff_view":
+        assert out.permute(0, 2, 4, 1, 3).is_contiguous()
+    grad = torch.randn(expected.shape, generator=g, dtype=torch.float64)
+    (got,) = torch.autograd.grad(out, base, grad)
+    (want,) = torch.autograd.grad(expected, base, grad)
+    assert torch.equal(got, want)

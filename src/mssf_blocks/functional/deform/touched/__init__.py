@@ -26,7 +26,7 @@ from torch import Tensor
 from .blocks import _ProjectedLevel, _RawLevel, _sum_levels
 from .order import _query_order
 from .plans import _is_row_table, _touched_level
-from .points import _level_points, _live_queries
+from .points import _level_points, _live_queries, _rows
 
 __all__ = ["sample_project", "sample_points"]
 
@@ -64,7 +64,7 @@ def sample_project(
     )
     image_index = image_index[order]
     if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
-        loc_sorted, wt_sorted = locations.index_select(0, order), weights.index_select(0, order)
+        loc_sorted, wt_sorted = _rows(locations, order), _rows(weights, order)
     out = None
     raws: List[_RawLevel] = []
     projected: List[_ProjectedLevel] = []
