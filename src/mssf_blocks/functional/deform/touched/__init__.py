@@ -63,14 +63,14 @@ def sample_project(
         t is not None and t.requires_grad for t in [locations, weights, w_all, b_all, *levels]
     )
     image_index = image_index[order]
-    if needs_grad:  # (the grid_sample plans read the points in the callers' layout)
-        loc_sorted, wt_sorted = _rows(locations, order), _rows(weights, order)
+    if needs_grad:  # (the grid_sample plans read the points in the callers' layout; unbind: see _level_points)
+        loc_levels, wt_levels = _rows(locations, order).unbind(2), _rows(weights, order).unbind(2)
     out = None
     raws: List[_RawLevel] = []
     projected: List[_ProjectedLevel] = []
     for lvl, (val, lv) in enumerate(zip(levels, _level_points(locations, weights, sizes, order))):
         if needs_grad:
-            lv = lv._replace(loc=loc_sorted[:, :, lvl], wt=wt_sorted[:, :, lvl])
+            lv = lv._replace(loc=loc_levels[lvl], wt=wt_levels[lvl])
         part = _touched_level(val, image_index, lv, w_all, b_all, m, plan, needs_grad, defer_projection=True,
                               projection_paid=bool(raws))
         if isinstance(part, _RawLevel):  # bagged with the other levels in blocks of queries below
