@@ -89,12 +89,9 @@ def _sorted_points(locations: Tensor, weights: Tensor, sizes: Sequence[Tuple[int
     <mssf_blocks.MSDFF.sampling_locations_and_weights>` returns) are taken by whole rows; others are
     gathered by rows, then transposed in one copy (2x faster than a strided gather per level).
     """
-    lp = locations.permute(0, 2, 4, 1, 3)
-    if lp.is_contiguous():
-        lp = lp.index_select(0, order) if order is not None else lp.clone()
-    else:
-        lp = (locations if order is None else _rows(locations, order)).permute(0, 2, 4, 1, 3).contiguous()
-    wts = weights if order is None else weights.index_select(0, order)
+    lp = locations.permute(0, 2, 4, 1, 3)  # (a private copy: the pixel coordinates are made in place on it)
+    lp = lp.clone(memory_format=torch.contiguous_format) if order is None else _rows(lp, order).contiguous()
+    wts = weights if order is None else _rows(weights, order)
     wide = _wide(wts)  # (a head's P weights as one element, when autograd does not record them)
     moved = wide.permute(0, 2, 1, 3).contiguous()
     wts = moved if wide is wts else moved.view(wts.dtype)  # (a dtype view, even to the same type, drops autograd)
