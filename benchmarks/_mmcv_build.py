@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import tarfile
 from pathlib import Path
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 __all__ = ["MMCV_CU", "BINDING", "prepare_sources", "build", "function"]
 
@@ -66,6 +66,31 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
 _THC_ATOMICS = "#pragma once\n#include <ATen/cuda/Atomic.cuh>\n"
 
 
+def _csrc_files(source: Path) -> Dict[str, bytes]:
+    """The files the op needs, by their path under mmcv's ``mmcv/ops/csrc`` (:data:`MMCV_CU` and
+    ``common/``), read from ``source``: an mmcv ``.tar.gz`` source archive or an unpacked source tree."""
+    if source.is_dir():
+        found = sorted(source.glob(f"**/mmcv/ops/csrc/{MMCV_CU}"))
+        if not found:
+            raise FileNotFoundError(f"mmcv source: no mmcv/ops/csrc/{MMCV_CU} under {source}")
+        root = found[0].parents[2]  # .../mmcv/ops/csrc
+        return {str(path.relative_to(root)): path.read_bytes()
+                for path in [found[0], *sorted((root / "common").rglob("*"))] if path.is_file()}
+    if not source.is_file():
+        raise FileNotFoundError(f"mmcv source: {source} does not exist (an mmcv source archive or folder)")
+    files = {}
+    with tarfile.open(source) as tar:
+        for member in tar.getmembers():
+            _, _, rel = member.name.partition("/mmcv/ops/csrc/")
+            if ".." in Path(rel).parts:  # (never written outside the build folder)
+                continue
+            if member.isfile() and (rel == MMCV_CU or rel.startswith("common/")):
+                files[rel] = tar.extractfile(member).read()
+    if MMCV_CU not in files:
+        raise FileNotFoundError(f"mmcv source: no mmcv/ops/csrc/{MMCV_CU} in the archive {source}")
+    return files
+
+
 def prepare_sources(source: Path, build_dir: Path) -> Tuple[list, list]:
     """``(sources, include_dirs)`` for ``torch.utils.cpp_extension.load``: mmcv's ``csrc`` files the op
     needs, copied from ``source`` (an mmcv ``.tar.gz`` source archive or an unpacked source tree) into
@@ -74,40 +99,13 @@ def prepare_sources(source: Path, build_dir: Path) -> Tuple[list, list]:
     Raises:
         FileNotFoundError: ``source`` is missing, or holds no ``mmcv/ops/csrc/`` + :data:`MMCV_CU`.
     """
-    source, build_dir = Path(source), Path(build_dir)
-    csrc = build_dir / "csrc"
-    if source.is_dir():
-        found = sorted(source.glob(f"**/mmcv/ops/csrc/{MMCV_CU}"))
-        if not found:
-            raise FileNotFoundError(f"mmcv source: no mmcv/ops/csrc/{MMCV_CU} under {source}")
-        root = found[0].parents[2]  # .../mmcv/ops/csrc
-        for path in [found[0], *sorted((root / "common").rglob("*"))]:
-            if path.is_file():
-                dest = csrc / path.relative_to(root)
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                dest.write_bytes(path.read_bytes())
-    elif source.is_file():
-        with tarfile.open(source) as tar:
-            wanted = []
-            for member in tar.getmembers():
-                _, _, rel = member.name.partition("/mmcv/ops/csrc/")
-                if ".." in Path(rel).parts:  # (never written outside the build folder)
-                    continue
-                if member.isfile() and (rel == MMCV_CU or rel.startswith("common/")):
-                    wanted.append((member, rel))
-            if not any(rel == MMCV_CU for _, rel in wanted):
-                raise FileNotFoundError(f"mmcv source: no mmcv/ops/csrc/{MMCV_CU} in the archive {source}")
-            for member, rel in wanted:
-                dest = csrc / rel
-                dest.parent.mkdir(parents=True, exist_ok=True)
-                dest.write_bytes(tar.extractfile(member).read())
-    else:
-        raise FileNotFoundError(f"mmcv source: {source} does not exist (an mmcv source archive or folder)")
-    shim = build_dir / "shim"
-    (shim / "THC").mkdir(parents=True, exist_ok=True)
-    (shim / "THC" / "THCAtomics.cuh").write_text(_THC_ATOMICS)
-    binding = build_dir / "msda_binding.cpp"
-    binding.write_text(BINDING)
+    build_dir = Path(build_dir)
+    csrc, shim, binding = build_dir / "csrc", build_dir / "shim", build_dir / "msda_binding.cpp"
+    written = {csrc / rel: data for rel, data in _csrc_files(Path(source)).items()}
+    written.update({shim / "THC" / "THCAtomics.cuh": _THC_ATOMICS.encode(), binding: BINDING.encode()})
+    for path, data in written.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(data)
     includes = [shim, csrc / "common", csrc / "common" / "cuda"]
     return [str(binding), str(csrc / MMCV_CU)], [str(p) for p in includes]
 
