@@ -5,11 +5,11 @@ it. 224 bytes are 8 View-of-Delft rows of 7 floats and 7 TJ4DRadSet rows of 8 al
 eight has such a size: 8 * k points), and the real VoD frame 01047 (352 points) is one. So a reading is
 accepted only when the columns look like what they are named, tested on every row:
 
-* ``time`` (VoD: which radar scan, ``0`` for the current one, ``-1`` for the one before, ...): an integer
-  in ``[-MAX_SCANS, 0]``;
+* ``time`` (VoD: which radar scan, ``0`` for the current one, ``-1`` for the one before, ..., as the VoD
+  devkit's SENSORS_AND_DATA.md defines it): an integer in ``[-MAX_SCANS, 0]``;
 * ``range`` (TJ4DRadSet: the distance the radar measured): ``|x, y, z|`` within ``RANGE_REL_TOL`` of
-  itself plus ``RANGE_ABS_TOL`` (the coordinates are that range along the measured angles; a float32
-  round trip keeps them to about 1e-6 of the range);
+  itself plus ``RANGE_ABS_TOL`` (the coordinates are that range along the measured angles: on the 41
+  frames of TJ4DRadSet's public sample, 108,222 points, they agree to 3.1e-5 m, 1.9e-7 of the range);
 * ``reflectance`` (KITTI LiDAR): in ``[0, 1]``;
 * every column: finite.
 
