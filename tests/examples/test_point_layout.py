@@ -186,3 +186,24 @@ def test_cli_takes_the_real_vod_frame_of_both_sizes_as_vod_only(realdata_root, t
     assert "01047.bin" in line and "holds vod's points" in line and "pass --dataset vod" in line
     ds = _open_dataset(build_parser(), root, DATASETS["vod"], "radar", "all")  # no error
     assert ds.frame_ids == ["01047"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# the reader (KittiFormatDataset, read_points): the same mistake outside the CLI
+# ---------------------------------------------------------------------------------------------------
+def test_read_points_refuses_another_datasets_points_of_both_sizes(tmp_path):
+    from mssf_blocks.errors import MSSFError
+    from mssf_examples.kitti_io import read_points
+
+    vod, tj4d = tmp_path / "vod.bin", tmp_path / "tj4d.bin"
+    _both_widths(vod_points(64, 0)).tofile(vod)
+    _both_widths(tj4d_points(56, 1)).tofile(tj4d)
+    assert read_points(vod, VOD_RADAR).shape == (64, 7) and read_points(tj4d, TJ4D_RADAR).shape == (56, 8)
+    with pytest.raises(MSSFError, match=r"vod.bin: point_format tj4d_radar does not fit the values, vod_radar does "
+                                        r".*pass point_format=VOD_RADAR"):
+        read_points(vod, TJ4D_RADAR)
+    with pytest.raises(MSSFError, match=r"tj4d.bin: point_format vod_radar does not fit .*pass point_format=TJ4D_RADAR"):
+        read_points(tj4d, VOD_RADAR)
+    # values that fit no layout (random numbers, as in test_kitti_layouts.py) are left to the size check
+    np.random.default_rng(0).normal(size=(8, 7)).astype("<f4").tofile(vod)
+    assert read_points(vod, TJ4D_RADAR).shape == (7, 8)
