@@ -100,6 +100,11 @@ def _train(ap: argparse.ArgumentParser, args) -> int:
     torch.manual_seed(args.seed)  # the same initial weights in every process
     model = build_detector(args.detector, preset, num_fusion_blocks=args.fusion_blocks, fusion=args.fusion,
                            score_threshold=args.score_threshold)
+    if model.image_branch is not None and model.image_branch.frozen and args.image_weights is None:
+        # a frozen branch that loads nothing trains the detector on random image features, without a word
+        ap.error("--image-weights: a frozen image branch needs pre-trained weights (the paper: HTC's ResNet-50 + "
+                 f"FPN; --preset {args.preset} freezes it); got none. Pass --image-weights FILE (a state_dict of "
+                 "mssf_examples.image_branch.ImageBranch), or --train-image-branch to train it")
     if args.image_weights is not None and model.image_branch is not None:
         model.image_branch.load_state_dict(torch.load(args.image_weights, map_location="cpu", weights_only=True))
 

@@ -54,13 +54,20 @@ def _other_layout(root: Path, spec) -> str:
     return ""
 
 
-def _check_point_files(ap: argparse.ArgumentParser, ds: KittiFormatDataset, spec, sample: int = 1) -> None:
-    """The first ``sample`` point files hold whole rows of ``spec``'s columns; when they hold rows of
-    another ``--dataset``'s columns instead (VoD 7, TJ4D 8 float32 values a point), name that dataset.
-    Reads file sizes only (a damaged file further on is named when it is loaded)."""
+def _check_point_files(ap: argparse.ArgumentParser, ds: KittiFormatDataset, spec, sample: int = 3) -> None:
+    """The first ``sample`` point files hold ``spec``'s columns: decided from their values, not their size
+    alone (a size that divides into rows of 7 and of 8 floats fits VoD and TJ4DRadSet alike; VoD frame
+    01047 has one): each file is read as every ``--dataset``'s layout and its columns tested
+    (:mod:`mssf_examples.point_layout`). Refused, naming the file, every reading and ``--dataset``: a file
+    that reads as another dataset only, as none, or as two with different meanings."""
     from .cli_args import DATASETS
+    from .point_layout import plausible_layouts, read_layouts
 
-    sizes = []
+    names = {id(other.point_format): name for name, other in DATASETS.items()}
+    formats = [other.point_format for other in DATASETS.values()]
+    if spec.point_format not in formats:
+        formats.insert(0, spec.point_format)
+    chosen = names.get(id(spec.point_format), spec.point_format.name)
     for fid in ds.frame_ids[:sample]:
         path = ds.paths(fid).points
         if not path.is_file():
@@ -68,19 +75,26 @@ def _check_point_files(ap: argparse.ArgumentParser, ds: KittiFormatDataset, spec
         nbytes = path.stat().st_size
         if nbytes % 4:
             ap.error(f"{path}: truncated or not a float32 point file ({nbytes} bytes, not a multiple of 4)")
-        sizes.append((path, nbytes // 4))
-    c = spec.point_format.num_channels
-    bad = [(p, n) for p, n in sizes if n % c]
-    if not bad:
-        return
-    path, n = bad[0]
-    for name, other in DATASETS.items():
-        c2 = other.point_format.num_channels
-        if other is not spec and c2 != c and all(m % c2 == 0 for _, m in sizes):
-            ap.error(f"--dataset: {path} holds {n} float32 values, rows of {c2} ({other.point_format.name}), "
-                     f"not of {c} ({spec.point_format.name}): a --dataset {name} tree? pass --dataset {name}")
-    ap.error(f"{path}: truncated or unreadable point file: {n} float32 values, not rows of {c} "
-             f"({spec.point_format.name}: {spec.point_format.channels})")
+        readings = read_layouts(path, formats)
+        mine = next(r for r in readings if r.point_format is spec.point_format)
+        good = plausible_layouts(readings)
+        said = "; as ".join(r.describe() for r in readings)
+        if (len(good) == 1 and good[0] is mine) or (mine.plausible and mine.values == 0):
+            continue
+        if not any(r.fits for r in readings):
+            ap.error(f"{path}: truncated or unreadable point file: {mine.values} float32 values, not rows of "
+                     f"{' nor '.join(str(r.point_format.num_channels) for r in readings)} (--dataset {chosen}: "
+                     f"{spec.point_format.channels})")
+        if len(good) > 1:
+            ap.error(f"--dataset {chosen}: {path} reads as more than one dataset's points, as "
+                     f"{' and '.join(names.get(id(r.point_format), r.point_format.name) for r in good)} "
+                     f"(as {said}): cannot tell which it holds; check the file")
+        if len(good) == 1:
+            other = names.get(id(good[0].point_format), good[0].point_format.name)
+            ap.error(f"--dataset {chosen}: {path} holds {other}'s points, not {chosen}'s (as {said}): a "
+                     f"--dataset {other} tree? pass --dataset {other}")
+        ap.error(f"--dataset {chosen}: {path} reads as no dataset's points (as {said}): damaged, or not a "
+                 f"--dataset {' / '.join(DATASETS)} point file")
 
 
 class _Frames(torch.utils.data.Dataset):

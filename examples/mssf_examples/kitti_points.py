@@ -91,7 +91,26 @@ def read_points(path: PathLike, point_format: PointFormat) -> Tensor:
             f"got {data.size} values ({path.stat().st_size} bytes): truncated, damaged, or another dataset's "
             "point format"
         )
+    _check_layout(path, data, point_format)
     return torch.from_numpy(data.reshape(-1, c).astype(np.float32))
+
+
+def _check_layout(path: Path, data: np.ndarray, point_format: PointFormat) -> None:
+    """For the formats defined here: when the values also make whole rows of another one, its columns
+    must not fit better (:mod:`~mssf_examples.point_layout`; e.g. 8 k VoD points are 7 k TJ4DRadSet
+    rows). A format of your own is checked by its size only."""
+    known = (VOD_RADAR, TJ4D_RADAR, KITTI_LIDAR)
+    others = [f for f in known if f != point_format and data.size % f.num_channels == 0]
+    if point_format not in known or not others:
+        return
+    from .point_layout import read_layouts  # (it imports this module)
+
+    mine, *rest = read_layouts(data, [point_format, *others])
+    better = [r for r in rest if r.plausible]
+    if better and not mine.plausible:
+        raise MSSFError(f"{path}: point_format {point_format.name} does not fit the values, "
+                        f"{better[0].point_format.name} does (as {mine.describe()}; as {better[0].describe()}): "
+                        f"another dataset's point file? pass point_format={better[0].point_format.name.upper()}")
 
 
 def read_image(path: PathLike) -> Tensor:

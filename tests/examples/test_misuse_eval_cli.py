@@ -65,13 +65,13 @@ def test_vod_tree_as_tj4d_and_tj4d_points_as_vod(tree, tmp_path, capsys):
     root, _ = tree
     line = _fails(_train(root / "radar_5frames", tmp_path / "o", "tj4d"), capsys)
     assert "rows of 7" in line and "--dataset vod" in line
-    # TJ4D's 8 columns in the VoD layout: named by the file contents
+    # TJ4D's 8 columns (x, y, z, V_r, Range, Power, Alpha, Beta) in the VoD layout: named by the file contents
     vod, train = _copy(root, tmp_path / "t")
     for f in (train / "velodyne").iterdir():
         p = np.fromfile(f, dtype="<f4").reshape(-1, 7)
-        np.concatenate([p, np.zeros((len(p), 1), "<f4")], 1).tofile(f)
-        if len(p) % 7 == 0:  # (8 * n values would also be rows of 7)
-            np.concatenate([p[:-1], np.zeros((len(p) - 1, 1), "<f4")], 1).tofile(f)
+        cols = [p[:, 0], p[:, 1], p[:, 2], p[:, 4], np.linalg.norm(p[:, :3], axis=1), p[:, 3],
+                np.arctan2(p[:, 1], p[:, 0]), np.zeros(len(p))]
+        np.stack(cols, 1).astype("<f4").tofile(f)
     line = _fails(_train(vod, tmp_path / "o2"), capsys)
     assert "rows of 8" in line and "--dataset tj4d" in line
 

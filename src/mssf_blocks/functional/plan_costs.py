@@ -75,6 +75,13 @@ _STATIC = "grid"  # the plan of every other device and of graph capture
 # project every pixel, F.grid_sample per level (every other device, and the fallback).
 SAMPLING_BACKENDS = {"cpu": "touched", "cuda": "triton"}
 SAMPLING_FALLBACK = "grid"
+# The oldest Triton the kernels compile with: they call tl.floor, which triton.language exports from 3.0
+# (2.2 and 2.3, torch 2.2-2.3's, have it only as tl.math.floor; 2.1, torch 2.1's, also lacks the
+# enable_fp_fusion launch option). Compiled for sm_80 / sm_90 on a CPU with Triton 3.0.0 and 3.1.0 (every
+# kernel, dtype and head width of tests/functional/triton_aot.py), 3.6 and 3.9 (that test). With an older
+# triton installed, "auto" takes the fallback up front (no failed first launch, no warning); forcing
+# "triton" is an error naming both versions.
+TRITON_MIN_VERSION = (3, 0)
 # Under torch.compile, MSDFF's sampling with gradients per device: "op" (the sampling op, one opaque node;
 # its forward runs the backend under autograd and keeps the graph for the backward, functional/deform/kept.py)
 # or "grid" (the static grid plan of standard operators, which inductor compiles).

@@ -13,8 +13,9 @@ are not re-checked. Backends, one place each:
 * ``"triton"``: project every pixel, the Triton kernels (:mod:`~mssf_blocks.functional.deform.triton`).
 
 Which serves which device is :data:`~mssf_blocks.functional.plan_costs.SAMPLING_BACKENDS`; an argument
-(``backend=``) or the environment variable ``MSSF_SAMPLING_BACKEND`` forces one. A Triton compile or
-launch failure on a GPU warns once, naming the cause, and the grid path serves from then on.
+(``backend=``) or the environment variable ``MSSF_SAMPLING_BACKEND`` forces one. A triton older than
+``plan_costs.TRITON_MIN_VERSION`` is never tried (the grid path serves from the first call, no warning). A
+Triton compile or launch failure on a GPU warns once, naming the cause, and the grid path serves from then on.
 
 The op's backward is a second op. For ``"triton"`` it runs the backward kernel; the other backends
 differentiate their forward under autograd inside it (a custom op's implementation runs without
@@ -40,9 +41,10 @@ from torch import Tensor
 from ... import _compat
 from ..._checks import is_tracing
 from ...errors import MSSFError
-from ..plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK
+from ..plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK, TRITON_MIN_VERSION
 from . import grid, kept, touched
 from .checks import _check_deform_inputs, check_projection
+from .triton import installed_version as _triton_version
 
 __all__ = ["deform_sample_project", "sample_project_unchecked", "resolve_backend", "BACKENDS", "ENV_VAR", "TRITON_MAX_HEAD_DIM"]
 
@@ -56,6 +58,7 @@ try:  # (looked up once, at import: no import of triton, and nothing to trace un
 except (ImportError, ValueError):  # e.g. an import hook that blocks it
     _HAS_TRITON = False
 _TRITON_FAILURE: List[str] = []  # the cause, once a launch failed on a GPU (the grid path serves since)
+_TRITON_VERSION = _triton_version() if _HAS_TRITON else None  # (looked up once, like _HAS_TRITON)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -73,6 +76,9 @@ def _triton_unusable(device_type: str, dtype: torch.dtype, head_dim: int) -> Opt
         return f"the kernels take heads of at most {TRITON_MAX_HEAD_DIM} channels, got d = {head_dim}"
     if not _HAS_TRITON:
         return "triton is not installed"
+    if _TRITON_VERSION is not None and _TRITON_VERSION < TRITON_MIN_VERSION:
+        need, have = (".".join(map(str, v)) for v in (TRITON_MIN_VERSION, _TRITON_VERSION))
+        return f"the kernels need triton >= {need} (plan_costs.TRITON_MIN_VERSION), this is triton {have}"
     return None
 
 
@@ -82,7 +88,7 @@ def resolve_backend(backend: Optional[str], device_type: str, dtype: torch.dtype
 
     Raises:
         MSSFError: for an unknown backend, or ``"triton"`` forced where it cannot serve (e.g. CPU
-            tensors without the interpreter, float64, no triton).
+            tensors without the interpreter, float64, no triton or one older than ``TRITON_MIN_VERSION``).
     """
     source = "backend"
     if backend is None or backend == "auto":
@@ -353,7 +359,8 @@ def deform_sample_project(
     Raises:
         MSSFError: on bad shapes / dtypes / indices (naming the argument), an unknown backend, or
             ``"triton"`` forced where it cannot serve (CPU tensors without ``TRITON_INTERPRET=1``,
-            float64, heads wider than ``TRITON_MAX_HEAD_DIM``, no triton).
+            float64, heads wider than ``TRITON_MAX_HEAD_DIM``, no triton or one older than
+            ``plan_costs.TRITON_MIN_VERSION``).
 
     Example:
         >>> val = [torch.ones(1, 1, 2, 2, 2)]  # I = 1, C = 2, a 2x2 map of ones
