@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional
 
 from _gpu_stages import _peak, _timer  # benchmarks/ (the script's folder) is on sys.path
 
@@ -45,10 +45,12 @@ def _mmcv_function(mmcv_src: Optional[Path], build_dir: Path):
 
 
 def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0, mmcv_src: Optional[Path] = None,
-                       build_dir: Optional[Path] = None) -> List[Dict[str, object]]:
+                       build_dir: Optional[Path] = None,
+                       on_row: Optional[Callable[[Dict[str, object]], None]] = None) -> List[Dict[str, object]]:
     """One row per (levels, d, dtype, N); rows past ``budget_s`` seconds are listed as skipped. ``mmcv_src``:
     an mmcv source archive to build mmcv's op from where mmcv's compiled ops do not import (into
-    ``build_dir``; the build's time is not counted in ``budget_s``)."""
+    ``build_dir``; the build's time is not counted in ``budget_s``). ``on_row`` gets each row as it is
+    measured (the check writes it out at once)."""
     import time
 
     import torch
@@ -87,6 +89,8 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
                     row: Dict[str, object] = dict(levels=len(strides), d=d, dtype=str(dtype).split(".")[-1], N=n)
                     if time.perf_counter() - t0 > budget_s:
                         rows.append(dict(row, grid_fwd_ms=f"skipped (stage budget {budget_s:.0f} s)"))
+                        if on_row:
+                            on_row(rows[-1])
                         continue
 
                     def levels_of(v):
@@ -147,5 +151,7 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
                     else:
                         row["mmcv_fwd_ms"] = mmcv_why
                     rows.append(row)
+                    if on_row:
+                        on_row(row)
                     print(f"  sampling {row}", flush=True)
     return rows
