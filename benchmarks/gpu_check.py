@@ -149,8 +149,11 @@ def environment(device) -> Dict[str, object]:
         import spconv
 
         env["spconv"] = spconv.__version__
-    except ImportError:
+    except Exception:  # noqa: BLE001 - ImportError, or an OSError of its compiled libraries
         env["spconv"] = None
+    import mssf_blocks
+
+    env["mssf_blocks"] = str(Path(mssf_blocks.__file__).parent)  # (this checkout's, not an installed copy)
     return env
 
 
@@ -165,7 +168,8 @@ def run_tests(smoke: bool, log: Path, timeout_s: float) -> Dict[str, object]:
                                                            "tests/functional/test_sampling_op.py",
                                                            "tests/examples/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
-    cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
+    # (-v: one line per test, so a log cut at the time limit still says which passed and which failed)
+    cmd = [sys.executable, "-m", "pytest", *files, "-v", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "src"), str(REPO / "examples"),
                                                         os.environ.get("PYTHONPATH", "")]))
     t0 = time.perf_counter()
@@ -319,7 +323,7 @@ def main(argv=None) -> int:
         if code != 0:  # (stage b would otherwise compile it again in this process, unbounded)
             mmcv_src = None
         stop = stage_deadline("sampling")
-    sampling_benchmark(device, args.smoke, repeats, max(stop - time.perf_counter(), 1), mmcv_src, build_dir,
+    sampling_benchmark(device, args.smoke, repeats, max(stop - time.perf_counter(), 0), mmcv_src, build_dir,
                        on_row=report.row("sampling"))
     end("sampling")
     msdff_benchmark(device, args.smoke, repeats, deadline=begin("msdff"), on_row=report.row("msdff"))
@@ -329,7 +333,7 @@ def main(argv=None) -> int:
     detector_steps(device, args.smoke, repeats, deadline=begin("detectors"), on_row=report.row("detectors"))
     end("detectors")
     stop = begin("mmdet3d")
-    report.set("mmdet3d", mmdet3d_training(device, args.smoke, timeout_s=300 if args.smoke else
+    report.set("mmdet3d", mmdet3d_training(device, args.smoke, timeout_s=300 if deadline_s is None else
                                            max(stop - time.perf_counter(), 1)))
     print(f"  {report.result['mmdet3d']}", flush=True)
     end("mmdet3d")
