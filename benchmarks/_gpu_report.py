@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from pathlib import Path
 from typing import Dict, List
 
@@ -87,6 +88,7 @@ class Report:
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)
         self.result: Dict[str, object] = dict(fields)
+        self._lock = threading.Lock()  # (the watchdog's thread may write while the stages do)
         self.save()
 
     def set(self, key: str, value) -> None:
@@ -104,8 +106,9 @@ class Report:
         return add
 
     def save(self) -> None:
-        for name, text in (("gpu_check.json", json.dumps(self.result, indent=1, default=str)),
-                           ("gpu_check.md", markdown(self.result))):
-            tmp = self.out / (name + ".tmp")
-            tmp.write_text(text)
-            os.replace(tmp, self.out / name)
+        with self._lock:
+            for name, text in (("gpu_check.json", json.dumps(self.result, indent=1, default=str)),
+                               ("gpu_check.md", markdown(self.result))):
+                tmp = self.out / (name + ".tmp")
+                tmp.write_text(text)
+                os.replace(tmp, self.out / name)

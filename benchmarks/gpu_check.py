@@ -303,7 +303,7 @@ def main(argv=None) -> int:
     report.set("environment", environment(device))
     print(f"gpu_check on {report.result['environment']}", flush=True)
     build_dir = Path(tempfile.mkdtemp(prefix="mssf_mmcv_build_"))
-    builder, build_t0 = None, time.perf_counter()
+    builder, build_t0, mmcv_why = None, time.perf_counter(), None
     if device.type == "cuda" and mmcv_src is not None and not _mmcv_ops_import():
         builder = _mmcv_build.start_build(mmcv_src, build_dir, args.out / "mmcv_build.log")
         report.result["stages"]["mmcv_build"] = f"started at {build_t0 - t0:.0f} s (background, nvcc)"
@@ -321,10 +321,10 @@ def main(argv=None) -> int:
             code = f"killed after {BUDGET_S['mmcv_build']} s"
         report.result["stages"]["mmcv_build"] += f", exit {code} at {time.perf_counter() - t0:.0f} s (mmcv_build.log)"
         if code != 0:  # (stage b would otherwise compile it again in this process, unbounded)
-            mmcv_src = None
+            mmcv_why = f"n/a (building mmcv's op from {mmcv_src}: exit {code}, see mmcv_build.log)"
         stop = stage_deadline("sampling")
     sampling_benchmark(device, args.smoke, repeats, max(stop - time.perf_counter(), 0), mmcv_src, build_dir,
-                       on_row=report.row("sampling"))
+                       on_row=report.row("sampling"), mmcv_unavailable=mmcv_why)
     end("sampling")
     msdff_benchmark(device, args.smoke, repeats, deadline=begin("msdff"), on_row=report.row("msdff"))
     end("msdff")
