@@ -51,8 +51,9 @@ test: $(STAMP) $(DOCS_STAMP)
 
 # One target per benchmark script: `make bench-centroids`, `make bench-msdff`, `make bench-detectors`,
 # `make bench-threads`, ... (any benchmarks/NAME.py, options in BENCH_ARGS); `make bench` runs them all.
-# Durations: docs/performance.md ("Benchmark targets"). Not gpu_check.py: a device check (`make gpu-check`).
-BENCHMARKS := $(patsubst benchmarks/%.py,%,$(filter-out benchmarks/_% benchmarks/gpu_check.py,$(wildcard benchmarks/*.py)))
+# Durations: docs/performance.md ("Benchmark targets"). Not gpu_check.py: a device check (`make gpu-check`), nor
+# gpu_bundle.py, which prepares its bundle (`make gpu-bundle`).
+BENCHMARKS := $(patsubst benchmarks/%.py,%,$(filter-out benchmarks/_% benchmarks/gpu_check.py benchmarks/gpu_bundle.py,$(wildcard benchmarks/*.py)))
 BENCH_ARGS ?=
 
 bench: $(addprefix bench-,$(BENCHMARKS))
@@ -70,11 +71,19 @@ clean-venv:
 demo-augmentation: $(STAMP)
 	$(PY) examples/train_demo.py --augmentation compare --out outputs/demo_augmentation
 
-# The device check on a GPU machine (tests on CUDA, MSDFF benchmark, one step per detector; docs/gpus.md).
-# It installs what it needs into the environment it runs in (spconv for the GPU's CUDA version).
+# The device check on a GPU machine with network (tests on CUDA, the sampling op, MSDFF, each detector;
+# docs/gpus.md). It installs what it needs into the environment it runs in (spconv for the GPU's CUDA version).
+# A bare GPU machine without network runs gpu_check.py --bundle instead (docs/gpus.md, "The device check").
 .PHONY: gpu-check
 gpu-check: $(STAMP)
 	$(PY) benchmarks/gpu_check.py --out outputs/gpu_check
+
+# What that bare machine needs and lacks (spconv, its dependencies, mmcv's source archive), into the folder a
+# device call carries (.carry/gpu_bundle, ignored by git); downloads once into ~/.cache/mssf-blocks/gpu_bundle.
+# Only python3 and pip are needed (no venv).
+.PHONY: gpu-bundle
+gpu-bundle:
+	$(PYTHON) benchmarks/gpu_bundle.py --out .carry/gpu_bundle
 
 # The declared floors, tested (docs/compatibility.md): the core and integration tests on the floor torch
 # (2.1.2) and the newest torch on the registry, the core blocks on every declared Python; counts per

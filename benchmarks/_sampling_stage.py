@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Callable, Dict, List, Optional
 
 from _gpu_stages import _peak, _timer  # benchmarks/ (the script's folder) is on sys.path
 
@@ -45,10 +45,14 @@ def _mmcv_function(mmcv_src: Optional[Path], build_dir: Path):
 
 
 def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0, mmcv_src: Optional[Path] = None,
-                       build_dir: Optional[Path] = None) -> List[Dict[str, object]]:
+                       build_dir: Optional[Path] = None,
+                       on_row: Optional[Callable[[Dict[str, object]], None]] = None,
+                       mmcv_unavailable: Optional[str] = None) -> List[Dict[str, object]]:
     """One row per (levels, d, dtype, N); rows past ``budget_s`` seconds are listed as skipped. ``mmcv_src``:
     an mmcv source archive to build mmcv's op from where mmcv's compiled ops do not import (into
-    ``build_dir``; the build's time is not counted in ``budget_s``)."""
+    ``build_dir``; the build's time is not counted in ``budget_s``). ``on_row`` gets each row as it is
+    measured (the check writes it out at once); ``mmcv_unavailable``: why mmcv's op is not compared (e.g.
+    its background build failed), put in its column instead."""
     import time
 
     import torch
@@ -65,7 +69,8 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
     triton_ok = device.type == "cuda" or os.environ.get("TRITON_INTERPRET") == "1"
     if triton_ok:
         from mssf_blocks.functional.deform.triton import kernels as tk
-    mmcv_fn, mmcv_why = (_mmcv_function(mmcv_src, build_dir or Path("outputs/mmcv_build"))
+    mmcv_fn, mmcv_why = ((None, mmcv_unavailable) if mmcv_unavailable else
+                         _mmcv_function(mmcv_src, build_dir or Path("outputs/mmcv_build"))
                          if device.type == "cuda" else (None, "n/a (cpu)"))
     time_it = _timer(device)
     rows = []
@@ -87,6 +92,8 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
                     row: Dict[str, object] = dict(levels=len(strides), d=d, dtype=str(dtype).split(".")[-1], N=n)
                     if time.perf_counter() - t0 > budget_s:
                         rows.append(dict(row, grid_fwd_ms=f"skipped (stage budget {budget_s:.0f} s)"))
+                        if on_row:
+                            on_row(rows[-1])
                         continue
 
                     def levels_of(v):
@@ -147,5 +154,7 @@ def sampling_benchmark(device, smoke: bool, repeats: int, budget_s: float = 90.0
                     else:
                         row["mmcv_fwd_ms"] = mmcv_why
                     rows.append(row)
+                    if on_row:
+                        on_row(row)
                     print(f"  sampling {row}", flush=True)
     return rows

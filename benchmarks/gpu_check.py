@@ -1,69 +1,74 @@
-"""One-command device check: tests on the GPU, the MSDFF benchmark on the GPU, a training step per detector.
+"""One-command device check: the CUDA tests, the sampling op, MSDFF and a FusionBlock, each detector.
 
-Run on a GPU machine from the repository root (``make gpu-check``)::
+On the GPU machine this project is lent (bare, no network: docs/gpus.md, "The device check"), from the
+repository root, with the bundle built here by ``make gpu-bundle`` carried along::
 
-    python benchmarks/gpu_check.py [--out outputs/gpu_check] [--skip-install] [--mmcv-src mmcv-2.1.0.tar.gz]
+    python3 benchmarks/gpu_check.py --bundle .carry/gpu_bundle --out $OUT/gpu_check
 
-From a bare machine it first makes sure the packages it needs import (torch with CUDA, einops,
-numpy, pytest, spconv for the GPU's CUDA version, tqdm, pillow): missing ones are installed with pip
-(``spconv-cu1xx`` matching ``torch.version.cuda``), or, with ``--skip-install`` or when pip fails,
-named in the report. Then, each stage timed and bounded so the whole finishes in under 10 minutes
-on one modern GPU (8 when nothing needs installing):
+``--bundle`` verifies the bundle's files against its manifest and installs them offline into ``--site``
+(default ``$TMPDIR/mssf_gpu_site``: pip ``--no-index`` for the wheels, the repacked ``tar.xz`` unpacked),
+put first on ``sys.path`` and ``PYTHONPATH``; nothing is fetched (``benchmarks/_bundle.py``). Without
+``--bundle`` (``make gpu-check`` on a machine with network) missing packages are pip-installed as before
+(``numpy``, ``einops``, ``pytest``, ``tqdm``, ``pillow``, ``spconv-cu1xx`` for torch's CUDA), or with
+``--skip-install`` named in the report.
 
-1. ``pytest`` on the device-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests
-   of ``tests/test_fusion.py``, ``tests/test_msdff.py``, ``tests/functional/test_sampling.py`` and the
-   sampling op's Triton-vs-grid check (``tests/functional/test_sampling_op.py``); the
-   ``device`` fixture adds ``cuda``), the host-synchronisation count, the pinned-memory test, the
-   distributed/CLI option tests (``-k "cuda or sync or pin or runtime or env"``) - pass/fail counts and
-   the failures' names;
-2. the MSDFF benchmark on VoD shapes (one 1216 x 1952 camera, FPN strides 4-64 with 256 channels,
-   8 heads, 4 points, 5 levels, E = 64): the reference formulation (``method="reference"``,
-   ``value_projection="before_sampling"``: ``value_proj`` on every pixel + ``grid_sample``, Deformable
-   DETR's) against ours (``method="auto"``), forward and forward+backward, float32 and bfloat16
-   autocast, N = 2,500 / 8,000 / 40,000 voxels; CUDA-event timing (median of repeats after a
-   warm-up), peak memory (``torch.cuda.max_memory_allocated``), the output difference;
-2b. the sampling core at VoD shapes (N = 2,500 / 8,000 / 20,000, 4-5 FPN levels of 1936 x 1216, 8 heads,
-   4 points, d = 32 and 256, float32 and bfloat16): the sampling op's Triton kernels, the grid path and
-   mmcv's ``MultiScaleDeformableAttnFunction`` where its compiled ops import (else, with ``--mmcv-src``,
-   mmcv's CUDA op built alone from its source archive, ``benchmarks/_mmcv_build.py``); forward, forward +
-   backward, peak memory, outputs against the grid path's (``benchmarks/_sampling_stage.py``);
-3. one training step (forward + backward + AdamW step) of each example detector (VoD paper preset,
-   n = 2 MSDFF blocks) on a VoD-sized synthetic frame (2,500 radar points, 1216 x 1936 image): median
-   step time, peak memory; and the same step under bf16 and fp16 autocast (whether spconv's CUDA
-   kernels take them is what this answers);
-4. the shipped mmdetection3d config (MSSF-PointPillars, View-of-Delft) trained 20 iterations through
-   ``python -m mssf_examples.mmdet3d train --iters 20`` on a generated VoD tree: mmengine's time per
-   iteration (``benchmarks/_framework_stage.py``; reported as not run, with the reason, where mmdet3d or an
-   mmcv with CUDA ops is missing).
+The stages, in the order of what a GPU user depends on most, each bounded by its budget
+(:data:`BUDGET_S`, cut to what is left of ``--deadline-s``; rows past it are listed as skipped) so that the
+first minutes answer the most; a watchdog ends the run 25 s after the deadline:
 
-Writes ``<out>/gpu_check.json`` and ``<out>/gpu_check.md`` (GPU, driver, torch, CUDA, spconv
-versions; the tables). ``--smoke`` runs every stage at toy sizes on ``--device cpu`` (the test suite
-runs it so that the script is known to work on machines without a GPU).
+a. ``pytest`` on the CUDA-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests of
+   ``tests/test_fusion.py``, ``tests/test_msdff.py``, ``tests/functional/test_sampling.py``, the sampling
+   op's Triton-vs-grid-vs-float64 checks in ``tests/functional/test_sampling_op.py``, the distributed
+   options: ``-k "cuda or sync or pin or runtime or env"``), its log written to ``<out>/tests.log`` as it
+   runs; meanwhile, with an mmcv source archive (the bundle's, or ``--mmcv-src``), nvcc builds mmcv's
+   deformable-attention op in the background (``_mmcv_build.py``);
+b. the sampling core at VoD shapes: Triton kernels vs the grid path vs mmcv's op, forward and forward +
+   backward, fp32 and bf16, N = 2,500 / 8,000 / 20,000, peak memory (``_sampling_stage.py``);
+c. MSDFF, reference formulation vs ours, at the paper's width (N = 2,500 / 8,000 / 40,000), and
+   MSSF-PointPillars' first FusionBlock on its VoD-frame input (``_gpu_stages.py``, ``_fusion_stage.py``);
+d. per example detector at a VoD frame (1216 x 1936 image, 2,500 radar points), MSSF-PointPillars first
+   (pure torch), then SECOND, CenterPoint, VoxelNeXt (spconv): one training step and the inference
+   latency, float32 and bf16 autocast (training also fp16), peak memory;
+e. the shipped mmdetection3d config, 20 iterations, where mmdet3d with mmcv's CUDA ops imports
+   (``_framework_stage.py``; the bare GPU machine has neither: "not run").
 
-Stages 2 and 3 (the timed measurements) are in ``benchmarks/_gpu_stages.py``.
+Every row is written to ``<out>/gpu_check.json`` and ``gpu_check.md`` as soon as it is measured
+(``_gpu_report.py``), so a run stopped at its limit still returns what it measured. ``--smoke`` runs every
+stage at toy sizes on ``--device cpu``; the test suite runs it from a copy of the tracked files with a
+stand-in bundle and no network (``tests/test_gpu_check.py``), so the command is known to work before a
+GPU runs it.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import os
 import platform
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, Optional, Sequence
 
-from _gpu_stages import detector_steps, msdff_benchmark  # benchmarks/ (the script's folder) is on sys.path
+import _bundle  # benchmarks/ (the script's folder) is on sys.path
+import _mmcv_build
 from _framework_stage import mmdet3d_training
+from _fusion_stage import fusion_block_benchmark
+from _gpu_report import Report
+from _gpu_stages import detector_steps, msdff_benchmark
 from _sampling_stage import sampling_benchmark
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: What each stage may take on a GPU (seconds); the whole stays under 10 minutes (8 without installs).
-BUDGET_S = {"install": 150, "tests": 150, "msdff": 120, "detectors": 60, "sampling": 90, "mmdet3d": 90}
+#: What each stage may take on the H200 (seconds), cut to what is left of ``--deadline-s`` (default 510 s: the
+#: device call's limit is 600 s, the machine's start and the transfers are not counted in it). The mmcv build
+#: (background, during the tests) may take ``mmcv_build`` more before stage b gives up on it.
+BUDGET_S = {"install": 150, "tests": 150, "mmcv_build": 120, "sampling": 100, "msdff": 60, "fusion_block": 30,
+            "detectors": 120, "mmdet3d": 90}
+DEADLINE_S = 510.0
 
 
 # --------------------------------------------------------------------------------------------------
@@ -82,10 +87,10 @@ def _spconv_wheel(cuda: Optional[str]) -> Optional[str]:
     return f"spconv-cu{a}{b}"
 
 
-def ensure_packages(install: bool, need_spconv: bool = True) -> Dict[str, str]:
+def ensure_packages(install: bool, need_spconv: bool = True, extra: Sequence[str] = ()) -> Dict[str, str]:
     """Import every package the check needs; pip-install the missing ones when ``install``.
 
-    Returns ``{package: version or "MISSING: why"}``; torch itself is never installed here (a CUDA
+    ``extra``: more modules to report (the bundle's). Returns ``{package: version or "MISSING: why"}``; torch itself is never installed here (a CUDA
     build must match the driver: install it first, https://pytorch.org/get-started/locally/).
     """
     report: Dict[str, str] = {}
@@ -97,14 +102,15 @@ def ensure_packages(install: bool, need_spconv: bool = True) -> Dict[str, str]:
     wanted = {"numpy": "numpy", "einops": "einops", "pytest": "pytest", "tqdm": "tqdm", "PIL": "pillow"}
     if need_spconv:
         wanted["spconv"] = _spconv_wheel(torch.version.cuda) or "spconv"
+    wanted.update({m: m for m in extra if m not in wanted})
     for module, pip_name in wanted.items():
         try:
             report[pip_name] = getattr(importlib.import_module(module), "__version__", "present")
             continue
-        except ImportError:
-            pass
+        except Exception as exc:  # noqa: BLE001 - ImportError, or an OSError of a compiled library (spconv's)
+            why = f"{type(exc).__name__}: {str(exc)[:200]}"
         if not install:
-            report[pip_name] = f"MISSING: pip install {pip_name}"
+            report[pip_name] = f"MISSING: {why}"
             continue
         r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", pip_name], capture_output=True,
                            text=True, timeout=BUDGET_S["install"])
@@ -143,30 +149,36 @@ def environment(device) -> Dict[str, object]:
         import spconv
 
         env["spconv"] = spconv.__version__
-    except ImportError:
+    except Exception:  # noqa: BLE001 - ImportError, or an OSError of its compiled libraries
         env["spconv"] = None
+    import mssf_blocks
+
+    env["mssf_blocks"] = str(Path(mssf_blocks.__file__).parent)  # (this checkout's, not an installed copy)
     return env
 
 
 # --------------------------------------------------------------------------------------------------
 # 1. tests
 # --------------------------------------------------------------------------------------------------
-def run_tests(smoke: bool) -> Dict[str, object]:
-    """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode)."""
+def run_tests(smoke: bool, log: Path, timeout_s: float) -> Dict[str, object]:
+    """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode),
+    their output written to ``log`` as they run (a run stopped at its limit keeps what passed)."""
     files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/test_msdff.py",
                                                            "tests/functional/test_sampling.py",
                                                            "tests/functional/test_sampling_op.py",
                                                            "tests/examples/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
-    cmd = [sys.executable, "-m", "pytest", *files, "-q", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
+    # (-v: one line per test, so a log cut at the time limit still says which passed and which failed)
+    cmd = [sys.executable, "-m", "pytest", *files, "-v", "-p", "no:cacheprovider", "-k", select, "-rfEs"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "src"), str(REPO / "examples"),
                                                         os.environ.get("PYTHONPATH", "")]))
     t0 = time.perf_counter()
-    try:
-        r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=BUDGET_S["tests"])
-        out, code = r.stdout + r.stderr, r.returncode
-    except subprocess.TimeoutExpired as exc:
-        out, code = (exc.stdout or "") if isinstance(exc.stdout, str) else "", "timeout"
+    with open(log, "w") as f:
+        try:
+            code = subprocess.run(cmd, cwd=REPO, env=env, stdout=f, stderr=subprocess.STDOUT, timeout=timeout_s).returncode
+        except subprocess.TimeoutExpired:
+            code = f"timeout after {timeout_s:.0f} s"
+    out = Path(log).read_text(errors="replace")
     summary = [line for line in out.splitlines() if " passed" in line or " failed" in line or "error" in line.lower()]
     return dict(command=" ".join(cmd[1:]), returncode=code, seconds=time.perf_counter() - t0,
                 summary=summary[-1] if summary else out[-500:],
@@ -175,51 +187,36 @@ def run_tests(smoke: bool) -> Dict[str, object]:
 
 
 # --------------------------------------------------------------------------------------------------
-# report
+# the run
 # --------------------------------------------------------------------------------------------------
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.3g}" if abs(v) < 1e-2 else f"{v:.2f}"
-    return str(v)
+class _Tee:
+    """stdout also into ``<out>/gpu_check.log`` (the device call returns only the output's tail)."""
+
+    def __init__(self, stream, path: Path) -> None:
+        self.stream, self.file = stream, open(path, "a", buffering=1)
+
+    def write(self, text):
+        self.stream.write(text)
+        self.file.write(text)
+        return len(text)
+
+    def flush(self):
+        self.stream.flush()
+        self.file.flush()
 
 
-def _table(rows: List[Dict[str, object]], cols: List[str]) -> str:
-    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |" for r in rows]
-    return "\n".join(lines)
+def _watchdog(report: Report, after_s: float) -> threading.Timer:
+    """Ends the process ``after_s`` seconds from now, noting in the report which stage it stopped."""
+    def stop():
+        report.set("stopped", f"watchdog: {after_s:.0f} s passed during stage {report.result.get('stage')}; "
+                              "the rows above are what it measured")
+        print(f"gpu_check: {report.result['stopped']}", flush=True)
+        os._exit(3)
 
-
-def markdown(result: Dict[str, object]) -> str:
-    env = result["environment"]
-    parts = ["# GPU check", "", "Environment: " + ", ".join(f"{k} {v}" for k, v in env.items()), "",
-             "Packages: " + ", ".join(f"{k} {v}" for k, v in result["packages"].items()), ""]
-    t = result.get("tests")
-    if t:
-        parts += ["## Tests", "", f"`{t['command']}`: {t['summary']} (exit {t['returncode']}, {t['seconds']:.0f} s)", ""]
-        parts += [f"- {f}" for f in t["failures"]] + [f"- {s}" for s in t["host_syncs"]] + [""]
-    if result.get("msdff"):
-        parts += ["## MSDFF, reference / ours (ratio > 1: ours faster)", "",
-                  _table(result["msdff"], ["N", "precision", "fwd_ref_ms", "fwd_ours_ms", "fwd_ratio", "fwd_bwd_ref_ms",
-                                           "fwd_bwd_ours_ms", "fwd_bwd_ratio", "fwd_bwd_ref_MiB", "fwd_bwd_ours_MiB",
-                                           "max_abs_diff"]), ""]
-    if result.get("sampling"):
-        parts += ["## Sampling core: Triton op, grid path, mmcv's op (fwd+bwd ratio > 1: Triton faster)", "",
-                  _table(result["sampling"], ["levels", "d", "dtype", "N", "grid_fwd_ms", "triton_fwd_ms", "mmcv_fwd_ms",
-                                              "grid_fwd_bwd_ms", "triton_fwd_bwd_ms", "mmcv_fwd_bwd_ms",
-                                              "fwd_bwd_ratio_grid_over_triton", "grid_MiB", "triton_MiB", "mmcv_MiB",
-                                              "triton_max_abs_diff", "mmcv_max_abs_diff"]), ""]
-    if result.get("detectors"):
-        parts += ["## One training step per detector (n = 2 MSDFF blocks)", "",
-                  _table(result["detectors"], ["detector", "step_ms", "peak_MiB", "loss_finite", "bf16_step_ms",
-                                               "bf16_loss_finite", "fp16_step_ms", "fp16_loss_finite", "error"]), ""]
-    if result.get("mmdet3d"):
-        parts += ["## The shipped mmdet3d config, trained through our entry", "",
-                  _table([result["mmdet3d"]], ["config", "iters", "iter_s", "loss", "loss_finite", "wall_s", "skipped",
-                                               "error"]), ""]
-    parts += [f"Total {result['seconds']:.0f} s."]
-    return "\n".join(parts) + "\n"
+    timer = threading.Timer(after_s, stop)
+    timer.daemon = True
+    timer.start()
+    return timer
 
 
 def main(argv=None) -> int:
@@ -227,15 +224,24 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "gpu_check")
     ap.add_argument("--device", default="cuda", help="cuda (default), cuda:N, or cpu (with --smoke)")
     ap.add_argument("--smoke", action="store_true", help="toy sizes (CPU smoke test of this script)")
+    ap.add_argument("--bundle", type=Path, default=None,
+                    help="a bundle from benchmarks/gpu_bundle.py (`make gpu-bundle`): installed offline into --site "
+                         "first; implies --skip-install")
+    ap.add_argument("--site", type=Path, default=None,
+                    help="where --bundle is installed (default: $TMPDIR/mssf_gpu_site); put first on the path")
     ap.add_argument("--skip-install", action="store_true", help="do not pip-install missing packages, report them")
     ap.add_argument("--skip-tests", action="store_true")
     ap.add_argument("--repeats", type=int, default=None, help="timed repeats (default 5; 2 with --smoke)")
+    ap.add_argument("--deadline-s", type=float, default=None,
+                    help=f"the whole run's time budget in seconds (default {DEADLINE_S:.0f} on a GPU, none with "
+                         "--smoke); stages are cut to it, a watchdog ends the run 25 s after it")
     ap.add_argument("--mmcv-src", type=Path, default=os.environ.get("MSSF_MMCV_SRC") or None,
                     help="an mmcv source archive (e.g. mmcv-2.1.0.tar.gz) or tree: where mmcv's compiled ops do not "
-                         "import, stage 2b builds mmcv's deformable-attention CUDA op from it with nvcc, for the "
-                         "comparison (default: $MSSF_MMCV_SRC)")
+                         "import, stage b builds mmcv's deformable-attention CUDA op from it with nvcc, for the "
+                         "comparison (default: the bundle's, else $MSSF_MMCV_SRC)")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
+    deadline_s = args.deadline_s if args.deadline_s is not None else (None if args.smoke else DEADLINE_S)
     try:  # a machine without a GPU is told so at once, before any install
         import torch
 
@@ -244,9 +250,48 @@ def main(argv=None) -> int:
                   f"(torch.version.cuda = {torch.version.cuda}); install a CUDA build of torch, or run --smoke "
                   f"--device cpu", file=sys.stderr)
             return 2
+        if torch.device(args.device).type == "cpu" and not args.smoke:
+            print("gpu_check: --device cpu only with --smoke (the figures are for GPUs)", file=sys.stderr)
+            return 2
     except ImportError:
         pass  # reported by ensure_packages
-    packages = ensure_packages(install=not args.skip_install)
+    args.out.mkdir(parents=True, exist_ok=True)
+    sys.stdout = _Tee(sys.stdout, args.out / "gpu_check.log")
+    report = Report(args.out, smoke=args.smoke, stage="install", stages={})
+    if deadline_s is not None:
+        _watchdog(report, deadline_s + 25 - (time.perf_counter() - t0))
+
+    def stage_deadline(name: str) -> float:
+        """perf_counter() by which stage ``name`` should be done (its budget, cut to the whole's)."""
+        end = time.perf_counter() + BUDGET_S[name]
+        return end if deadline_s is None else min(end, t0 + deadline_s)
+
+    def begin(name: str) -> float:
+        report.result["stages"][name] = f"started at {time.perf_counter() - t0:.0f} s"
+        report.set("stage", name)
+        print(f"[{time.perf_counter() - t0:5.0f} s] stage {name}", flush=True)
+        return stage_deadline(name)
+
+    def end(name: str) -> None:
+        report.result["stages"][name] += f", done at {time.perf_counter() - t0:.0f} s"
+        report.save()
+
+    mmcv_src, extra = args.mmcv_src, []
+    if args.bundle is not None:
+        begin("install")
+        site = args.site or Path(tempfile.gettempdir()) / "mssf_gpu_site"
+        try:
+            info = _bundle.install(args.bundle, site, timeout_s=BUDGET_S["install"])
+            _bundle.activate(site)
+            mmcv_src = mmcv_src or info["archives"].get("mmcv_src")
+            extra = [e["provides"] for e in info["installed"] if e.get("provides")]
+        except _bundle.BundleError as exc:  # the stages that need what it holds say so; the others run
+            info = dict(error=str(exc))
+        report.set("bundle", info)
+        print(f"  bundle: {info.get('error') or info['target']}", flush=True)
+        end("install")
+    packages = ensure_packages(install=not (args.skip_install or args.bundle), extra=extra)
+    report.set("packages", packages)
     missing = {k: v for k, v in packages.items() if str(v).startswith("MISSING")}
     if "torch" in missing or "mssf_blocks" in missing:
         print("gpu_check: cannot start: " + "; ".join(f"{k}: {v}" for k, v in missing.items()), file=sys.stderr)
@@ -254,42 +299,59 @@ def main(argv=None) -> int:
     import torch
 
     device = torch.device(args.device)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        print(f"gpu_check: --device {args.device}: torch {torch.__version__} sees no CUDA GPU "
-              f"(torch.version.cuda = {torch.version.cuda}); install a CUDA build of torch, or run --smoke "
-              f"--device cpu", file=sys.stderr)
-        return 2
-    if device.type == "cpu" and not args.smoke:
-        print("gpu_check: --device cpu only with --smoke (the figures are for GPUs)", file=sys.stderr)
-        return 2
     repeats = args.repeats or (2 if args.smoke else 5)
-    result: Dict[str, object] = dict(environment=environment(device), packages=packages, smoke=args.smoke)
-    print(f"gpu_check on {result['environment']}", flush=True)
+    report.set("environment", environment(device))
+    print(f"gpu_check on {report.result['environment']}", flush=True)
+    build_dir = Path(tempfile.mkdtemp(prefix="mssf_mmcv_build_"))
+    builder, build_t0, mmcv_why = None, time.perf_counter(), None
+    if device.type == "cuda" and mmcv_src is not None and not _mmcv_ops_import():
+        builder = _mmcv_build.start_build(mmcv_src, build_dir, args.out / "mmcv_build.log")
+        report.result["stages"]["mmcv_build"] = f"started at {build_t0 - t0:.0f} s (background, nvcc)"
     if not args.skip_tests:
-        print("1/4 tests", flush=True)
-        result["tests"] = run_tests(args.smoke)
-        print(f"  {result['tests']['summary']}", flush=True)
-    print("2/4 MSDFF benchmark", flush=True)
-    result["msdff"] = msdff_benchmark(device, args.smoke, repeats)
-    print("2b/4 sampling core: Triton op / grid path / mmcv", flush=True)
-    result["sampling"] = sampling_benchmark(device, args.smoke, repeats, BUDGET_S["sampling"], args.mmcv_src,
-                                            args.out / "mmcv_build")
-    if "spconv" in missing:
-        result["detectors"] = [dict(detector="all", error=packages["spconv"])]
-    else:
-        print("3/4 one training step per detector", flush=True)
-        result["detectors"] = detector_steps(device, args.smoke, repeats)
-    print("4/4 the shipped mmdet3d config, trained through python -m mssf_examples.mmdet3d", flush=True)
-    result["mmdet3d"] = mmdet3d_training(device, args.smoke, timeout_s=300 if args.smoke else BUDGET_S["mmdet3d"])
-    print(f"  {result['mmdet3d']}", flush=True)
-    result["seconds"] = time.perf_counter() - t0
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "gpu_check.json").write_text(json.dumps(result, indent=1, default=str))
-    (args.out / "gpu_check.md").write_text(markdown(result))
-    print(f"wrote {args.out / 'gpu_check.json'} and {args.out / 'gpu_check.md'} ({result['seconds']:.0f} s)")
+        stop = begin("tests")
+        report.set("tests", run_tests(args.smoke, args.out / "tests.log", max(stop - time.perf_counter(), 10)))
+        print(f"  {report.result['tests']['summary']}", flush=True)
+        end("tests")
+    stop = begin("sampling")
+    if builder is not None:  # nvcc has been compiling during the tests; give it what is left of its budget
+        try:
+            code = builder.wait(timeout=max(build_t0 + BUDGET_S["mmcv_build"] - time.perf_counter(), 1))
+        except subprocess.TimeoutExpired:
+            builder.kill()
+            code = f"killed after {BUDGET_S['mmcv_build']} s"
+        report.result["stages"]["mmcv_build"] += f", exit {code} at {time.perf_counter() - t0:.0f} s (mmcv_build.log)"
+        if code != 0:  # (stage b would otherwise compile it again in this process, unbounded)
+            mmcv_why = f"n/a (building mmcv's op from {mmcv_src}: exit {code}, see mmcv_build.log)"
+        stop = stage_deadline("sampling")
+    sampling_benchmark(device, args.smoke, repeats, max(stop - time.perf_counter(), 0), mmcv_src, build_dir,
+                       on_row=report.row("sampling"), mmcv_unavailable=mmcv_why)
+    end("sampling")
+    msdff_benchmark(device, args.smoke, repeats, deadline=begin("msdff"), on_row=report.row("msdff"))
+    end("msdff")
+    fusion_block_benchmark(device, args.smoke, repeats, deadline=begin("fusion_block"), on_row=report.row("fusion_block"))
+    end("fusion_block")
+    detector_steps(device, args.smoke, repeats, deadline=begin("detectors"), on_row=report.row("detectors"))
+    end("detectors")
+    stop = begin("mmdet3d")
+    report.set("mmdet3d", mmdet3d_training(device, args.smoke, timeout_s=300 if deadline_s is None else
+                                           max(stop - time.perf_counter(), 1)))
+    print(f"  {report.result['mmdet3d']}", flush=True)
+    end("mmdet3d")
+    report.result["stage"] = "done"
+    report.set("seconds", time.perf_counter() - t0)
+    print(f"wrote {args.out / 'gpu_check.json'} and {args.out / 'gpu_check.md'} ({report.result['seconds']:.0f} s)")
+    result = report.result
     failed = result.get("tests", {}).get("returncode", 0) not in (0, 5)  # 5: nothing selected
-    failed = failed or "error" in result["mmdet3d"]
-    return 1 if failed or any("error" in r for r in result["detectors"]) else 0
+    failed = failed or "error" in result["mmdet3d"] or "error" in result.get("bundle", {})
+    return 1 if failed or any("error" in r for r in result.get("detectors", [])) else 0
+
+
+def _mmcv_ops_import() -> bool:
+    try:
+        from mmcv.ops.multi_scale_deform_attn import ext_module  # noqa: F401
+        return True
+    except Exception:  # noqa: BLE001 - not installed, or a build without compiled ops
+        return False
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ exactly mmcv 2.1.0's two host functions (their signatures as written in mmcv's
 ``ms_deform_attn_cuda.cu``)."""
 
 import io
+import os
 import shutil
 import subprocess
 import sys
@@ -83,3 +84,28 @@ def test_the_binding_compiles_and_asks_for_mmcvs_two_functions(tmp_path):
         f"ms_deform_attn_cuda_forward({', '.join([tensor] * 5)}, int)",
         f"ms_deform_attn_cuda_backward({', '.join([tensor] * 6)}, at::Tensor&, at::Tensor&, at::Tensor&, int)",
     ])
+
+
+def test_a_second_preparation_leaves_the_files_untouched(tmp_path):
+    """gpu_check builds the op in a background process during the tests, then loads it in its own process
+    with the same folder: rewriting the sources (new time stamps) would make ninja compile it all again."""
+    tree = tmp_path / "tree"
+    for name, text in FILES.items():
+        (tree / name).parent.mkdir(parents=True, exist_ok=True)
+        (tree / name).write_text(text)
+    build = tmp_path / "build"
+    mb.prepare_sources(tree, build)
+    written = [p for p in build.rglob("*") if p.is_file()]
+    for p in written:
+        os.utime(p, (1_000_000, 1_000_000))
+    mb.prepare_sources(tree, build)
+    assert {p: p.stat().st_mtime for p in written} == {p: 1_000_000 for p in written}
+    (tree / CU).write_text("// changed\n")  # a changed source is written again
+    mb.prepare_sources(tree, build)
+    assert (build / "csrc" / "pytorch" / "cuda" / "ms_deform_attn_cuda.cu").read_text() == "// changed\n"
+
+
+def test_the_background_build_reports_into_its_log(tmp_path):
+    proc = mb.start_build(tmp_path / "missing.tar.gz", tmp_path / "build", tmp_path / "build.log")
+    assert proc.wait(timeout=300) != 0
+    assert "does not exist" in (tmp_path / "build.log").read_text()
