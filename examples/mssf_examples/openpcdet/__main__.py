@@ -65,12 +65,20 @@ def main(argv=None) -> None:
     if not script.is_file():
         raise SystemExit(f"SCRIPT: {script} not found (run from OpenPCDet's tools/ folder)")
     from . import register
+    from .image_module import expect_trained_checkpoint
 
     register(pure_torch_box_ops=pure)
+    # test.py evaluates trained checkpoints and train.py --ckpt resumes one: both hold the image branch's
+    # weights, so its pre-trained source file (MODEL.IMAGE_BRANCH.CHECKPOINT) is not needed there
+    resumes = any(a == "--ckpt" or a.startswith("--ckpt=") for a in argv[1:])
+    expect_trained_checkpoint(script.name == "test.py" or (script.name == "train.py" and resumes))
     allow_numpy_scalars_in_checkpoints()
     sys.argv = [str(script)] + argv[1:]
     sys.path.insert(0, str(script.resolve().parent))
-    runpy.run_path(str(script), run_name="__main__")
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    finally:
+        expect_trained_checkpoint(False)  # for what this process builds next (main() called from Python)
 
 
 if __name__ == "__main__":

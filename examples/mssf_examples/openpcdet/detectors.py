@@ -87,6 +87,22 @@ class _MSSFDetector:
             return {"loss": loss}, tb_dict, disp_dict
         return self.post_processing(batch_dict)
 
+    def _load_state_dict(self, model_state_disk, *, strict=True):
+        """OpenPCDet's loading (``load_params_from_file``, ``load_params_with_optimizer``), then: an image branch
+        waiting for a trained checkpoint's weights must have found all of them there."""
+        state_dict, updated = super()._load_state_dict(model_state_disk, strict=strict)
+        branch = getattr(self, "image_branch", None)
+        if branch is not None and branch.awaiting_checkpoint:
+            aliases = tuple(f"{name}." for name, m in self.named_modules(remove_duplicate=False) if m is branch)
+            keys = [k for k in state_dict if k.startswith(aliases)]  # image_branch.* and module_list.0.*
+            missing = [k for k in keys if k not in updated]
+            if missing:
+                raise MSSFError(f"checkpoint: the image branch's weights were to come from it (MODEL.IMAGE_BRANCH."
+                                f"CHECKPOINT {branch.cfg['CHECKPOINT']!r} is not there), but it lacks {len(missing)} of "
+                                f"its {len(keys)} tensors (e.g. {missing[:3]}): not a checkpoint of this detector?")
+            branch.awaiting_checkpoint = False
+        return state_dict, updated
+
     def _batch_without_voxels(self, batch_dict: Dict[str, Any]):
         """A batch whose frames hold no radar point in range (VoD has such frames at range; a batch of one
         such frame is then empty): spconv cannot run on zero voxels. Evaluation: no detection for each frame
