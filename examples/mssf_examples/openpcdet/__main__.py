@@ -1,10 +1,14 @@
 """``python -m mssf_examples.openpcdet``: VoD infos, and OpenPCDet's tools with the MSSF classes registered.
 
-    python -m mssf_examples.openpcdet create_vod_infos CFG [--data_path DIR] [--save_path DIR]
+    python -m mssf_examples.openpcdet [--cpu] create_vod_infos CFG [--data_path DIR] [--save_path DIR]
         Write vod_infos_{train,val,trainval}.pkl from the dataset config CFG (DATA_PATH unless --data_path).
-    python -m mssf_examples.openpcdet [--pure-torch-nms] SCRIPT.py ARGS...
+    python -m mssf_examples.openpcdet [--cpu] [--pure-torch-nms] SCRIPT.py ARGS...
         register() the MSSF classes, then run OpenPCDet's tools/SCRIPT.py (train.py, test.py) with ARGS,
         from the current folder (OpenPCDet's tools/, where its configs' relative paths resolve).
+
+    --pure-torch-nms  the project's pure-torch rotated NMS / IoU instead of OpenPCDet's CUDA extension
+    --cpu             a machine without CUDA: pcdet from its clone without setup.py, stand-ins for what was
+                      not built, Tensor.cuda() the identity (mssf_examples.openpcdet.cpu); implies --pure-torch-nms
 """
 
 from __future__ import annotations
@@ -55,15 +59,27 @@ def main(argv=None) -> None:
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return
+    flags = set()
+    while argv and argv[0] in ("--cpu", "--pure-torch-nms"):
+        flags.add(argv.pop(0))
+    if not argv:
+        raise SystemExit("expected create_vod_infos or SCRIPT.py after the options (python -m mssf_examples.openpcdet -h)")
+    cpu = "--cpu" in flags
+    pure = cpu or "--pure-torch-nms" in flags
     if argv[0] == "create_vod_infos":
+        if cpu:
+            from .cpu import prepare_cpu
+
+            prepare_cpu(Path.cwd())
         _infos(argv[1:])
         return
-    pure = argv[0] == "--pure-torch-nms"
-    if pure:
-        argv = argv[1:]
     script = Path(argv[0])
     if not script.is_file():
         raise SystemExit(f"SCRIPT: {script} not found (run from OpenPCDet's tools/ folder)")
+    if cpu:
+        from .cpu import prepare_cpu
+
+        prepare_cpu(script.resolve().parent)
     from . import register
     from .image_module import expect_trained_checkpoint
 
