@@ -13,9 +13,10 @@ field of view at range). The stock head (OpenPCDet 8caccce) then:
   get the first class, silently.
 
 Here a frame without voxels gets no target (its boxes have no voxel to be placed on; counted in
-``tb_dict['frames_without_voxels']`` and warned about once) and no detection; a frame with fewer voxels than
-``K`` is decoded on its own with ``K = n`` by OpenPCDet's own decoder. Batches where every frame has at least
-``K`` voxels take the stock path unchanged (same boxes, same scores).
+``tb_dict['frames_without_voxels']`` and warned about once) and no detection; a batch holding a frame with
+fewer voxels than ``K`` is decoded frame by frame, each with ``K = min(K, n)``, by OpenPCDet's own decoder
+(the same labels as the batched decoding, boxes and scores up to float32 rounding). Batches where every frame
+has at least ``K`` voxels take the stock path unchanged.
 """
 
 from __future__ import annotations
@@ -35,9 +36,8 @@ class _RegLossSparse(loss_utils.RegLossSparse):
     """``RegLossSparse`` whose frames without voxels contribute zeros (their mask is 0: no target)."""
 
     def forward(self, output, mask, ind=None, target=None, batch_index=None):
-        counts = torch.bincount(batch_index.long(), minlength=mask.shape[0])
-        if bool((counts > 0).all()):
-            return super().forward(output, mask, ind, target, batch_index)
+        # the stock gather frame by frame (its boolean selection already reads the batch index back), with
+        # zeros for a frame without rows; frames with rows give the stock values
         pred = []
         for b in range(mask.shape[0]):
             rows = output[batch_index == b]
@@ -83,6 +83,7 @@ class SparseFrameVoxelNeXtHead(VoxelNeXtHead):
 
     def generate_predicted_boxes(self, batch_size, pred_dicts, voxel_indices, spatial_shape):
         k_max = int(self.model_cfg.POST_PROCESSING.MAX_OBJ_PER_SAMPLE)
+        # one read-back of the per-frame counts (the stock decoding reads back per frame and in its NMS anyway)
         counts = torch.bincount(voxel_indices[:, 0].long(), minlength=batch_size).tolist()
         if self.double_flip or min(counts[:batch_size]) >= k_max:
             return super().generate_predicted_boxes(batch_size, pred_dicts, voxel_indices, spatial_shape)
