@@ -54,6 +54,17 @@ def allow_numpy_scalars_in_checkpoints() -> None:
     _compat.add_safe_globals([scalar, np.dtype] + [type(np.dtype(k)) for k in kinds])
 
 
+def _fresh_openpcdet_cfg() -> None:
+    """The tools' scripts merge their YAML into the one ``pcdet.config.cfg``: a second run in the same process
+    (``main()`` called from Python) would keep the first config's keys (e.g. MSSF-SECOND's ``MAP_TO_BEV`` in an
+    MSSF-VoxelNeXt). Back to what ``pcdet.config`` starts with."""
+    import pcdet.config as config
+
+    for key in [k for k in config.cfg if k != "ROOT_DIR"]:
+        config.cfg.pop(key)  # EasyDict.pop drops the attribute too (clear() would leave it)
+    config.cfg.LOCAL_RANK = 0
+
+
 def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
@@ -89,6 +100,7 @@ def main(argv=None) -> None:
     resumes = any(a == "--ckpt" or a.startswith("--ckpt=") for a in argv[1:])
     expect_trained_checkpoint(script.name == "test.py" or (script.name == "train.py" and resumes))
     allow_numpy_scalars_in_checkpoints()
+    _fresh_openpcdet_cfg()
     sys.argv = [str(script)] + argv[1:]
     sys.path.insert(0, str(script.resolve().parent))
     try:
