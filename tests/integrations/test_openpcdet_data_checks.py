@@ -116,7 +116,7 @@ def test_4_float_points_whose_size_divides_by_7_are_refused(tools):
     lidar = np.stack([rng.uniform(2, 70, n), rng.uniform(-30, 30, n), rng.uniform(-2, 1, n), rng.uniform(0, 1, n)], 1)
     try:
         path.write_bytes(lidar.astype(np.float32).tobytes())
-        with pytest.raises(MSSFError, match=r"'time' column reaches .*another layout \(4 columns: 2100 points"):
+        with pytest.raises(MSSFError, match=r"'time' column reaches .*another layout or dtype \(4 columns: 2100 points"):
             dataset.get_lidar(fid)
         with pytest.raises(MSSFError, match="another layout"):
             next(iter(loader(cfg_for(f"{BASE}/radar_5frames"))[1]))  # through OpenPCDet's __getitem__

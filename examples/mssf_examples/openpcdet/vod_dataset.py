@@ -78,10 +78,11 @@ def check_vod_points(points: np.ndarray, path: Any) -> np.ndarray:
                         "not a VoD radar file (another dtype or layout?)")
     worst = float(np.abs(points[:, 6]).max())
     if worst > _VOD_MAX_ABS_TIME:
-        guess = [f"{k} columns: {points.size // k} points" for k in (4, 5, 8) if points.size % k == 0]
+        guess = "; ".join(f"{k} columns: {points.size // k} points" for k in (4, 5, 8) if points.size % k == 0)
         raise MSSFError(f"{path}: read as VoD's 7 float32 columns {list(VOD_POINT_FEATURES)}, the 'time' column "
                         f"reaches |{worst:.3g}| (VoD: 0 for the current scan, at most {_VOD_MAX_ABS_TIME:g} in magnitude "
-                        f"for earlier ones): the file has another layout ({'; '.join(guess) or 'not a multiple of 4, 5 or 8'})."
+                        f"for earlier ones): the file has another layout or dtype ({guess or 'not a multiple of 4, 5 or 8'} "
+                        "float32 columns; float64 doubles the count)."
                         " DATA_PATH must be a VoD radar folder (radar, radar_3frames, radar_5frames), not lidar")
     return points
 
