@@ -88,6 +88,12 @@ def test_infos_of_another_sensor_folder_are_refused(tools):
             loader(cfg_for(f"{BASE}/radar"))
     finally:
         (Path(BASE) / "radar" / "vod_infos_train.pkl").unlink()
+    renamed = Path(BASE) / "my_radar5"  # a renamed copy keeps its (valid) infos
+    shutil.copytree(Path(BASE) / "radar_5frames", renamed)
+    try:
+        assert len(loader(cfg_for(str(renamed)))[0]) == 2
+    finally:
+        shutil.rmtree(renamed)
 
 
 def test_any_split_without_frames_says_why(tools, tmp_path):

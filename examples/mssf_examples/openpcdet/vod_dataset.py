@@ -87,6 +87,10 @@ def check_vod_points(points: np.ndarray, path: Any) -> np.ndarray:
     return points
 
 
+#: VoD's sensor folders (the release's layout)
+_VOD_SENSOR_FOLDERS = ("radar", "radar_3frames", "radar_5frames", "lidar")
+
+
 def _sibling_infos(root: Path, names: Sequence[str]) -> List[str]:
     """Folders beside ``root`` (VoD's other sensor folders) that hold these info files."""
     if not root.parent.is_dir():
@@ -137,7 +141,8 @@ class VoDDataset(KittiDataset):
                             f"ImageSets/{self.dataset_cfg.DATA_SPLIT[mode]}.txt?); rebuild them with create_vod_infos")
         built = sorted({str(i["point_cloud"].get("sensor_folder")) for i in self.kitti_infos
                         if i["point_cloud"].get("sensor_folder") is not None})
-        if built and built != [root.name]:
+        # only between VoD's own sensor folders: a renamed folder keeps valid infos
+        if built and built != [root.name] and {root.name, *built} <= set(_VOD_SENSOR_FOLDERS):
             raise MSSFError(f"DATA_CONFIG.INFO_PATH[{mode!r}]: {names} in {where} were built for the sensor folder "
                             f"{built} (recorded by create_vod_infos), not {root.name!r}: their point counts and frames "
                             f"belong to that folder. Build infos for this one (python -m mssf_examples.openpcdet "
