@@ -1,10 +1,14 @@
 """``python -m mssf_examples.openpcdet``: VoD infos, and OpenPCDet's tools with the MSSF classes registered.
 
-    python -m mssf_examples.openpcdet create_vod_infos CFG [--data_path DIR] [--save_path DIR]
+    python -m mssf_examples.openpcdet [--cpu] create_vod_infos CFG [--data_path DIR] [--save_path DIR]
         Write vod_infos_{train,val,trainval}.pkl from the dataset config CFG (DATA_PATH unless --data_path).
-    python -m mssf_examples.openpcdet [--pure-torch-nms] SCRIPT.py ARGS...
+    python -m mssf_examples.openpcdet [--cpu] [--pure-torch-nms] SCRIPT.py ARGS...
         register() the MSSF classes, then run OpenPCDet's tools/SCRIPT.py (train.py, test.py) with ARGS,
         from the current folder (OpenPCDet's tools/, where its configs' relative paths resolve).
+
+    --pure-torch-nms  the project's pure-torch rotated NMS / IoU instead of OpenPCDet's CUDA extension
+    --cpu             a machine without CUDA: pcdet from its clone without setup.py, stand-ins for what was
+                      not built, Tensor.cuda() the identity (mssf_examples.openpcdet.cpu); implies --pure-torch-nms
 """
 
 from __future__ import annotations
@@ -50,27 +54,59 @@ def allow_numpy_scalars_in_checkpoints() -> None:
     _compat.add_safe_globals([scalar, np.dtype] + [type(np.dtype(k)) for k in kinds])
 
 
+def _fresh_openpcdet_cfg() -> None:
+    """The tools' scripts merge their YAML into the one ``pcdet.config.cfg``: a second run in the same process
+    (``main()`` called from Python) would keep the first config's keys (e.g. MSSF-SECOND's ``MAP_TO_BEV`` in an
+    MSSF-VoxelNeXt). Back to what ``pcdet.config`` starts with."""
+    import pcdet.config as config
+
+    for key in [k for k in config.cfg if k != "ROOT_DIR"]:
+        config.cfg.pop(key)  # EasyDict.pop drops the attribute too (clear() would leave it)
+    config.cfg.LOCAL_RANK = 0
+
+
 def main(argv=None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return
+    flags = set()
+    while argv and argv[0] in ("--cpu", "--pure-torch-nms"):
+        flags.add(argv.pop(0))
+    if not argv:
+        raise SystemExit("expected create_vod_infos or SCRIPT.py after the options (python -m mssf_examples.openpcdet -h)")
+    cpu = "--cpu" in flags
+    pure = cpu or "--pure-torch-nms" in flags
     if argv[0] == "create_vod_infos":
+        if cpu:
+            from .cpu import prepare_cpu
+
+            prepare_cpu(Path.cwd())
         _infos(argv[1:])
         return
-    pure = argv[0] == "--pure-torch-nms"
-    if pure:
-        argv = argv[1:]
     script = Path(argv[0])
     if not script.is_file():
         raise SystemExit(f"SCRIPT: {script} not found (run from OpenPCDet's tools/ folder)")
+    if cpu:
+        from .cpu import prepare_cpu
+
+        prepare_cpu(script.resolve().parent)
     from . import register
+    from .image_module import expect_trained_checkpoint
 
     register(pure_torch_box_ops=pure)
+    # test.py evaluates trained checkpoints and train.py --ckpt resumes one: both hold the image branch's
+    # weights, so its pre-trained source file (MODEL.IMAGE_BRANCH.CHECKPOINT) is not needed there
+    resumes = any(a == "--ckpt" or a.startswith("--ckpt=") for a in argv[1:])
+    expect_trained_checkpoint(script.name == "test.py" or (script.name == "train.py" and resumes))
     allow_numpy_scalars_in_checkpoints()
+    _fresh_openpcdet_cfg()
     sys.argv = [str(script)] + argv[1:]
     sys.path.insert(0, str(script.resolve().parent))
-    runpy.run_path(str(script), run_name="__main__")
+    try:
+        runpy.run_path(str(script), run_name="__main__")
+    finally:
+        expect_trained_checkpoint(False)  # for what this process builds next (main() called from Python)
 
 
 if __name__ == "__main__":

@@ -15,8 +15,10 @@ against ``DATA_AUGMENTOR.AUG_CONFIG_LIST``). Importing this module imports OpenP
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Dict
 
+import torch
 from pcdet.models.detectors.second_net import SECONDNet
 from pcdet.models.detectors.voxelnext import VoxelNeXt
 
@@ -75,12 +77,58 @@ class _MSSFDetector:
             self.module_list.insert(0, self.image_branch)  # runs before vfe / backbone_3d
 
     def forward(self, batch_dict: Dict[str, Any]):
+        coords = batch_dict.get("voxel_coords", None)
+        if coords is not None and coords.shape[0] == 0:  # a shape: no host read
+            return self._batch_without_voxels(batch_dict)
         for cur_module in self.module_list:
             batch_dict = cur_module(batch_dict)
         if self.training:
             loss, tb_dict, disp_dict = self.get_training_loss(batch_dict)
             return {"loss": loss}, tb_dict, disp_dict
         return self.post_processing(batch_dict)
+
+    def _load_state_dict(self, model_state_disk, *, strict=True):
+        """OpenPCDet's loading (``load_params_from_file``, ``load_params_with_optimizer``), then: an image branch
+        waiting for a trained checkpoint's weights must have found all of them there."""
+        state_dict, updated = super()._load_state_dict(model_state_disk, strict=strict)
+        branch = getattr(self, "image_branch", None)
+        if branch is not None and branch.awaiting_checkpoint:
+            aliases = tuple(f"{name}." for name, m in self.named_modules(remove_duplicate=False) if m is branch)
+            keys = [k for k in state_dict if k.startswith(aliases)]  # image_branch.* and module_list.0.*
+            missing = [k for k in keys if k not in updated]
+            if missing:
+                raise MSSFError(f"checkpoint: the image branch's weights were to come from it (MODEL.IMAGE_BRANCH."
+                                f"CHECKPOINT {branch.cfg['CHECKPOINT']!r} is not there), but it lacks {len(missing)} of "
+                                f"its {len(keys)} tensors (e.g. {missing[:3]}): not a checkpoint of this detector?")
+            branch.awaiting_checkpoint = False
+        return state_dict, updated
+
+    def _batch_without_voxels(self, batch_dict: Dict[str, Any]):
+        """A batch whose frames hold no radar point in range (VoD has such frames at range; a batch of one
+        such frame is then empty): spconv cannot run on zero voxels. Evaluation: no detection for each frame
+        (its ground truth still counts in the recall). Training: the batch is skipped with a counted warning:
+        the loss is a zero that reaches no parameter, so the optimizer step leaves every weight without a
+        gradient (torch's optimizers skip those; OpenPCDet's ``adam_onecycle`` still applies its decoupled
+        weight decay)."""
+        ref = next(self.parameters())
+        batch_size = int(batch_dict["batch_size"])
+        if self.training:
+            self.batches_without_voxels = getattr(self, "batches_without_voxels", 0) + 1
+            if self.batches_without_voxels == 1:
+                warnings.warn(f"{type(self).__name__}: a training batch of {batch_size} frame(s) without any voxel "
+                              "(no radar point in POINT_CLOUD_RANGE) is skipped: loss 0, no gradient. Counted in "
+                              "tb_dict['batches_without_voxels'] (the model's batches_without_voxels: all so far); "
+                              "this warning is not repeated", stacklevel=2)
+            loss = ref.new_zeros((), requires_grad=True)
+            return {"loss": loss}, {"loss": 0.0, "batches_without_voxels": self.batches_without_voxels}, {}
+        boxes = ref.new_zeros((0, 7))
+        preds = [{"pred_boxes": boxes, "pred_scores": ref.new_zeros((0,)),
+                  "pred_labels": torch.zeros(0, dtype=torch.long, device=ref.device)} for _ in range(batch_size)]
+        recall: Dict[str, Any] = {}
+        for b in range(batch_size):
+            recall = self.generate_recall_record(box_preds=boxes, recall_dict=recall, batch_index=b, data_dict=batch_dict,
+                                                 thresh_list=self.model_cfg.POST_PROCESSING.RECALL_THRESH_LIST)
+        return preds, recall
 
     def get_training_loss(self, batch_dict: Dict[str, Any] = None):
         loss, tb_dict, disp_dict = super().get_training_loss()
@@ -102,11 +150,30 @@ class MSSFSECONDNet(_MSSFDetector, SECONDNet):
 
 
 class MSSFVoxelNeXt(_MSSFDetector, VoxelNeXt):
-    """The paper's MSSF-V: ``MSSFVoxelResBackBone8xVoxelNeXt`` (doubled widths) + ``VoxelNeXtHead``."""
+    """The paper's MSSF-V: ``MSSFVoxelResBackBone8xVoxelNeXt`` (doubled widths) + ``VoxelNeXtHead``.
+
+    ``DENSE_HEAD.NAME: VoxelNeXtHead`` builds :class:`~mssf_examples.openpcdet.voxelnext_head.SparseFrameVoxelNeXtHead`
+    (the stock head, same parameters, that trains and evaluates on radar frames with few or no voxels)."""
 
     def __init__(self, model_cfg, num_class, dataset):
         VoxelNeXt.__init__(self, model_cfg=model_cfg, num_class=num_class, dataset=dataset)
         self._add_image_branch(model_cfg, dataset)
+
+    def build_dense_head(self, model_info_dict):
+        import pcdet.models.dense_heads as dense_heads
+
+        from .voxelnext_head import SparseFrameVoxelNeXtHead
+
+        name = self.model_cfg.get("DENSE_HEAD", {}).get("NAME", None)
+        if name != "VoxelNeXtHead":
+            return super().build_dense_head(model_info_dict)
+        # OpenPCDet's own construction, with the sparse-frame head in the registry's place for this call only
+        stock = dense_heads.__all__[name]
+        dense_heads.__all__[name] = SparseFrameVoxelNeXtHead
+        try:
+            return super().build_dense_head(model_info_dict)
+        finally:
+            dense_heads.__all__[name] = stock
 
 
 #: what to merge into ``pcdet.models.detectors.__all__``

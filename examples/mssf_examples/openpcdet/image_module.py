@@ -27,7 +27,20 @@ from mssf_blocks.errors import MSSFError
 
 from ..image_branch import ImageBranch
 
-__all__ = ["OpenPCDetImageBranch", "IMAGE_BRANCH_DEFAULTS", "load_branch_checkpoint"]
+__all__ = ["OpenPCDetImageBranch", "IMAGE_BRANCH_DEFAULTS", "load_branch_checkpoint", "expect_trained_checkpoint"]
+
+#: set by :func:`expect_trained_checkpoint`: the branch's weights will come from a trained detector checkpoint
+_FROM_TRAINED_CHECKPOINT = False
+
+
+def expect_trained_checkpoint(expected: bool = True) -> None:
+    """Say that the detectors built from now on get their weights from a trained checkpoint (OpenPCDet's
+    ``test.py``, ``train.py --ckpt``): a ``MODEL.IMAGE_BRANCH.CHECKPOINT`` file that is not there is then not
+    needed. The branch refuses to run until a checkpoint holding all its weights has been loaded (the
+    detector checks each ``load_params_from_file`` / ``load_params_with_optimizer``).
+    ``python -m mssf_examples.openpcdet`` calls it for ``test.py`` and for ``train.py --ckpt``."""
+    global _FROM_TRAINED_CHECKPOINT
+    _FROM_TRAINED_CHECKPOINT = bool(expected)
 
 IMAGE_BRANCH_DEFAULTS: Dict[str, Any] = {
     "DEPTH": 50, "BASE_CHANNELS": 64, "FPN_CHANNELS": 256, "NUM_OUTS": 4, "FROZEN": True, "CHECKPOINT": None,
@@ -81,8 +94,13 @@ class OpenPCDetImageBranch(nn.Module):
         self.branch = ImageBranch(depth=int(cfg["DEPTH"]), base_channels=int(cfg["BASE_CHANNELS"]),
                                   fpn_channels=int(cfg["FPN_CHANNELS"]), num_outs=int(cfg["NUM_OUTS"]),
                                   frozen=bool(cfg["FROZEN"]), channels_last=False)
-        if cfg["CHECKPOINT"] is not None:
-            load_branch_checkpoint(self.branch, cfg["CHECKPOINT"], dict(cfg["CHECKPOINT_PREFIXES"]))
+        #: True until a trained detector checkpoint has filled the branch (expect_trained_checkpoint)
+        self.awaiting_checkpoint = False
+        ckpt = cfg["CHECKPOINT"]
+        if _FROM_TRAINED_CHECKPOINT and (ckpt is None or not Path(str(ckpt)).expanduser().is_file()):
+            self.awaiting_checkpoint = True  # the trained checkpoint holds the branch: its source file is not needed
+        elif ckpt is not None:
+            load_branch_checkpoint(self.branch, ckpt, dict(cfg["CHECKPOINT_PREFIXES"]))
         elif cfg["FROZEN"]:
             raise MSSFError("MODEL.IMAGE_BRANCH.CHECKPOINT: a frozen image branch needs pre-trained weights (the paper: "
                             "HTC's ResNet-50 + FPN); got none. Set CHECKPOINT, or FROZEN: False to train it")
@@ -94,6 +112,10 @@ class OpenPCDetImageBranch(nn.Module):
         return [int(self.cfg["FPN_CHANNELS"])] * int(self.cfg["NUM_OUTS"])
 
     def forward(self, batch_dict: Dict[str, Any]) -> Dict[str, Any]:
+        if self.awaiting_checkpoint:
+            raise MSSFError("MODEL.IMAGE_BRANCH: its weights were to come from a trained detector checkpoint (test.py, "
+                            "train.py --ckpt), and none holding them has been loaded; load one (load_params_from_file) "
+                            f"or give CHECKPOINT a file that exists (now {self.cfg['CHECKPOINT']!r})")
         images = batch_dict.get("images", None)
         if not torch.is_tensor(images) or images.dim() != 4 or images.shape[1] != 3:
             raise MSSFError("batch_dict['images']: expected (B, 3, H, W) (DATA_CONFIG.GET_ITEM_LIST with 'images'), "

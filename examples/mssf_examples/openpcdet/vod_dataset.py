@@ -34,7 +34,8 @@ from ..evaluation import VOD_IOU_THRESHOLDS
 from ..evaluation_kitti import Objects
 from ..evaluation_vod import VOD_REGIONS, evaluate_vod
 
-__all__ = ["VoDDataset", "VOD_POINT_FEATURES", "create_vod_infos", "annos_to_objects", "check_dataset_cfg"]
+__all__ = ["VoDDataset", "VOD_POINT_FEATURES", "create_vod_infos", "annos_to_objects", "check_dataset_cfg",
+           "check_vod_points"]
 
 #: the placeholder object of a frame without annotations (KITTI's DontCare convention: sizes -1)
 _EMPTY_FRAME_LINE = "DontCare -1 -1 -10 0 0 0 0 -1 -1 -1 -1000 -1000 -1000 -10"
@@ -58,15 +59,94 @@ def check_dataset_cfg(dataset_cfg: Mapping) -> None:
         raise MSSFError(f"DATA_CONFIG.POINT_FEATURE_ENCODING.used_feature_list: {missing} not in src_feature_list {src}")
 
 
+#: largest |time| of a VoD radar point: 0 for the current scan, small negative for the earlier scans of
+#: ``radar_3frames`` / ``radar_5frames``; a file of another layout read as 7 columns puts coordinates here
+_VOD_MAX_ABS_TIME = 10.0
+
+
+def check_vod_points(points: np.ndarray, path: Any) -> np.ndarray:
+    """Raise :class:`MSSFError` when ``points (N, 7)`` read from ``path`` cannot be VoD radar points.
+
+    The file size alone cannot tell the layouts apart (a file of ``28 k`` float32 divides by 4 and by 7):
+    a 4-float file (KITTI / VoD ``lidar``: ``x, y, z, reflectance``) or an 8-float one (TJ4DRadSet) read as
+    7 columns rotates its fields through the columns, so VoD's ``time`` column (0 for the current scan,
+    small and negative for the earlier ones) holds coordinates and ranges of metres."""
+    if points.size == 0:
+        return points
+    if not np.isfinite(points).all():
+        raise MSSFError(f"{path}: non-finite values read as VoD's 7 float32 columns {list(VOD_POINT_FEATURES)}: "
+                        "not a VoD radar file (another dtype or layout?)")
+    worst = float(np.abs(points[:, 6]).max())
+    if worst > _VOD_MAX_ABS_TIME:
+        guess = "; ".join(f"{k} columns: {points.size // k} points" for k in (4, 5, 8) if points.size % k == 0)
+        raise MSSFError(f"{path}: read as VoD's 7 float32 columns {list(VOD_POINT_FEATURES)}, the 'time' column "
+                        f"reaches |{worst:.3g}| (VoD: 0 for the current scan, at most {_VOD_MAX_ABS_TIME:g} in magnitude "
+                        f"for earlier ones): the file has another layout or dtype ({guess or 'not a multiple of 4, 5 or 8'} "
+                        "float32 columns; float64 doubles the count)."
+                        " DATA_PATH must be a VoD radar folder (radar, radar_3frames, radar_5frames), not lidar")
+    return points
+
+
+#: VoD's sensor folders (the release's layout)
+_VOD_SENSOR_FOLDERS = ("radar", "radar_3frames", "radar_5frames", "lidar")
+
+
+def _sibling_infos(root: Path, names: Sequence[str]) -> List[str]:
+    """Folders beside ``root`` (VoD's other sensor folders) that hold these info files."""
+    if not root.parent.is_dir():
+        return []
+    return sorted(str(d) for d in root.parent.iterdir()
+                  if d.is_dir() and d != root and all((d / n).is_file() for n in names))
+
+
 class VoDDataset(KittiDataset):
     """OpenPCDet dataset over a VoD sensor folder (``DATA_PATH``: e.g. ``view_of_delft/radar_5frames``
-    with ``training/{velodyne,calib,image_2,label_2}`` and ``ImageSets/{train,val,test}.txt``)."""
+    with ``training/{velodyne,calib,image_2,label_2}`` and ``ImageSets/{train,val,test}.txt``).
 
-    def __init__(self, dataset_cfg, class_names, training=True, root_path=None, logger=None):
+    ``require_infos=False`` (used by :func:`create_vod_infos`) accepts a folder without info files; otherwise
+    a split that loads no frame is an error that says why (KittiDataset logs "Total samples: 0" and torch's
+    sampler fails later)."""
+
+    def __init__(self, dataset_cfg, class_names, training=True, root_path=None, logger=None, require_infos=True):
         check_dataset_cfg(dataset_cfg)
         self.image_extension = str(dataset_cfg.get("IMAGE_FILE_EXTENSION", ".jpg"))
+        self.require_infos = bool(require_infos)
         super().__init__(dataset_cfg=dataset_cfg, class_names=class_names, training=training,
                          root_path=root_path, logger=logger)
+
+    def include_kitti_data(self, mode):
+        super().include_kitti_data(mode)
+        if self.require_infos:
+            self._check_infos(mode)
+
+    def _check_infos(self, mode: str) -> None:
+        """Why a split has no frame, or infos written for another sensor folder than ``DATA_PATH``."""
+        root = Path(self.root_path)
+        names = [str(n) for n in self.dataset_cfg.INFO_PATH[mode]]
+        where = f"DATA_PATH {self.dataset_cfg.DATA_PATH!r} (here {root.resolve()}, from the current folder {Path.cwd()})"
+        if not self.kitti_infos:
+            if not names:
+                raise MSSFError(f"DATA_CONFIG.INFO_PATH[{mode!r}]: no info file listed, so the {mode} split has no frame")
+            if not root.is_dir():
+                raise MSSFError(f"{where}: no such folder, so the {mode} split has no frame (OpenPCDet's configs name "
+                                "it relative to tools/: run from there)")
+            missing = [n for n in names if not (root / n).is_file()]
+            if missing:
+                found = _sibling_infos(root, missing)
+                hint = (f"; they are in {found}: the infos were built for that folder. Point DATA_PATH there, or build "
+                        f"infos for this one") if found else ""
+                raise MSSFError(f"DATA_CONFIG.INFO_PATH[{mode!r}]: {missing} not found in {where}{hint} "
+                                f"(python -m mssf_examples.openpcdet create_vod_infos CFG --data_path {root})")
+            raise MSSFError(f"DATA_CONFIG.INFO_PATH[{mode!r}]: {names} in {where} hold no frame (written from an empty "
+                            f"ImageSets/{self.dataset_cfg.DATA_SPLIT[mode]}.txt?); rebuild them with create_vod_infos")
+        built = sorted({str(i["point_cloud"].get("sensor_folder")) for i in self.kitti_infos
+                        if i["point_cloud"].get("sensor_folder") is not None})
+        # only between VoD's own sensor folders: a renamed folder keeps valid infos
+        if built and built != [root.name] and {root.name, *built} <= set(_VOD_SENSOR_FOLDERS):
+            raise MSSFError(f"DATA_CONFIG.INFO_PATH[{mode!r}]: {names} in {where} were built for the sensor folder "
+                            f"{built} (recorded by create_vod_infos), not {root.name!r}: their point counts and frames "
+                            f"belong to that folder. Build infos for this one (python -m mssf_examples.openpcdet "
+                            f"create_vod_infos CFG --data_path {root}) or point DATA_PATH at {built[0]!r}")
 
     # ------------------------------------------------------------------ files
     def _file(self, folder: str, idx: str, ext: str) -> Path:
@@ -82,7 +162,7 @@ class VoDDataset(KittiDataset):
         if raw.size % n:
             raise MSSFError(f"{path}: {raw.size} float32 values, not a multiple of the {n} features of "
                             "DATA_CONFIG.POINT_FEATURE_ENCODING.src_feature_list")
-        return raw.reshape(-1, n)
+        return check_vod_points(raw.reshape(-1, n), path)
 
     def get_image(self, idx):
         """``(H, W, 3)`` float32 RGB in [0, 1], as ``KittiDataset.get_image``."""
@@ -116,6 +196,8 @@ class VoDDataset(KittiDataset):
         infos = super().get_infos(num_workers, has_label, count_inside_pts, sample_id_list)
         for info in infos:
             info["point_cloud"]["num_features"] = len(self.dataset_cfg.POINT_FEATURE_ENCODING.src_feature_list)
+            # the folder the point counts come from: a DATA_PATH naming another one is refused at load
+            info["point_cloud"]["sensor_folder"] = Path(self.root_path).name
         return infos
 
     # ------------------------------------------------------------------ evaluation
@@ -174,7 +256,8 @@ def create_vod_infos(dataset_cfg, class_names: Sequence[str], data_path, save_pa
     """Write ``vod_infos_{train,val,trainval}.pkl`` (and ``_test`` when ``ImageSets/test.txt`` and
     ``testing/`` exist) into ``save_path``, as OpenPCDet's ``create_kitti_infos`` does for KITTI."""
     data_path, save_path = Path(data_path), Path(save_path)
-    dataset = VoDDataset(dataset_cfg=dataset_cfg, class_names=list(class_names), root_path=data_path, training=False)
+    dataset = VoDDataset(dataset_cfg=dataset_cfg, class_names=list(class_names), root_path=data_path, training=False,
+                         require_infos=False)
     written: Dict[str, Path] = {}
     infos: Dict[str, list] = {}
     for split in ("train", "val"):
@@ -182,6 +265,8 @@ def create_vod_infos(dataset_cfg, class_names: Sequence[str], data_path, save_pa
             raise MSSFError(f"data_path: expected {data_path / 'ImageSets' / (split + '.txt')} (VoD's split lists)")
         dataset.set_split(split)
         infos[split] = dataset.get_infos(num_workers=workers, has_label=True, count_inside_pts=True)
+        if not infos[split]:
+            raise MSSFError(f"data_path: {data_path / 'ImageSets' / (split + '.txt')} lists no frame")
     infos["trainval"] = infos["train"] + infos["val"]
     if (data_path / "ImageSets" / "test.txt").is_file() and (data_path / "testing").is_dir():
         dataset.set_split("test")
