@@ -29,7 +29,8 @@ def _size(size: Any) -> Optional[int]:
 
 
 def _describe(entries: Sequence[Entry], what: str = "") -> str:
-    return ", ".join(f"{name} of shape {shape}" + (f" ({what} {size})" if what else "") for name, size, shape in entries)
+    return ", ".join(f"{name} {shape if isinstance(shape, str) else f'of shape {shape}'}"
+                     + (f" ({what} {size})" if what else "") for name, size, shape in entries)
 
 
 def check_agreement(entries: Sequence[Entry], what: str = "batch size",
@@ -49,7 +50,7 @@ def check_agreement(entries: Sequence[Entry], what: str = "batch size",
         if bad:
             raise MSSFError(
                 f"{', '.join(e[0] for e in bad)}: expected {what} {expected} ({ref_name}), got "
-                f"{_describe(bad, what)}; the camera inputs hold one entry per sample of the voxels' batch"
+                f"{_describe(bad, what)}; every one holds one entry per sample of the voxels' batch"
             )
         return
     counts = Counter(e[1] for e in entries)
@@ -74,7 +75,7 @@ def level_batch_entries(levels: Any, name: str = "image_features", dim: int = 0,
     entries = [(f"{name}[{i}]", _size(lvl.shape[dim]), tuple(lvl.shape))
                for i, lvl in enumerate(levels) if isinstance(lvl, Tensor) and lvl.dim() in ndims]
     if len(entries) > 1 and len({e[1] for e in entries}) == 1:
-        return [(name, entries[0][1], f"{entries[0][2]} (level 0 of {len(entries)})")]
+        return [(name, entries[0][1], f"of shape {entries[0][2]} (level 0 of {len(entries)})")]
     return entries
 
 

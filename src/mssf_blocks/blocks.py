@@ -62,7 +62,7 @@ def _camera_batch(inputs: FusionInputs) -> list:
     """Batch sizes of the camera inputs (agreeing: FusionInputs checked them), for the voxels' one."""
     entries = level_batch_entries(inputs.image_features) + [
         ("lidar2img", inputs.lidar2img.shape[0], tuple(inputs.lidar2img.shape))]
-    if inputs.points_to_sensor is not None:
+    if inputs.points_to_sensor is not None and inputs.points_to_sensor.dim() == 3:  # (else the projector's shape error)
         entries.append(("points_to_sensor", inputs.points_to_sensor.shape[0], tuple(inputs.points_to_sensor.shape)))
     return entries
 
@@ -311,7 +311,8 @@ class FusionBlock(nn.Module):
             _check_spconv(x, "x", first, "downsample" if self.downsample is not None else "blocks")
         if not isinstance(x, SparseVoxels):
             check_indices_in_shape(x.indices, x.spatial_shape)
-        check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", int(x.batch_size)))
+        if isinstance(x.batch_size, int):  # (an spconv tensor may hold a 0-d tensor: not read here)
+            check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", x.batch_size))
         out_stride = self.output_stride(in_stride)
         check_grid(x.spatial_shape, grid[0], grid[1], in_stride, self.projector.point_range_max)
 

@@ -105,7 +105,9 @@ def check_spconv_input(features: Tensor, coords: Tensor, spatial_shape, batch_si
                 order = (f"; (D, H, W) = (z, y, x) order is expected: {shape} is {want} with its axes "
                          f"permuted (e.g. (x, y, z) = (W, H, D) order)")
             raise MSSFError(f"{name}.spatial_shape: expected the network's {want}, got {shape}{order}")
-    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+    # (a 0-d tensor is what mmdet3d's SparseEncoder hands spconv: reading it would stall a GPU, spconv reads it)
+    if not (isinstance(batch_size, Tensor) and batch_size.dim() == 0 and not batch_size.is_floating_point()) and (
+            isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1):
         raise MSSFError(f"{name}.batch_size: expected a positive int, got {batch_size!r}")
 
 
