@@ -8,7 +8,8 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import autocast_off, check_dtype, convert_up, check_floating, check_index_range, check_shape
-from ._consistency import check_batch_statistics
+from ._consistency import batch_norm_in_training, check_batch_statistics
+from ._sanity import geometry_checks_enabled
 from ._static import use_static_path
 from .errors import MSSFError
 from .functional.static import linear_norm_visible_static
@@ -167,6 +168,10 @@ _autocast_off = autocast_off  # (the samplers' name for it)
 def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor, static: bool = False) -> Tensor:
     """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
     if static or use_static_path():  # (no row gather: a mask, and masked BatchNorm statistics)
+        # The count is not on the host here: read where data checks run (CPU, not while capturing a graph), so
+        # one seen voxel in training is the same error as on the eager path (a GPU keeps the masked result).
+        if batch_norm_in_training(norm) is not None and geometry_checks_enabled(visible):
+            check_visible_rows(norm, int(visible.sum()), x.shape[0])
         return linear_norm_visible_static(linear, norm, x, visible)
     rows = visible.nonzero().squeeze(1)
     if rows.numel() == x.shape[0]:  # every voxel seen: no gather / scatter copies

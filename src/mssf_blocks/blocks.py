@@ -348,7 +348,7 @@ class FusionBlock(nn.Module):
         else:
             if self.blocks is not None:
                 if self.downsample is not None:
-                    _check_spconv(cur, "downsample output", self.blocks, "blocks")
+                    _check_spconv(cur, "downsample(x)", self.blocks, "blocks")
                 cur = self.blocks(as_spconv(cur))
             cur = head(self.fuse(as_voxels(cur), inputs, query_add))
         out = as_voxels(cur) if isinstance(x, SparseVoxels) else as_spconv(cur)

@@ -134,7 +134,8 @@ def check_module_input(features: Tensor, module: Any, name: str = "voxels", modu
     conv = first_conv(module)
     if conv is None:
         return
-    what = f"{module_name}'s first convolution ({type(conv).__name__})"
+    owner = module_name + ("'" if module_name.endswith("s") else "'s")
+    what = f"{owner} first convolution ({type(conv).__name__})"
     c = features.shape[1]
     if c != conv.in_channels:
         raise MSSFError(
