@@ -127,6 +127,16 @@ def test_residual_blocks_of_another_width_are_named(position, pattern):
         blk(sparse(torch.randn(20, 4)), inputs())
 
 
+def test_a_biased_spconv_convolution_in_eval_mode_on_the_cpu_is_named():
+    # spconv adds the bias inside its inference kernel, which asserts on CPU tensors; in training it adds it after
+    ds = spconv.SparseSequential(spconv.SparseConv3d(4, 8, 3, stride=2, padding=1), nn.BatchNorm1d(8))
+    blk = FusionBlock(SFF([4], 8, norm_layer=None), downsample=ds, in_stride=(1, 1, 1), **GRID)
+    with pytest.raises(MSSFError, match=r"^downsample\.0: expected no bias in eval mode on the CPU, got a SparseConv3d "
+                                        r"with a bias.*bias=False"):
+        blk.eval()(sparse(torch.randn(20, 4)), inputs())
+    assert blk.train()(sparse(torch.randn(20, 4)), inputs()).features.shape[1] == 8
+
+
 def test_a_tensor_batch_size_still_works():
     # mmdet3d's SparseEncoder hands spconv `coors[-1, 0] + 1`, a 0-d tensor: accepted (not read) as before
     x = spconv.SparseConvTensor(torch.randn(20, 4), indices(20), [4, 8, 8], torch.tensor(1))

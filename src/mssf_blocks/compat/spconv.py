@@ -123,11 +123,27 @@ def first_conv(module: Any) -> Any:
     return None
 
 
+def _cpu_eval_bias(module: Any) -> Any:
+    """``(qualified name, module)`` (name ``""``: ``module`` itself) of the first spconv convolution in
+    ``module`` that would pass its bias to spconv's inference kernel (eval mode, spconv's own ``forward``),
+    or ``None``."""
+    try:
+        from spconv.pytorch.conv import SparseConvolution
+    except ImportError:  # pragma: no cover - depends on the environment
+        return None
+    for qual, m in module.named_modules():
+        if (type(m).forward is SparseConvolution.forward and not m.training
+                and getattr(m, "bias", None) is not None):
+            return qual, m
+    return None
+
+
 def check_module_input(features: Tensor, module: Any, name: str = "voxels", module_name: str = "module") -> None:
     """``features (N, C)`` fit ``module``'s first spconv convolution (:func:`first_conv`): ``C`` its
     ``in_channels`` (else spconv's "channel size mismatch" assertion), and its parameters' dtype (else a
     matrix-product dtype error deep in spconv). Not checked: the dtype under ``torch.autocast`` (spconv casts
-    there), and float16 features into float32 parameters (spconv runs those in float16)."""
+    there), and float16 features into float32 parameters (spconv runs those in float16). On the CPU, also that
+    no spconv convolution in ``module`` has a bias in eval mode (spconv's CPU kernels assert on it)."""
     from .._checks import autocast_on
     from ..errors import MSSFError
 
@@ -149,6 +165,16 @@ def check_module_input(features: Tensor, module: Any, name: str = "voxels", modu
             f"{name}.features: expected dtype {w} (the parameters of {what}), got {features.dtype}; convert the "
             f"features (.to({w})) or the module (.to({features.dtype}))"
         )
+    if features.device.type == "cpu":
+        biased = _cpu_eval_bias(module)
+        if biased is not None:
+            qual, m = biased
+            raise MSSFError(
+                f"{module_name}{'.' + qual if qual else ''}: expected no bias in eval mode on the CPU, got a "
+                f"{type(m).__name__} with a bias (spconv 2.x adds it inside its "
+                "inference kernel, which asserts \"cpu don't support act and bias\"); build it with bias=False (a "
+                "BatchNorm after it makes the bias redundant), or run on CUDA"
+            )
 
 
 def _stream_or_null() -> int:
