@@ -215,6 +215,13 @@ def test_the_odd_one_out_is_named_by_majority():
         inputs(batch=2, levels=[torch.randn(2, 4, 8, 8), torch.randn(3, 4, 4, 4)])
 
 
+def test_a_folded_multi_camera_level_is_named_as_such_not_as_a_batch_mismatch():
+    l2i = L2I[:, None].expand(2, 3, 3, 4)  # (B=2, V=3)
+    with pytest.raises(MSSFError, match=r"^image_features\[0\]: a 4-d level \(B, C, H, W\) means one camera, but V=3.*"
+                                        r"\(6, 4, 8, 8\); a \(B\*V, C, H, W\) level: image_features\[0\]\.view\(2, 3,"):
+        inputs(batch=2, levels=[torch.randn(6, 4, 8, 8)], l2i=l2i)
+
+
 def test_camera_inputs_of_another_batch_than_the_voxels_name_both():
     with pytest.raises(MSSFError, match=r"^image_features\[0\], lidar2img: expected batch size 2 \(x\.batch_size\), "
                                         r"got image_features\[0\] of shape \(1, 4, 8, 8\) \(batch size 1\), lidar2img"):

@@ -78,12 +78,17 @@ def check_image_features(
             raise MSSFError(f"{lname}: expected a torch.Tensor, got {type(level).__name__}")
         c = None if channels is None else int(channels[l])
         if level.dim() == 4:
-            _check_level_shape(level, lname, ("B", c, None, None), dims, channels_name, l)
-            if dims.setdefault("V", 1) != 1:
+            v = dims.get("V", 1)
+            if v != 1:  # (before the batch size: a (B*V, C, H, W) level would be blamed for its batch)
+                b = dims.get("B")
+                folded = (f"; a (B*V, C, H, W) level: {lname}.view({b}, {v}, *{lname}.shape[1:])"
+                          if b is not None and level.shape[0] == b * v else "")
                 raise MSSFError(
-                    f"{lname}: a 4-d level (B, C, H, W) means one camera, but V={dims['V']} "
-                    f"(from lidar2img or another level); pass (B, V, C, H, W), got shape {tuple(level.shape)}"
+                    f"{lname}: a 4-d level (B, C, H, W) means one camera, but V={v} "
+                    f"(from lidar2img or another level); pass (B, V, C, H, W), got shape {tuple(level.shape)}{folded}"
                 )
+            _check_level_shape(level, lname, ("B", c, None, None), dims, channels_name, l)
+            dims["V"] = 1
             level = level[:, None]
         elif level.dim() == 5:
             _check_level_shape(level, lname, ("B", "V", c, None, None), dims, channels_name, l)

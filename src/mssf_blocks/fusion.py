@@ -115,7 +115,10 @@ def check_input_agreement(image_features, lidar2img: Tensor, l2i: Tensor, points
     of the others disagree with, with both shapes (shapes only). On a tie in the batch size the image levels
     win: they come out of a network run on the whole batch, while ``lidar2img`` / ``points_to_sensor`` are
     assembled by hand."""
-    entries = level_batch_entries(image_features) + [("lidar2img", l2i.shape[0], tuple(lidar2img.shape))]
+    # (with several cameras a 4-d level is wrong whatever its batch, folded (B*V, C, H, W) most likely:
+    # check_image_features says so, instead of a batch-size vote)
+    ndims = (4, 5) if l2i.shape[1] == 1 else (5,)
+    entries = level_batch_entries(image_features, ndims=ndims) + [("lidar2img", l2i.shape[0], tuple(lidar2img.shape))]
     if isinstance(points_to_sensor, Tensor) and points_to_sensor.dim() == 3:
         entries.append(("points_to_sensor", points_to_sensor.shape[0], tuple(points_to_sensor.shape)))
     check_agreement(entries, "batch size")
