@@ -297,8 +297,8 @@ def check_image_size(image_size: Any, level_hw: Sequence[int] | None = None, nam
     which allows the rounding of strided convolutions and padding): a swapped ``(W, H)`` fails it."""
     try:
         h, w = (int(v) for v in image_size)
-    except (TypeError, ValueError):
-        raise MSSFError(f"{name}: expected (H, W), got {image_size!r}") from None
+    except (TypeError, ValueError, RuntimeError):
+        raise MSSFError(f"{name}: expected (H, W), got {image_size!r}{_per_sample_hint(image_size)}") from None
     if h <= 0 or w <= 0:
         raise MSSFError(f"{name}: expected positive (H, W), got {image_size!r}")
     if level_hw is not None and not is_tracing():  # (int() of a symbolic level size would specialise a graph)
@@ -312,6 +312,18 @@ def check_image_size(image_size: Any, level_hw: Sequence[int] | None = None, nam
                 f"one level-0 pixel, got {(h, w)}{hint}"
             )
     return h, w
+
+
+def _per_sample_hint(image_size: Any) -> str:
+    """Where ``image_size`` holds one ``(H, W)`` per sample (mmdet3d's per-sample ``img_shape``), say what to pass."""
+    try:
+        rows = [tuple(int(v) for v in row) for row in image_size]
+    except (TypeError, ValueError, RuntimeError):
+        return ""
+    if not rows or any(len(r) != 2 for r in rows):
+        return ""
+    return (f": {len(rows)} per-sample sizes; pass one (H, W) for the whole batch, the size lidar2img projects "
+            f"into (the padded batch input{'' if len(set(rows)) == 1 else ': the samples differ, pad them to one size'})")
 
 
 def check_triple(value: Any, name: str, kind: type, positive: bool = False) -> tuple:

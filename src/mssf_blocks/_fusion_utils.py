@@ -8,6 +8,8 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import autocast_off, check_dtype, convert_up, check_floating, check_index_range, check_shape
+from ._consistency import batch_norm_in_training, check_batch_statistics
+from ._sanity import geometry_checks_enabled
 from ._static import use_static_path
 from .errors import MSSFError
 from .functional.static import linear_norm_visible_static
@@ -25,6 +27,7 @@ def check_image_features(
     channels: Optional[Sequence[int]] = None,
     batch_size: Optional[int] = None,
     num_cameras: Optional[int] = None,
+    channels_name: Optional[str] = None,
 ) -> List[Tensor]:
     """Validate multi-scale image features and return them as ``(B, V, C_l, H_l, W_l)`` views.
 
@@ -35,6 +38,8 @@ def check_image_features(
         channels: expected ``C_l`` of every level.
         batch_size: expected ``B``.
         num_cameras: expected ``V``.
+        channels_name: the constructor argument ``channels`` come from, named when a level's channels
+            differ (``"SFF in_channels[{l}]"``, ``{l}`` the level).
 
     Returns:
         The levels as 5-d ``(B, V, C_l, H_l, W_l)`` tensors (views, no copy).
@@ -52,10 +57,12 @@ def check_image_features(
     if len(image_features) == 0:
         raise MSSFError(f"{name}: expected at least one level, got an empty sequence")
     if num_levels is not None and len(image_features) != num_levels:
-        raise MSSFError(f"{name}: expected {num_levels} levels (num_levels), got {len(image_features)}")
+        owner = f"{channels_name.split()[0]} num_levels" if channels_name else "num_levels"
+        raise MSSFError(f"{name}: expected {num_levels} levels ({owner}={num_levels}), got {len(image_features)}")
     if channels is not None and len(channels) != len(image_features):
+        owner = f" ({channels_name.split('[')[0]}={tuple(channels)})" if channels_name else ""
         raise MSSFError(
-            f"{name}: expected {len(channels)} levels with channels {tuple(channels)}, "
+            f"{name}: expected {len(channels)} levels with channels {tuple(channels)}{owner}, "
             f"got {len(image_features)} levels"
         )
     dims = {}
@@ -71,15 +78,20 @@ def check_image_features(
             raise MSSFError(f"{lname}: expected a torch.Tensor, got {type(level).__name__}")
         c = None if channels is None else int(channels[l])
         if level.dim() == 4:
-            check_shape(level, lname, ("B", c, None, None), dims)
-            if dims.setdefault("V", 1) != 1:
+            v = dims.get("V", 1)
+            if v != 1:  # (before the batch size: a (B*V, C, H, W) level would be blamed for its batch)
+                b = dims.get("B")
+                folded = (f"; a (B*V, C, H, W) level: {lname}.view({b}, {v}, *{lname}.shape[1:])"
+                          if b is not None and level.shape[0] == b * v else "")
                 raise MSSFError(
-                    f"{lname}: a 4-d level (B, C, H, W) means one camera, but V={dims['V']} "
-                    f"(from lidar2img or another level); pass (B, V, C, H, W), got shape {tuple(level.shape)}"
+                    f"{lname}: a 4-d level (B, C, H, W) means one camera, but V={v} "
+                    f"(from lidar2img or another level); pass (B, V, C, H, W), got shape {tuple(level.shape)}{folded}"
                 )
+            _check_level_shape(level, lname, ("B", c, None, None), dims, channels_name, l)
+            dims["V"] = 1
             level = level[:, None]
         elif level.dim() == 5:
-            check_shape(level, lname, ("B", "V", c, None, None), dims)
+            _check_level_shape(level, lname, ("B", "V", c, None, None), dims, channels_name, l)
         else:
             raise MSSFError(
                 f"{lname}: expected shape (B, C_l, H_l, W_l) or (B, V, C_l, H_l, W_l), "
@@ -94,6 +106,19 @@ def check_image_features(
             raise MSSFError(f"{lname}: expected dtype {dtype} (as {name}[0]), got {level.dtype}")
         out.append(level)
     return out
+
+
+def _check_level_shape(level: Tensor, lname: str, spec: tuple, dims: dict, channels_name: Optional[str], l: int) -> None:
+    """:func:`check_shape`; a wrong channel count also names the constructor argument it disagrees with."""
+    try:
+        check_shape(level, lname, spec, dims)
+    except MSSFError as exc:
+        c, got = spec[-3], level.shape[-3]
+        if channels_name is None or c is None or got == c:
+            raise
+        arg = channels_name.format(l=l)
+        raise MSSFError(f"{exc}: {got} channels, but {arg}={c}; build it with {arg.split()[-1]}={got}, or pass "
+                        f"{c}-channel levels") from None
 
 
 def _check_projection(projection: CentroidProjection, batch_size: int, num_cameras: int,
@@ -148,23 +173,28 @@ _autocast_off = autocast_off  # (the samplers' name for it)
 def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: Tensor, static: bool = False) -> Tensor:
     """``norm(linear(x))`` on the visible rows, exact zeros elsewhere (the fusion adds nothing there)."""
     if static or use_static_path():  # (no row gather: a mask, and masked BatchNorm statistics)
+        # The count is not on the host here: read where data checks run (CPU, not while capturing a graph), so
+        # one seen voxel in training is the same error as on the eager path (a GPU keeps the masked result).
+        if batch_norm_in_training(norm) is not None and geometry_checks_enabled(visible):
+            check_visible_rows(norm, int(visible.sum()), x.shape[0])
         return linear_norm_visible_static(linear, norm, x, visible)
     rows = visible.nonzero().squeeze(1)
-    if rows.numel() == 1 and norm.training and isinstance(norm, nn.modules.batchnorm._BatchNorm):
-        # (the count is on the host already: nonzero read it) BatchNorm's own error would blame its input
-        raise MSSFError(
-            f"projection: exactly one of the {x.shape[0]} voxels is visible in the image, and "
-            f"{type(norm).__name__} in training mode cannot compute batch statistics from one row; train "
-            "with more than one visible voxel per batch (a larger batch, or skip this frame), or put the "
-            "fusion block in eval mode"
-        )
     if rows.numel() == x.shape[0]:  # every voxel seen: no gather / scatter copies
+        check_visible_rows(norm, rows.numel(), x.shape[0])
         return norm(linear(x))
     return _linear_bn_rows(linear, norm, x[rows], rows, x.shape[0])
 
 
+def check_visible_rows(norm: nn.Module, rows: int, n: int) -> None:
+    """Our error, not BatchNorm's, for one visible voxel in training mode (the count is on the host already:
+    ``nonzero`` read it). Every sampler's output stage goes through it."""
+    check_batch_statistics(norm, rows, "projection", f"exactly one of the {n} voxels is visible in the image",
+                           "fusion block")
+
+
 def _linear_bn_rows(linear: nn.Module, norm: nn.Module, x_rows: Tensor, rows: Tensor, n: int) -> Tensor:
     """``(n, C)``: ``norm(linear(x_rows))`` at the rows ``rows`` (the visible voxels), exact zeros elsewhere."""
+    check_visible_rows(norm, x_rows.shape[0], n)
     y = norm(linear(x_rows))
     return y.new_zeros(n, y.shape[1]).index_put((rows,), y)
 

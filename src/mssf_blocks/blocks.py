@@ -28,10 +28,12 @@ import torch
 from torch import nn
 
 from ._checks import check_triple, to_module_dtype
+from ._consistency import check_agreement, level_batch_entries
 from ._sanity import check_grid, check_indices_in_shape
 from ._fusion_utils import check_image_features
 from .errors import MSSFError
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
+from .compat.spconv import check_spconv_input
 from .geometry import VoxelCentroidProjector
 from .sparse import SparseVoxels
 
@@ -43,6 +45,26 @@ _HEAD_POSITIONS = ("after_fusion", "after_residual")
 
 def _is_spconv_tensor(x: Any) -> bool:
     return all(hasattr(x, a) for a in ("features", "indices", "spatial_shape", "batch_size", "replace_feature"))
+
+
+def _check_spconv(t: Any, name: str, module: Optional[nn.Module], module_name: str) -> None:
+    """The checks of :meth:`SparseVoxels.to_spconv` on ``t`` (SparseVoxels or an spconv tensor), and that
+    ``module`` takes its channels and dtype (shapes and dtypes only)."""
+    if isinstance(t, SparseVoxels):
+        check_spconv_input(t.features, t.coords, t.spatial_shape, t.batch_size, name, module=module,
+                           module_name=module_name)
+    else:
+        check_spconv_input(t.features, t.indices, t.spatial_shape, t.batch_size, name, coords_name="indices",
+                           module=module, module_name=module_name)
+
+
+def _camera_batch(inputs: FusionInputs) -> list:
+    """Batch sizes of the camera inputs (agreeing: FusionInputs checked them), for the voxels' one."""
+    entries = level_batch_entries(inputs.image_features) + [
+        ("lidar2img", inputs.lidar2img.shape[0], tuple(inputs.lidar2img.shape))]
+    if inputs.points_to_sensor is not None and inputs.points_to_sensor.dim() == 3:  # (else the projector's shape error)
+        entries.append(("points_to_sensor", inputs.points_to_sensor.shape[0], tuple(inputs.points_to_sensor.shape)))
+    return entries
 
 
 def infer_downsample_stride(module: Optional[nn.Module]) -> Tuple[int, int, int]:
@@ -212,9 +234,14 @@ class FusionBlock(nn.Module):
         f_vox = voxels.features
         c = f_vox.shape[1]
         if c != self.out_channels:
+            arg = "out_channels" if isinstance(self.fusion, SFF) else "embed_dim"
+            where = ("the downsample's output" if self.downsample is not None else
+                     "the residual blocks' output" if self.blocks is not None and self.position == "after_residual"
+                     else "x.features")
             raise MSSFError(
                 f"x: expected voxel features with {self.out_channels} channels at the fusion step "
-                f"({type(self.fusion).__name__} output), got {c}"
+                f"({type(self.fusion).__name__} {arg}={self.out_channels}), got {c} ({where}); build the "
+                f"{type(self.fusion).__name__} with {arg}={c} (the stage's channels)"
             )
         # The dtype rule (docs/conventions.md): voxel features are read in the fusion's parameter dtype
         # (float64 into a float32 block is refused) and f_fuse comes out in it.
@@ -238,7 +265,8 @@ class FusionBlock(nn.Module):
                 # reported under QueryInit's internal name f_img0.
                 check_image_features(inputs.image_features, "inputs.image_features",
                                      num_levels=self.fusion.num_levels,
-                                     channels=[self.fusion.value_channels] * self.fusion.num_levels)
+                                     channels=[self.fusion.value_channels] * self.fusion.num_levels,
+                                     channels_name="MSDFF value_channels")
                 qi = self.query_init
                 f_img0 = sample_at_projection(inputs.image_features[0], projection, align_corners=qi.align_corners)
                 geo = torch.float64 if dtype == torch.float64 else torch.float32  # positions: float32 or better
@@ -274,9 +302,17 @@ class FusionBlock(nn.Module):
                 )
             grid = (self.voxel_size, self.point_range_min)
             in_stride = self.in_stride
-            check_indices_in_shape(x.indices, x.spatial_shape)
         else:
             raise MSSFError(f"x: expected SparseVoxels or an spconv SparseConvTensor, got {type(x).__name__}")
+        # Before any spconv code: what SparseVoxels.to_spconv checks, plus what the first spconv module takes.
+        first = self.downsample if self.downsample is not None else (
+            self.blocks if self.position == "after_residual" else None)
+        if first is not None or not isinstance(x, SparseVoxels):
+            _check_spconv(x, "x", first, "downsample" if self.downsample is not None else "blocks")
+        if not isinstance(x, SparseVoxels):
+            check_indices_in_shape(x.indices, x.spatial_shape)
+        if isinstance(x.batch_size, int):  # (an spconv tensor may hold a 0-d tensor: not read here)
+            check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", x.batch_size))
         out_stride = self.output_stride(in_stride)
         check_grid(x.spatial_shape, grid[0], grid[1], in_stride, self.projector.point_range_max)
 
@@ -305,11 +341,14 @@ class FusionBlock(nn.Module):
             if self.head_position == "after_fusion":
                 cur = head(cur)
             if self.blocks is not None:
+                _check_spconv(cur, "f_fuse", self.blocks, "blocks")
                 cur = self.blocks(as_spconv(cur))
             if self.head_position == "after_residual":
                 cur = head(cur)
         else:
             if self.blocks is not None:
+                if self.downsample is not None:
+                    _check_spconv(cur, "downsample(x)", self.blocks, "blocks")
                 cur = self.blocks(as_spconv(cur))
             cur = head(self.fuse(as_voxels(cur), inputs, query_add))
         out = as_voxels(cur) if isinstance(x, SparseVoxels) else as_spconv(cur)

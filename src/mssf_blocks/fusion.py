@@ -44,6 +44,7 @@ from ._checks import (
     check_shape,
     to_module_dtype,
 )
+from ._consistency import check_agreement, check_batch_statistics, check_channels, level_batch_entries
 from ._fusion_utils import (
     _autocast_off,
     _corner_aligned_uv,
@@ -109,6 +110,24 @@ def _mean_of_samples(sampled: Tensor, valid: Tensor) -> Tensor:
 # ---------------------------------------------------------------------------------------------------
 # inputs of a fusion block
 # ---------------------------------------------------------------------------------------------------
+def check_input_agreement(image_features, lidar2img: Tensor, l2i: Tensor, points_to_sensor) -> None:
+    """The batch size (and the cameras) of the camera inputs agree; else the error names the argument most
+    of the others disagree with, with both shapes (shapes only). On a tie in the batch size the image levels
+    win: they come out of a network run on the whole batch, while ``lidar2img`` / ``points_to_sensor`` are
+    assembled by hand."""
+    # (with several cameras a 4-d level is wrong whatever its batch, folded (B*V, C, H, W) most likely:
+    # check_image_features says so, instead of a batch-size vote)
+    ndims = (4, 5) if l2i.shape[1] == 1 else (5,)
+    entries = level_batch_entries(image_features, ndims=ndims) + [("lidar2img", l2i.shape[0], tuple(lidar2img.shape))]
+    if isinstance(points_to_sensor, Tensor) and points_to_sensor.dim() == 3:
+        entries.append(("points_to_sensor", points_to_sensor.shape[0], tuple(points_to_sensor.shape)))
+    check_agreement(entries, "batch size")
+    # Cameras: lidar2img wins a tie (one matrix per camera of the set-up). 4-d levels are
+    # one camera each: check_image_features names that case.
+    check_agreement([("lidar2img", l2i.shape[1], tuple(lidar2img.shape))]
+                    + level_batch_entries(image_features, dim=1, ndims=(5,)), "number of cameras V")
+
+
 @dataclass(frozen=True, eq=False)
 class FusionInputs:
     """The camera side of a fusion block: image features plus what projection needs.
@@ -138,6 +157,7 @@ class FusionInputs:
 
     def __post_init__(self) -> None:
         l2i = normalize_lidar2img(self.lidar2img)
+        check_input_agreement(self.image_features, self.lidar2img, l2i, self.points_to_sensor)
         levels = check_image_features(
             self.image_features, "image_features", batch_size=l2i.shape[0], num_cameras=l2i.shape[1]
         )
@@ -228,7 +248,7 @@ class SFF(nn.Module):
 
         In float32 (float64 for a float64 module), whatever the levels' precision (see the module doc).
         """
-        levels = check_image_features(image_features, num_levels=self.num_levels, channels=self.in_channels)
+        levels = check_image_features(image_features, channels=self.in_channels, channels_name="SFF in_channels[{l}]")
         uv, valid, batch_index = _check_projection(projection, levels[0].shape[0], levels[0].shape[1])
         dtype = _sampling_dtype(self.linear.weight)
         uv = uv.to(dtype)
@@ -332,6 +352,8 @@ class QueryInit(nn.Module):
 
     def forward(self, f_vox: Tensor, f_img0: Tensor, centers: Tensor) -> Tensor:
         dims = {}
+        check_channels(f_vox, "f_vox", self.voxel_channels, "QueryInit voxel_channels")
+        check_channels(f_img0, "f_img0", self.image_channels, "QueryInit image_channels")
         check_shape(f_vox, "f_vox", ("N", self.voxel_channels), dims)
         check_shape(f_img0, "f_img0", ("N", self.image_channels), dims)
         check_shape(centers, "centers", ("N", 3), dims)
@@ -342,6 +364,8 @@ class QueryInit(nn.Module):
         f_img0 = to_module_dtype(f_img0, "f_img0", dtype, "QueryInit")
         check_floating(centers, "centers")
         p = self.normalized_centers(centers.to(dtype))
+        # (every voxel gets a query, seen or not: the norm takes all N rows)
+        check_batch_statistics(self.norm, f_vox.shape[0], "f_vox", "exactly one voxel (N = 1)", "QueryInit")
         return self.norm(self.linear(torch.cat([f_vox, f_img0, p], dim=1)))
 
     def extra_repr(self) -> str:

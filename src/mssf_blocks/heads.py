@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import to_module_dtype
+from ._consistency import check_batch_statistics, check_channels
 from .errors import MSSFError
 from .functional.heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .sparse import SparseVoxels
@@ -109,12 +110,12 @@ class SemanticGuidedHead(nn.Module):
             width = h
         self.mlp = nn.Sequential(*layers)
         self.classifier = nn.Linear(width, 1, **factory)
-        self._has_norm = norm_layer is not None and len(hidden) > 0
         if prior_prob is not None:
             nn.init.constant_(self.classifier.bias, -math.log((1 - prior_prob) / prior_prob))
 
     def logits(self, features: Tensor) -> Tensor:
         """``(N,)`` foreground logits of ``(N, C)`` features."""
+        check_channels(features, "features", self.in_channels, "SemanticGuidedHead in_channels")
         if not isinstance(features, Tensor) or features.dim() != 2 or features.shape[1] != self.in_channels:
             got = tuple(features.shape) if isinstance(features, Tensor) else type(features).__name__
             raise MSSFError(f"features: expected shape (N, C={self.in_channels}), got {got}")
@@ -124,11 +125,7 @@ class SemanticGuidedHead(nn.Module):
         if n == 0:
             # Zero rows: skip the MLP (BatchNorm cannot normalise an empty batch) but stay on the graph.
             return features.sum(dim=1) + self.classifier.bias.sum() * 0
-        if n == 1 and self.training and self._has_norm:
-            raise MSSFError(
-                "voxels: a single voxel cannot be batch-normalised in training mode; use more voxels, "
-                "call .eval(), or build the head with norm_layer=None"
-            )
+        check_batch_statistics(self.mlp, n, "voxels", "a single voxel (N = 1)", "semantic head")
         return self.classifier(self.mlp(features)).squeeze(1)
 
     def forward(
@@ -146,6 +143,7 @@ class SemanticGuidedHead(nn.Module):
         """
         if not isinstance(voxels, SparseVoxels):
             raise MSSFError(f"voxels: expected SparseVoxels, got {type(voxels).__name__}")
+        check_channels(voxels.features, "voxels.features", self.in_channels, "SemanticGuidedHead in_channels")
         features = to_module_dtype(voxels.features, "voxels.features", self.classifier.weight.dtype,
                                    "SemanticGuidedHead")
         logits = self.logits(features)

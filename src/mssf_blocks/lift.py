@@ -14,6 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import check_index_range, check_positive_int, check_shape, to_module_dtype
+from ._consistency import check_channels
 from .errors import MSSFError
 from .functional.lift import (
     _check_stride2,
@@ -158,6 +159,7 @@ class PillarLift(nn.Module):
         self._check_voxels(voxels)
         expected = (voxels.batch_size, self.channels) + self.bev_shape(voxels)
         check_shape(bev, "bev", ("B", "C", "H_b", "W_b"))
+        check_channels(bev, "bev", self.channels, "PillarLift channels")
         if tuple(bev.shape) != expected:
             raise MSSFError(
                 f"bev: expected shape (B, C, H_b, W_b) = {expected} for voxels with batch_size "
@@ -174,8 +176,9 @@ class PillarLift(nn.Module):
         if self.raw_conv is not None:
             c_raw = self.raw_conv.in_channels
             if voxels.features.dim() != 2 or voxels.features.shape[1] != c_raw:
-                raise MSSFError(f"voxels: expected raw voxel features (N, {c_raw}) for raw_conv, "
-                                f"got {tuple(voxels.features.shape)}")
+                raise MSSFError(f"voxels: expected raw voxel features (N, {c_raw}) for raw_conv (PillarLift "
+                                f"raw_channels={c_raw}), got {tuple(voxels.features.shape)}; build the lift with "
+                                f"raw_channels={voxels.features.shape[-1]}, or pass {c_raw}-channel voxels")
             w = self.raw_conv.weight
             raw = self.raw_conv(voxels.replace(features=to_module_dtype(voxels.features, "voxels.features", w.dtype,
                                                                         "PillarLift")).to_spconv()).features

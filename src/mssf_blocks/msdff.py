@@ -14,6 +14,7 @@ from torch import Tensor, nn
 
 from . import _compat
 from ._checks import check_floating, check_positive_int, check_shape
+from ._consistency import check_channels
 from ._fusion_utils import (
     _autocast_off,
     _check_projection,
@@ -270,11 +271,13 @@ class MSDFF(nn.Module):
         self, query: Tensor, image_features: Sequence[Tensor], projection: CentroidProjection
     ) -> Tensor:
         levels = check_image_features(
-            image_features, num_levels=self.num_levels, channels=[self.value_channels] * self.num_levels
+            image_features, num_levels=self.num_levels, channels=[self.value_channels] * self.num_levels,
+            channels_name="MSDFF value_channels",
         )
         b, v = levels[0].shape[:2]
         uv, valid, batch_index = _check_projection(projection, b, v)
         n = uv.shape[0]
+        check_channels(query, "query", self.embed_dim, "MSDFF embed_dim")
         check_shape(query, "query", (n, self.embed_dim))
         check_floating(query, "query")
 

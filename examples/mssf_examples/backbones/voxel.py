@@ -223,7 +223,7 @@ class SparseFusionBackbone(nn.Module):
     def _forward_stages(self, voxels: SparseVoxels, fusion_inputs) -> BackboneOutput:
         # our error before spconv's own (float64 features, int64 indices, no voxel, a permuted grid)
         check_spconv_input(voxels.features, voxels.coords, voxels.spatial_shape, voxels.batch_size,
-                           expected_shape=self.grid.spatial_shape)
+                           expected_shape=self.grid.spatial_shape, module=self.conv_input, module_name="conv_input")
         x = spconv.SparseConvTensor(voxels.features, voxels.coords, list(self.input_shape), voxels.batch_size)
         x = self.conv_input(x)
         outs: List[SparseVoxels] = []

@@ -97,13 +97,15 @@ def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor,
     ``(b, y, x)`` at stride 8 on the ``bev_shape`` grid, as OpenPCDet's ``VoxelResBackBone8xVoxelNeXt``."""
     import spconv.pytorch as spconv
 
-    from ..compat.spconv import quiet
+    from ..compat.spconv import check_module_input, quiet
 
     voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net(voxels, fusion_inputs)
     features, indices = out.sparse_bev
     encoded = spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
     if getattr(net, "shared_conv", None) is not None:
+        # (2-d (b, y, x) indices: the 3-d check does not apply; what shared_conv takes does)
+        check_module_input(features, net.shared_conv, "sparse_bev", "shared_conv")
         with quiet():
             encoded = net.shared_conv(encoded)
     return out, encoded

@@ -186,7 +186,9 @@ def fusion_inputs_from_mmdet3d(
         raise MSSFError(f"points: expected a list of (P_i, 3 + C) tensors (one per sample), got {type(points).__name__}")
     metas = list(batch_input_metas)
     if len(metas) != len(points) or not metas:
-        raise MSSFError(f"batch_input_metas: expected one metainfo dict per sample ({len(points)}), got {len(metas)}")
+        # (which one is short is not known here: both are named; the middle encoder decides by its batch_size)
+        raise MSSFError(f"batch_input_metas, points: expected one metainfo dict and one point tensor per sample, got "
+                        f"{len(metas)} metainfo dict(s) and {len(points)} point tensor(s)")
     for i, p in enumerate(points):
         if not isinstance(p, Tensor) or p.dim() != 2 or p.shape[1] < 3 or not p.is_floating_point():
             raise MSSFError(f"points[{i}]: expected a floating (P, 3 + C) tensor, got {getattr(p, 'shape', type(p).__name__)}")

@@ -24,6 +24,7 @@ from typing import Any, List, Mapping, Optional, Sequence, Tuple, Union
 
 from torch import Tensor, nn
 
+from .._consistency import check_agreement
 from ..errors import MSSFError
 from . import _backbones
 from .mmdet3d import fusion_inputs_from_mmdet3d
@@ -112,6 +113,7 @@ class MSSFSparseEncoder(nn.Module):
         **kwargs: Any,
     ) -> Union[Tensor, Tuple[Tensor, List[Any]]]:
         inputs = None
+        batch_size = int(batch_size)  # (read once: a 0-d tensor from VoxelNet.extract_feat)
         if self.num_fusion_blocks:
             missing = [n for n, v in (("points", points), ("img_features", img_features),
                                       ("batch_input_metas", batch_input_metas)) if v is None]
@@ -120,8 +122,12 @@ class MSSFSparseEncoder(nn.Module):
                     f"{', '.join(missing)}: required by the fusion blocks; pass points=..., img_features=..., "
                     "batch_input_metas=... to the middle encoder (docs/frameworks.md)"
                 )
+            # the voxels' batch_size (from coors) decides which per-sample list is short
+            check_agreement([(n, len(v), f"(a list of {len(v)})") for n, v in (("points", points),
+                             ("batch_input_metas", batch_input_metas)) if isinstance(v, (list, tuple))],
+                            "number of samples", ("batch_size", batch_size))
             inputs = fusion_inputs_from_mmdet3d(points, img_features, batch_input_metas, image_aug=self.image_aug)
-        out, encoded = _backbones.run_dense_layout(self.net, voxel_features, coors, int(batch_size), inputs)
+        out, encoded = _backbones.run_dense_layout(self.net, voxel_features, coors, batch_size, inputs)
         self.last_output = out if out.seg_logits is not None else None
         from ..compat.spconv import dense
 
