@@ -8,9 +8,10 @@ the projector runs the checks:
   voxels' stride) is one of its voxels (warning below 0.5);
 * ``points_to_sensor``: per sample, the in-image fraction of its raw points with the matrix, and the best
   of the fractions with its inverse / without it (warning when the alternative is >= 1.5x and >= 0.15 more);
-* ``raw quarter``: the share of the in-image raw projections in the top-left quarter of the image and
-  the smallest principal point (as a fraction of ``image_size``) (the warning needs a share >= 0.75 and
-  every principal point <= 0.375).
+* ``image_size``: the share of the in-image raw projections in the top-left quarter of the image, the
+  principal points (as fractions of ``image_size``) and how many more raw points project inside twice
+  ``image_size`` than inside it (too large: a share >= 0.75 and every principal point in (0.125, 0.375];
+  too small: >= 2x and every principal point in [0.75, 1.5)).
 
 Correct inputs: the CLI's training on generated VoD-like scenes (augmentation on: flips, +-pi/4
 rotations, scaling) for ``--detectors``, the demo detectors on the test fixture batch, the two real VoD
@@ -38,7 +39,7 @@ sys.path.insert(0, str(ROOT / "examples"))
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector  # noqa: E402
 from mssf_blocks import _consistency as cc  # noqa: E402
 from mssf_blocks import geometry as _geometry  # noqa: E402
-from mssf_blocks._sanity import _principal_points  # noqa: E402
+from mssf_blocks._sanity import _relative_centre  # noqa: E402
 from mssf_blocks.errors import MSSFGeometryWarning  # noqa: E402
 from mssf_blocks.geometry import augmentation_matrix  # noqa: E402
 
@@ -75,8 +76,10 @@ class Recorder:
             pts = uv[inside]
             if pts.shape[0] >= 8:
                 h, w = a[3]
-                centre = _principal_points(a[2]) / torch.tensor([w, h], dtype=torch.float64)
-                self.rows["quarter"].append((float((pts <= 0.5).all(-1).double().mean()), float(centre.amin())))
+                centre = _relative_centre(a[2], h, w)
+                twice = int(((uv >= 0) & (uv <= 2)).all(-1).sum())
+                self.rows["quarter"].append((float((pts <= 0.5).all(-1).double().mean()), float(centre.amin()),
+                                             float(centre.amax()), twice / pts.shape[0]))
             return uv, inside
 
         cc.points_in_voxels, cc.sensor_fractions, _geometry.project_raw = points_in_voxels, sensor_fractions, project_raw
@@ -94,7 +97,8 @@ class Recorder:
         gain = [b - m for m, b in p2s]
         warn = sum(b >= cc.INVERSE_RATIO * m and b - m >= cc.MIN_GAIN for m, b in p2s)
         q = self.rows["quarter"]
-        quarter = (f"share max {max(r[0] for r in q):.2f}, principal point min {min(r[1] for r in q):.3f} ({len(q)})"
+        quarter = (f"quarter share max {max(r[0] for r in q):.2f}, principal point {min(r[1] for r in q):.3f}-"
+                   f"{max(r[2] for r in q):.3f}, inside twice / inside max {max(r[3] for r in q):.2f} ({len(q)})"
                    if q else "-")
         print(f"| {name} | {'; '.join(parts) or '-'} | "
               + (f"{len(p2s)}: alternative / with max {max(ratio):.2f}, gain max {max(gain):.2f}, warned {warn}"
@@ -191,7 +195,7 @@ def main() -> None:
     ap.add_argument("--detectors", nargs="+", default=["second", "pointpillars"])
     args = ap.parse_args()
     torch.set_num_threads(1)
-    print("| correct inputs | points in voxels (min per stride, samples) | points_to_sensor | raw points in the top-left quarter |")
+    print("| correct inputs | points in voxels (min per stride, samples) | points_to_sensor | image_size (raw points) |")
     print("|---|---|---|---|")
     real_frames()
     demo_detectors()

@@ -106,6 +106,12 @@ def _():
     return outcome(lambda: fc.VoxelCentroidProjector()(vox, pts, pb, l2i, (2 * size[0], 2 * size[1])))
 
 
+@case("`image_size` smaller than the image")
+def _():
+    vox, pts, pb, l2i, size = _coarse()
+    return outcome(lambda: fc.VoxelCentroidProjector()(vox, pts, pb, l2i, (size[0] // 2, size[1] // 2)))
+
+
 @case("image and levels resized, `lidar2img` not")
 def _():
     vox, pts, pb, l2i = gs.scene()

@@ -194,3 +194,29 @@ def test_rotation_in_degrees_is_refused_by_the_builders(rotation):
 
     with pytest.raises(MSSFError, match=r"rotation_range: .*degrees\? pass radians"):
         AugmentationConfig(rotation_range=(-abs(rotation), abs(rotation)))
+
+
+def test_first_call_checks_are_gated_like_the_coverage_checks():
+    """They read data: off with set_geometry_checks(False) (the default on an accelerator) and while tracing."""
+    from mssf_blocks.geometry import set_geometry_checks
+
+    vox, pts, pb, l2i, size = scene()
+    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, COARSE[::-1], RANGE[:3])
+    assert project(wrong, pts, pb, l2i, size)[1]
+    set_geometry_checks(False)
+    try:
+        assert project(wrong, pts, pb, l2i, size)[1] == []
+    finally:
+        set_geometry_checks(None)
+    from unittest import mock
+
+    with mock.patch("mssf_blocks._sanity.is_tracing", return_value=True):
+        assert project(wrong, pts, pb, l2i, size)[1] == []
+
+
+def test_image_size_half_the_projection_image_is_named_not_as_swapped():
+    vox, pts, pb, l2i, size = scene()
+    msgs = project(vox, pts, pb, l2i, (size[0] // 2, size[1] // 2))[1]
+    assert any("is image_size smaller than the image lidar2img projects into" in m for m in msgs), msgs
+    assert not any("swapped" in m for m in msgs), msgs
+    assert any("swapped" in m for m in project(vox, pts, pb, l2i, size[::-1])[1])  # a real swap still is

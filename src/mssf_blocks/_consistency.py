@@ -21,7 +21,8 @@ warm-up:
   doubles the augmentation, and its inverse restores the view.
 * the raw points' in-image projections also feed the top-left-quarter verdict of
   :func:`._sanity.check_projection_coverage` (``image_size`` too large): there are far more raw points
-  than coarse voxels.
+  than coarse voxels; and the other way round, far more of them inside twice ``image_size`` than inside
+  it, with the principal point at the image's far corner: ``image_size`` too small.
 
 All of them read tensor values: gated like the coverage checks (:func:`._sanity.geometry_checks_enabled`).
 The thresholds and the distributions they were chosen from are in ``docs/conventions.md``
@@ -36,6 +37,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
+from ._sanity import _relative_centre
 from .errors import MSSFGeometryWarning
 from .functional.geometry import _grid_keys, _point_keys
 
@@ -49,6 +51,12 @@ INVERSE_RATIO = 1.5
 MIN_GAIN = 0.15
 #: no points_to_sensor verdict on a sample with fewer raw points
 MIN_PROJECTED = 16
+#: image_size smaller than the image lidar2img projects into: at least SMALL_RATIO times more raw points
+#: inside twice image_size than inside it (correct inputs: at most 1.12x), at least MIN_CORNER of them, and
+#: every principal point in [SMALL_CENTRE, 1.5) of image_size (a centred one is at 0.5; half the size: 1.0)
+SMALL_RATIO = 2.0
+SMALL_CENTRE = 0.75
+MIN_CORNER = 32
 
 
 def points_in_voxels(points: Tensor, points_batch: Tensor, coords: Tensor, spatial_shape: Sequence[int],
@@ -118,6 +126,7 @@ def project_raw(points: Tensor, points_batch: Tensor, lidar2img: Tensor, image_s
     front = cam[..., 2] > eps
     pix = cam[..., :2] / torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))[..., None]
     uv = (pix + 0.5) / torch.tensor([w, h], dtype=wide, device=points.device)
+    uv = torch.where(front[..., None], uv, torch.full_like(uv, -1.0))  # behind the camera: outside any image
     return uv, front & (uv >= 0).all(-1) & (uv <= 1).all(-1)
 
 
@@ -154,3 +163,23 @@ def check_points_to_sensor(points: Tensor, points_batch: Tensor, lidar2img: Tens
                 "maps the augmented points back to the sensor frame (the inverse of augmentation_matrix: "
                 "torch.linalg.inv); pass none when the points are not augmented"
             ), stacklevel=2)
+
+
+def check_image_size_small(uv: Tensor, inside: Tensor, lidar2img: Tensor, image_size: Sequence[int]) -> None:
+    """Warn when far more raw points project inside twice ``image_size`` than inside it and the principal
+    point lands at the image's far corner: ``image_size`` smaller than the image ``lidar2img`` projects into
+    (e.g. images stored at half size with the calibration of the full ones). ``uv``, ``inside`` from
+    :func:`project_raw` (``uv = -1`` behind the camera)."""
+    n_in = int(inside.sum())
+    n_twice = int(((uv >= 0) & (uv <= 2)).all(-1).sum())
+    if n_twice < MIN_CORNER or n_twice < SMALL_RATIO * n_in:
+        return
+    h, w = (int(v) for v in image_size)
+    centre = _relative_centre(lidar2img, h, w)
+    if bool(((centre >= SMALL_CENTRE) & (centre < 1.5)).all()):
+        warnings.warn(MSSFGeometryWarning(
+            f"projection: {n_in} raw point projections fall inside image_size={(h, w)} but {n_twice} inside twice "
+            f"it, and the principal point lands at {tuple(round(float(v), 2) for v in centre.reshape(-1, 2)[0])} "
+            "of it: is image_size smaller than the image lidar2img projects into (e.g. half its size: images "
+            "resized without updating lidar2img)?"
+        ), stacklevel=2)

@@ -34,10 +34,11 @@ _MIN_VOXELS = 8
 #: fewer in-image projections than this: no top-left-quarter verdict (a small toy scene may sit there)
 _MIN_CORNER = 32
 #: top-left-quarter verdict from raw points too: at least this share of the in-image projections in the
-#: quarter, and every principal point within this fraction of image_size (correct frames: share <= 0.11,
-#: principal point ~0.5; image_size twice: share >= 0.84, principal point ~0.25; docs/conventions.md)
+#: quarter, and every principal point within (_CENTRE_MIN, _CENTRE_MAX] of image_size (correct frames:
+#: share <= 0.11, principal point ~0.5; image_size twice: share >= 0.84, principal point ~0.25; a toy
+#: camera whose optical axis meets the image corner, principal point 0, is no verdict; docs/conventions.md)
 _QUARTER_SHARE = 0.75
-_CENTRE_MAX = 0.375
+_CENTRE_MIN, _CENTRE_MAX = 0.125, 0.375
 
 _CAUSES = (
     "usual causes: image_size not the size lidar2img projects into (scale, or (W, H) swapped); lidar2img "
@@ -149,7 +150,8 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
     pix = uv * uv.new_tensor([w, h])  # pixel positions, half a pixel off at most
     swapped = front & (pix >= 0).all(-1) & (pix[..., 0] <= h) & (pix[..., 1] <= w)
     n_seen, n_swapped = int(inside.sum()), int(swapped.sum())
-    if h != w and n_swapped - n_seen >= _MIN_VOXELS and n_swapped > 1.2 * n_seen:
+    if h != w and n_swapped - n_seen >= _MIN_VOXELS and n_swapped > 1.2 * n_seen and not bool(
+            (_relative_centre(lidar2img, h, w) >= 0.75).all()):  # (that is image_size too small: _consistency)
         warnings.warn(MSSFGeometryWarning(
             f"projection: {n_seen} voxel projections inside image_size={(h, w)} but {n_swapped} inside "
             f"{(w, h)}: image_size (W, H) swapped? it is (H, W)"
@@ -177,14 +179,19 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
     if both.shape[0] < _MIN_VOXELS:
         return
     share = float((both <= 0.5).all(-1).double().mean())
-    centre = _principal_points(lidar2img) / torch.tensor([w, h], dtype=torch.float64, device=lidar2img.device)
-    if share >= _QUARTER_SHARE and bool((centre <= _CENTRE_MAX).all()):
+    centre = _relative_centre(lidar2img, h, w)
+    if share >= _QUARTER_SHARE and bool(((centre > _CENTRE_MIN) & (centre <= _CENTRE_MAX)).all()):
         warnings.warn(MSSFGeometryWarning(
             f"projection: {share:.2f} of {both.shape[0]} in-image projections (voxels and raw points) fall in the "
             f"top-left quarter of image_size={(h, w)}, and the principal point lands at "
             f"{tuple(round(float(v), 2) for v in centre.reshape(-1, 2)[0])} of it: is image_size larger than "
             "the image lidar2img projects into (e.g. twice its size)?"
         ), stacklevel=2)
+
+
+def _relative_centre(lidar2img: Tensor, h: int, w: int) -> Tensor:
+    """``(B, V, 2)`` principal points as fractions ``(c_x / W, c_y / H)`` of ``image_size``."""
+    return _principal_points(lidar2img) / torch.tensor([w, h], dtype=torch.float64, device=lidar2img.device)
 
 
 def _principal_points(lidar2img: Tensor) -> Tensor:

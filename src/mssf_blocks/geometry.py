@@ -16,7 +16,7 @@ from torch import Tensor, nn
 
 from ._checks import check_floating, check_points, check_radians, check_shape, check_triple
 from ._running_coverage import RunningCoverage
-from ._consistency import check_points_in_voxels, check_points_to_sensor, project_raw
+from ._consistency import check_image_size_small, check_points_in_voxels, check_points_to_sensor, project_raw
 from ._sanity import check_centroid_coverage, check_projection_coverage, geometry_checks_enabled, set_geometry_checks
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
@@ -151,6 +151,7 @@ class VoxelCentroidProjector(nn.Module):
             check_points_in_voxels(points, points_batch, voxels.coords, batch_index, voxels.spatial_shape,
                                    voxels.batch_size, voxels.voxel_size, voxels.point_range_min, voxels.stride,
                                    self.point_range_max, has_points)
+            check_image_size_small(raw_uv, raw_inside, lidar2img, image_size)
             if points_to_sensor is not None:
                 check_points_to_sensor(points, points_batch, lidar2img, image_size, points_to_sensor, raw_inside,
                                        voxels.batch_size, self.eps)
