@@ -220,3 +220,18 @@ def test_image_size_half_the_projection_image_is_named_not_as_swapped():
     assert any("is image_size smaller than the image lidar2img projects into" in m for m in msgs), msgs
     assert not any("swapped" in m for m in msgs), msgs
     assert any("swapped" in m for m in project(vox, pts, pb, l2i, size[::-1])[1])  # a real swap still is
+
+
+@pytest.mark.parametrize("mistake", ["point_range_min_zyx", "points_of_another_frame", "voxel_size_halved"])
+def test_other_grid_mistakes_of_the_class_are_named(mistake):
+    """Not only the listed instances: whatever makes the voxels and the points disagree."""
+    vox, pts, pb, l2i, size = scene()
+    if mistake == "point_range_min_zyx":
+        vox = SparseVoxels(vox.features, vox.coords, SHAPE, 1, COARSE, RANGE[:3][::-1])
+    elif mistake == "points_of_another_frame":
+        pts = scene_points(seed=7)[0]
+        pb = torch.zeros(len(pts), dtype=torch.long)
+    else:  # the base grid's voxel size for voxels of a grid twice as fine (or a pillar size mix-up)
+        vox = SparseVoxels(vox.features, vox.coords, SHAPE, 1, tuple(v / 2 for v in COARSE), RANGE[:3])
+    _, msgs = project(vox, pts, pb, l2i, size)
+    assert any(m.startswith(("points: only", "centroids: none")) for m in msgs), msgs

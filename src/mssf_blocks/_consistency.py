@@ -46,13 +46,13 @@ POINTS_IN_VOXELS_MIN = 0.5
 #: no points-in-voxels verdict on a sample with fewer on-grid points (a handful is noise)
 MIN_POINTS = 8
 #: points_to_sensor: warn when the inverse (or no matrix) puts at least this many times more of a sample's
-#: raw points in the image, and at least MIN_GAIN more of them as a fraction (correct inputs: at most 1.01x)
+#: raw points in the image, and at least MIN_GAIN more of them as a fraction (correct inputs: at most 1.02x)
 INVERSE_RATIO = 1.5
 MIN_GAIN = 0.15
 #: no points_to_sensor verdict on a sample with fewer raw points
 MIN_PROJECTED = 16
 #: image_size smaller than the image lidar2img projects into: at least SMALL_RATIO times more raw points
-#: inside twice image_size than inside it (correct inputs: at most 1.12x), at least MIN_CORNER of them, and
+#: inside twice image_size than inside it (correct inputs: at most 1.18x), at least MIN_CORNER of them, and
 #: every principal point in [SMALL_CENTRE, 1.5) of image_size (a centred one is at 0.5; half the size: 1.0)
 SMALL_RATIO = 2.0
 SMALL_CENTRE = 0.75
@@ -68,7 +68,7 @@ def points_in_voxels(points: Tensor, points_batch: Tensor, coords: Tensor, spati
     shape = tuple(int(v) for v in spatial_shape)
     dtype = torch.float64 if points.dtype == torch.float64 else torch.float32
     voxel_keys = torch.sort(_grid_keys(coords, shape)).values
-    point_keys = _point_keys(points[:, :3].to(dtype), points_batch, tuple(voxel_size), tuple(point_range_min),
+    point_keys = _point_keys(points.detach()[:, :3].to(dtype), points_batch, tuple(voxel_size), tuple(point_range_min),
                              None if point_range_max is None else tuple(point_range_max),
                              tuple(int(s) for s in stride), shape)
     on_grid = point_keys >= 0
@@ -116,12 +116,12 @@ def project_raw(points: Tensor, points_batch: Tensor, lidar2img: Tensor, image_s
     projected with ``lidar2img`` (``uv`` as :func:`~mssf_blocks.functional.geometry.project_points`)."""
     h, w = (int(v) for v in image_size)
     wide = torch.float64 if torch.float64 in (points.dtype, lidar2img.dtype) else torch.float32
-    l2i = (lidar2img if lidar2img.dim() == 4 else lidar2img[:, None])[:, :, :3, :].to(wide)
+    l2i = (lidar2img if lidar2img.dim() == 4 else lidar2img[:, None]).detach()[:, :, :3, :].to(wide)
     pb = points_batch.long()
-    xyz = points[:, :3].to(wide)
+    xyz = points.detach()[:, :3].to(wide)
     hom = torch.cat([xyz, torch.ones_like(xyz[:, :1])], 1)
     if matrix is not None:
-        hom = torch.einsum("nij,nj->ni", matrix.to(wide)[pb], hom)
+        hom = torch.einsum("nij,nj->ni", matrix.detach().to(wide)[pb], hom)
     cam = torch.einsum("nvij,nj->nvi", l2i[pb], hom)
     front = cam[..., 2] > eps
     pix = cam[..., :2] / torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))[..., None]
