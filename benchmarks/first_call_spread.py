@@ -82,7 +82,8 @@ class Recorder:
                                              float(centre.amax()), twice / pts.shape[0]))
             return uv, inside
 
-        cc.points_in_voxels, cc.sensor_fractions, _geometry.project_raw = points_in_voxels, sensor_fractions, project_raw
+        cc.points_in_voxels, cc.sensor_fractions = points_in_voxels, sensor_fractions
+        _geometry.project_raw = project_raw
         return self
 
     def __exit__(self, *exc):
@@ -91,7 +92,8 @@ class Recorder:
     def report(self, name: str) -> None:
         pv = self.rows["pv"]
         strides = sorted({s for s, _ in pv})
-        parts = [f"stride {s}: min {min(f for t, f in pv if t == s):.3f} ({sum(t == s for t, _ in pv)})" for s in strides]
+        parts = [f"stride {s}: min {min(f for t, f in pv if t == s):.3f} ({sum(t == s for t, _ in pv)})"
+                 for s in strides]
         p2s = self.rows["p2s"]
         ratio = [b / max(m, 1e-9) for m, b in p2s]
         gain = [b - m for m, b in p2s]
@@ -195,7 +197,8 @@ def main() -> None:
     ap.add_argument("--detectors", nargs="+", default=["second", "pointpillars"])
     args = ap.parse_args()
     torch.set_num_threads(1)
-    print("| correct inputs | points in voxels (min per stride, samples) | points_to_sensor | image_size (raw points) |")
+    print("| correct inputs | points in voxels (min per stride, samples) | points_to_sensor "
+          "| image_size (raw points) |")
     print("|---|---|---|---|")
     real_frames()
     demo_detectors()

@@ -6,7 +6,8 @@ Two kinds (``docs/conventions.md``, "Common mistakes"):
   over some stride within one level pixel, levels are finest first, and a channels-last (NHWC) level
   is named as such.
 * **coverage** (warnings, read data): the fraction of a sample's voxels that project inside the image,
-  where the in-image ones fall (all in the top-left quarter, or all on one spot), the fraction of voxels
+  where the in-image ones fall (all in the top-left quarter, or all on one spot; on a coarse grid with
+  few voxels, the raw points' projections and the principal point tell the quarter), the fraction of voxels
   that hold any of the sample's points, an empty point list. They are warnings, not errors, because a
   real frame can have no voxel in view (an empty road, a camera facing elsewhere); the message lists
   the usual causes. They read tensor values, so they run only where that costs no host
