@@ -6,7 +6,7 @@ Two figures per detector, both from this one process:
 
 * ``checks ms``: the process CPU time spent inside the checks themselves (projection and centroid
   coverage, level sizes, the metric grid, the spconv index range, and issue 42's first-call checks: the
-  raw points' projection, points in voxels, ``points_to_sensor`` against its inverse and none: the frame
+  raw points' projection, points in voxels, ``image_size`` too small, ``points_to_sensor`` against its inverse and none: the frame
   carries an identity ``points_to_sensor`` so that this one runs), summed over a forward, median
   forward CPU time beside it and the share (target: at most 2 % of the forward);
 * ``on / off``: forward CPU time with the data-reading checks on (the CPU default) and off
@@ -38,7 +38,8 @@ from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.presets import VOD  # noqa: E402
 
 CHECKS = ("check_projection_coverage", "check_centroid_coverage", "check_level_sizes", "check_grid",
-          "check_indices_in_shape", "project_raw", "check_points_in_voxels", "check_points_to_sensor")
+          "check_indices_in_shape", "project_raw", "check_points_in_voxels", "check_points_to_sensor",
+          "check_image_size_small")
 
 
 def _timed_checks(spent):
