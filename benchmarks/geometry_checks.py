@@ -6,8 +6,9 @@ Two figures per detector, both from this one process:
 
 * ``checks ms``: the process CPU time spent inside the checks themselves (projection and centroid
   coverage, level sizes, the metric grid, the spconv index range, and issue 42's first-call checks: the
-  raw points' projection, points in voxels, ``image_size`` too small, ``points_to_sensor`` against its inverse and none: the frame
-  carries an identity ``points_to_sensor`` so that this one runs), summed over a forward, median
+  raw points' projection, points in voxels, ``image_size`` too small, ``points_to_sensor`` against its
+  inverse and none: the frame carries an identity ``points_to_sensor`` so that this one runs), summed
+  over a forward, median
   forward CPU time beside it and the share (target: at most 2 % of the forward);
 * ``on / off``: forward CPU time with the data-reading checks on (the CPU default) and off
   (``set_geometry_checks(False)``) in interleaved rounds, the ratio of the medians and the per-round
