@@ -82,10 +82,11 @@ def outcome(*runs: Callable[[], object]) -> Outcome:
 
 
 def rows():
-    text = DOC.read_text().split("## Common mistakes", 1)[1]
-    lines = [line for line in text.splitlines() if line.startswith("| ")]
+    """``(mistake, what you see now)`` of every row of the first table under "## Common mistakes"."""
+    text = DOC.read_text().split("## Common mistakes", 1)[1].split("\n## ", 1)[0]
+    lines = text.split("| Mistake | What you see now | Fix |", 1)[1].split("\n\n", 1)[0].splitlines()
     out = []
-    for line in lines[1:]:  # (the header; the |---| line does not start with "| ")
+    for line in (l for l in lines if l.startswith("| ")):  # (the |---| line does not start with "| ")
         cells = [c.strip() for c in re.split(r"\|(?=(?:[^`]*`[^`]*`)*[^`]*$)", line.strip())[1:-1]]
         out.append((cells[0], cells[1]))
     return out
