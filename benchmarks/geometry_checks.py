@@ -5,7 +5,10 @@ camera, precomputed FPN levels), each detector with two MSDFF fusion blocks, eva
 Two figures per detector, both from this one process:
 
 * ``checks ms``: the process CPU time spent inside the checks themselves (projection and centroid
-  coverage, level sizes, the metric grid, the spconv index range), summed over a forward, median
+  coverage, level sizes, the metric grid, the spconv index range, and issue 42's first-call checks: the
+  raw points' projection, points in voxels, ``image_size`` too small, ``points_to_sensor`` against its
+  inverse and none: the frame carries an identity ``points_to_sensor`` so that this one runs), summed
+  over a forward, median
   forward CPU time beside it and the share (target: at most 2 % of the forward);
 * ``on / off``: forward CPU time with the data-reading checks on (the CPU default) and off
   (``set_geometry_checks(False)``) in interleaved rounds, the ratio of the medians and the per-round
@@ -17,6 +20,7 @@ Usage: ``python benchmarks/geometry_checks.py [--rounds 7] [--detectors second p
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import statistics
 import sys
@@ -35,7 +39,8 @@ from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.presets import VOD  # noqa: E402
 
 CHECKS = ("check_projection_coverage", "check_centroid_coverage", "check_level_sizes", "check_grid",
-          "check_indices_in_shape")
+          "check_indices_in_shape", "project_raw", "check_points_in_voxels", "check_points_to_sensor",
+          "check_image_size_small")
 
 
 def _timed_checks(spent):
@@ -65,6 +70,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     frame = vod_frame(2500, channels_last=True)
+    frame = dataclasses.replace(frame, points_to_sensor=torch.eye(4)[None])  # (runs the points_to_sensor check)
     print(f"{'detector':<13} {'forward ms':>10} {'checks ms':>9} {'share':>7} | {'on ms':>7} {'off ms':>7} "
           f"{'on/off':>6} {'rounds':>11}")
     for name in args.detectors:
@@ -93,6 +99,8 @@ def main() -> None:
         print(f"{name:<13} {fwd * 1e3:>10.1f} {checks * 1e3:>9.3f} {100 * checks / fwd:>6.3f}% | "
               f"{fwd * 1e3:>7.1f} {statistics.median(off) * 1e3:>7.1f} {fwd / statistics.median(off):>6.3f} "
               f"{min(per):>5.2f}-{max(per):.2f}")
+        print("    per check (ms per forward): " + ", ".join(
+            f"{n} {spent[n] / args.rounds * 1e3:.3f}" for n in CHECKS if spent[n] > 0))
 
 
 if __name__ == "__main__":

@@ -75,6 +75,9 @@ class AugmentationConfig:
             r = getattr(self, name)
             if len(r) != 2 or not all(math.isfinite(v) for v in r) or r[0] > r[1]:
                 raise MSSFError(f"{name}: expected (low, high) finite with low <= high, got {r!r}")
+        if max(abs(v) for v in self.rotation_range) > 2 * math.pi + 1e-9:
+            raise MSSFError(f"rotation_range: expected radians (|angle| <= 2 pi), got {self.rotation_range!r}: "
+                            "degrees? pass radians (e.g. (-math.pi / 4, math.pi / 4) for +-45 degrees)")
         if self.scale_range[0] <= 0:
             raise MSSFError(f"scale_range: expected positive factors, got {self.scale_range!r}")
         if len(self.translation_std) != 3 or any(not (math.isfinite(s) and s >= 0) for s in self.translation_std):

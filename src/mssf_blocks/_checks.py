@@ -14,6 +14,7 @@ data and run once at capture time on the (symbolic) shapes. See ``docs/conventio
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, Callable, Mapping, MutableMapping, Sequence, TypeVar, Union
 
 import torch
@@ -358,3 +359,16 @@ def check_positive_int(value: Any, name: str, allow_zero: bool = False) -> int:
     if value < 0 or (value == 0 and not allow_zero):
         raise MSSFError(f"{name}: expected a {'non-negative' if allow_zero else 'positive'} int, got {value}")
     return value
+
+
+def check_radians(angle: Any, name: str) -> float:
+    """A finite angle in radians: a magnitude above ``2 pi`` is an angle in degrees (45 for pi / 4)."""
+    try:
+        a = float(angle)
+    except (TypeError, ValueError):
+        raise MSSFError(f"{name}: expected an angle in radians (a float), got {angle!r}") from None
+    if not math.isfinite(a) or abs(a) > 2 * math.pi + 1e-9:
+        raise MSSFError(f"{name}: expected radians with |{name}| <= 2 pi, got {angle!r}: degrees? pass radians "
+                        f"(math.radians({angle!r}) = {math.radians(a):.4f})" if math.isfinite(a) else
+                        f"{name}: expected a finite angle in radians, got {angle!r}")
+    return a

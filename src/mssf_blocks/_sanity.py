@@ -6,7 +6,8 @@ Two kinds (``docs/conventions.md``, "Common mistakes"):
   over some stride within one level pixel, levels are finest first, and a channels-last (NHWC) level
   is named as such.
 * **coverage** (warnings, read data): the fraction of a sample's voxels that project inside the image,
-  where the in-image ones fall (all in the top-left quarter, or all on one spot), the fraction of voxels
+  where the in-image ones fall (all in the top-left quarter, or all on one spot; on a coarse grid with
+  few voxels, the raw points' projections and the principal point tell the quarter), the fraction of voxels
   that hold any of the sample's points, an empty point list. They are warnings, not errors, because a
   real frame can have no voxel in view (an empty road, a camera facing elsewhere); the message lists
   the usual causes. They read tensor values, so they run only where that costs no host
@@ -33,6 +34,12 @@ _FORCED: Optional[bool] = None
 _MIN_VOXELS = 8
 #: fewer in-image projections than this: no top-left-quarter verdict (a small toy scene may sit there)
 _MIN_CORNER = 32
+#: top-left-quarter verdict from raw points too: at least this share of the in-image projections in the
+#: quarter, and every principal point within (_CENTRE_MIN, _CENTRE_MAX] of image_size (correct frames:
+#: share <= 0.11, principal point ~0.5; image_size twice: share >= 0.84, principal point ~0.25; a toy
+#: camera whose optical axis meets the image corner, principal point 0, is no verdict; docs/conventions.md)
+_QUARTER_SHARE = 0.75
+_CENTRE_MIN, _CENTRE_MAX = 0.125, 0.375
 
 _CAUSES = (
     "usual causes: image_size not the size lidar2img projects into (scale, or (W, H) swapped); lidar2img "
@@ -117,10 +124,13 @@ def _matrix_hint(lidar2img: Tensor) -> str:
 
 def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, batch_size: int,
                               image_size: Sequence[int], lidar2img: Tensor, eps: float,
-                              monitor: Optional[RunningCoverage] = None, stride: Sequence[int] = (1, 1, 1)) -> None:
+                              monitor: Optional[RunningCoverage] = None, stride: Sequence[int] = (1, 1, 1),
+                              raw_uv: Optional[Tensor] = None) -> None:
     """Warn per sample when no voxel lands in the image, or all of them in the top-left quarter or on
     one spot, or (with ``monitor``) when the in-image fraction collapses against its running value (see
-    the module doc); ``uv (N, V, 2)`` normalised, ``depth (N, V)``."""
+    the module doc); ``uv (N, V, 2)`` normalised, ``depth (N, V)``; ``raw_uv (K, 2)``: the in-image
+    projections of the raw points, counted with the voxels' for the top-left-quarter verdict (a coarse
+    grid has few voxels, the raw points are many)."""
     if uv.shape[0] == 0 or not geometry_checks_enabled(uv):
         return
     h, w = (int(v) for v in image_size)
@@ -141,27 +151,56 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
     pix = uv * uv.new_tensor([w, h])  # pixel positions, half a pixel off at most
     swapped = front & (pix >= 0).all(-1) & (pix[..., 0] <= h) & (pix[..., 1] <= w)
     n_seen, n_swapped = int(inside.sum()), int(swapped.sum())
-    if h != w and n_swapped - n_seen >= _MIN_VOXELS and n_swapped > 1.2 * n_seen:
+    if h != w and n_swapped - n_seen >= _MIN_VOXELS and n_swapped > 1.2 * n_seen and not bool(
+            (_relative_centre(lidar2img, h, w) >= 0.75).all()):  # (that is image_size too small: _consistency)
         warnings.warn(MSSFGeometryWarning(
             f"projection: {n_seen} voxel projections inside image_size={(h, w)} but {n_swapped} inside "
             f"{(w, h)}: image_size (W, H) swapped? it is (H, W)"
         ), stacklevel=2)
-    if int(seen.sum()) < _MIN_VOXELS:
-        return
     pts = uv[inside]  # (K, 2) of every in-image (voxel, camera)
-    hi, lo = pts.amax(0), pts.amin(0)
-    if bool(((hi - lo) * uv.new_tensor([w, h]) < 2).all()):
-        warnings.warn(MSSFGeometryWarning(
-            f"projection: all {pts.shape[0]} in-image voxel projections fall within 2 pixels of one spot "
-            f"({float(lo[0]) * w:.1f}, {float(lo[1]) * h:.1f}): lidar2img is not a projection?"
-            + _matrix_hint(lidar2img if lidar2img.dim() == 4 else lidar2img[:, None])
-        ), stacklevel=2)
-    elif pts.shape[0] >= _MIN_CORNER and bool((hi <= 0.5).all()):
+    if int(seen.sum()) >= _MIN_VOXELS:
+        hi, lo = pts.amax(0), pts.amin(0)
+        if bool(((hi - lo) * uv.new_tensor([w, h]) < 2).all()):
+            warnings.warn(MSSFGeometryWarning(
+                f"projection: all {pts.shape[0]} in-image voxel projections fall within 2 pixels of one spot "
+                f"({float(lo[0]) * w:.1f}, {float(lo[1]) * h:.1f}): lidar2img is not a projection?"
+                + _matrix_hint(lidar2img if lidar2img.dim() == 4 else lidar2img[:, None])
+            ), stacklevel=2)
+            return
+    if pts.shape[0] >= _MIN_CORNER and bool((pts.amax(0) <= 0.5).all()):
         warnings.warn(MSSFGeometryWarning(
             f"projection: all {pts.shape[0]} in-image voxel projections fall in the top-left quarter of "
-            f"image_size={(h, w)} (u <= {float(hi[0]):.3f}, v <= {float(hi[1]):.3f}): is image_size "
-            "larger than the image lidar2img projects into (e.g. twice its size)?"
+            f"image_size={(h, w)} (u <= {float(pts[:, 0].amax()):.3f}, v <= {float(pts[:, 1].amax()):.3f}): is "
+            "image_size larger than the image lidar2img projects into (e.g. twice its size)?"
         ), stacklevel=2)
+        return
+    # A coarse grid has few voxels: the raw points' projections and the principal point (where the optical
+    # axis lands) tell the same on the first call (docs/conventions.md gives the measured figures).
+    both = pts if raw_uv is None else torch.cat([pts, raw_uv.to(pts.dtype)])
+    if both.shape[0] < _MIN_VOXELS:
+        return
+    share = float((both <= 0.5).all(-1).double().mean())
+    centre = _relative_centre(lidar2img, h, w)
+    if share >= _QUARTER_SHARE and bool(((centre > _CENTRE_MIN) & (centre <= _CENTRE_MAX)).all()):
+        warnings.warn(MSSFGeometryWarning(
+            f"projection: {share:.2f} of {both.shape[0]} in-image projections (voxels and raw points) fall in the "
+            f"top-left quarter of image_size={(h, w)}, and the principal point lands at "
+            f"{tuple(round(float(v), 2) for v in centre.reshape(-1, 2)[0])} of it: is image_size larger than "
+            "the image lidar2img projects into (e.g. twice its size)?"
+        ), stacklevel=2)
+
+
+def _relative_centre(lidar2img: Tensor, h: int, w: int) -> Tensor:
+    """``(B, V, 2)`` principal points as fractions ``(c_x / W, c_y / H)`` of ``image_size``."""
+    return _principal_points(lidar2img) / torch.tensor([w, h], dtype=torch.float64, device=lidar2img.device)
+
+
+def _principal_points(lidar2img: Tensor) -> Tensor:
+    """``(B, V, 2)`` pixel where each camera's optical axis lands: ``M m3 / (m3 . m3)`` for
+    ``lidar2img = [M | p]`` with ``m3`` M's last row (``(c_x, c_y)`` of ``K`` for ``K @ [R | t]``)."""
+    m = (lidar2img if lidar2img.dim() == 4 else lidar2img[:, None]).detach().double()[..., :3, :3]
+    p = (m @ m[..., 2, :, None])[..., 0]
+    return p[..., :2] / torch.where(p[..., 2:].abs() > 1e-12, p[..., 2:], torch.ones_like(p[..., 2:]))
 
 
 def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batch: Tensor,

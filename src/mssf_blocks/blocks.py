@@ -116,7 +116,8 @@ class FusionBlock(nn.Module):
             (first fusion block, eq. 8), otherwise the voxel feature itself (``centre``: the voxel
             centre, or the centroid for ``QueryInit(position="centroid")``).
         downsample_stride: ``(sz, sy, sx)`` of ``downsample``; inferred from its spconv convolutions
-            when ``None``.
+            when ``None``; when given, it must equal the inferred one where ``downsample`` holds spconv
+            convolutions (a contradiction is refused).
         voxel_size, point_range_min, in_stride: base-grid ``(x, y, z)`` voxel size, range minimum and
             ``(sz, sy, sx)`` stride of the input; needed only when the input is a raw spconv tensor
             (a :class:`SparseVoxels` carries them).
@@ -204,6 +205,17 @@ class FusionBlock(nn.Module):
             if downsample_stride is None
             else check_triple(downsample_stride, "downsample_stride", int, positive=True)
         )
+        if downsample_stride is not None and downsample is not None:
+            try:
+                inferred = infer_downsample_stride(downsample)
+            except MSSFError:  # no spconv convolution to read (or an inverse one): the explicit stride stands
+                inferred = None
+            if inferred is not None and inferred != self.downsample_stride:
+                raise MSSFError(
+                    f"downsample_stride: expected {inferred} (the product of the strides of downsample's spconv "
+                    f"convolutions, (sz, sy, sx)), got {self.downsample_stride}; the output voxels would be "
+                    "placed at the wrong stride. Leave it None to infer it"
+                )
         if downsample is None and self.downsample_stride != (1, 1, 1):
             raise MSSFError(
                 f"downsample_stride: expected (1, 1, 1) without a downsample module, got {self.downsample_stride}"

@@ -14,9 +14,10 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor, nn
 
-from ._checks import check_floating, check_points, check_shape, check_triple
+from ._checks import check_floating, check_points, check_radians, check_shape, check_triple
 from ._running_coverage import RunningCoverage
-from ._sanity import check_centroid_coverage, check_projection_coverage, set_geometry_checks
+from ._consistency import check_image_size_small, check_points_in_voxels, check_points_to_sensor, project_raw
+from ._sanity import check_centroid_coverage, check_projection_coverage, geometry_checks_enabled, set_geometry_checks
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
 from .sparse import SparseVoxels
@@ -138,10 +139,22 @@ class VoxelCentroidProjector(nn.Module):
         proj = project_points(centroid, batch_index, lidar2img, image_size, points_to_sensor, self.eps)
         uv, valid = proj.uv, proj.valid
         # (warnings; they read data only where that costs no host synchronisation: _sanity's doc)
+        checks = geometry_checks_enabled(uv) and uv.shape[0] > 0 and points.shape[0] > 0
+        raw_uv, raw_inside = (project_raw(points, points_batch, lidar2img, image_size, points_to_sensor, self.eps)
+                              if checks else (None, None))
         check_projection_coverage(uv, proj.depth, batch_index, voxels.batch_size, image_size, lidar2img, self.eps,
-                                  getattr(self, "coverage", None), voxels.stride)
+                                  getattr(self, "coverage", None), voxels.stride,
+                                  raw_uv=None if raw_uv is None else raw_uv[raw_inside])
         check_centroid_coverage(has_points, batch_index, points_batch, voxels.batch_size,
                                 getattr(self, "coverage", None), voxels.stride)
+        if checks:  # first-call consistency of voxels, points and points_to_sensor (_consistency's doc)
+            check_points_in_voxels(points, points_batch, voxels.coords, batch_index, voxels.spatial_shape,
+                                   voxels.batch_size, voxels.voxel_size, voxels.point_range_min, voxels.stride,
+                                   self.point_range_max, has_points)
+            check_image_size_small(raw_uv, raw_inside, lidar2img, image_size)
+            if points_to_sensor is not None:
+                check_points_to_sensor(points, points_batch, lidar2img, image_size, points_to_sensor, raw_inside,
+                                       voxels.batch_size, self.eps)
         ok_depth = proj.depth > self.eps
         if not self.half_pixel:  # u / W (project_points validated image_size)
             h, w = (int(x) for x in image_size)
@@ -173,11 +186,13 @@ def augmentation_matrix(
     """``(4, 4)`` global point-cloud augmentation as OpenPCDet/mmdet3d apply it, in that order.
 
     ``p' = T + s * Rz(rotation) * F * p`` where ``F`` flips y (``flip_x``: mirror across the x axis,
-    ``y -> -y``) and/or x (``flip_y``: ``x -> -x``). Its inverse (``torch.linalg.inv``) is the
+    ``y -> -y``) and/or x (``flip_y``: ``x -> -x``); ``rotation`` in radians (a magnitude above ``2 pi``
+    is refused: degrees). Its inverse (``torch.linalg.inv``) is the
     ``points_to_sensor`` matrix that :class:`VoxelCentroidProjector` takes.
     """
     if not scale > 0:
         raise MSSFError(f"scale: expected a positive float, got {scale!r}")
+    check_radians(rotation, "rotation")
     t = check_triple(translation, "translation", float)
     f = torch.eye(4, dtype=dtype)
     if flip_x:
