@@ -6,7 +6,8 @@ docs/frameworks.md to the framework tests): each ``python -m mssf_examples.mmdet
 still be in the line, everything else as printed, with the reason) or ``NOT_RUN`` (with the reason); a
 line in none, or a classified line no longer printed, fails ``test_every_command_is_classified``. They run in-process through the
 entry's ``main`` in a temporary folder laid out as the docs assume (``data/view_of_delft`` a generated
-VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's). The quick
+VoD release tree with ``.jpg`` images and 4 training frames, ``examples`` the repository's,
+``checkpoints/htc_r50_fpn.pth`` a generated HTC-shaped file where the page downloads the real one). The quick
 check's run is also the training check of ``mssf_pointpillars_vod.py`` (``check_vod_run`` of
 test_mmdet3d_train.py: losses, fusion gradients, the VoD keys), through a recording hook attached to the
 runner the entry builds.
@@ -26,18 +27,19 @@ from typing import Dict, Tuple
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import require_mmdet3d, write_tree  # noqa: E402
+from mmdet3d_vod_tree import fake_htc_checkpoint, require_mmdet3d, write_tree  # noqa: E402
 from test_mmdet3d_train import check_vod_run, recording_runners  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = "examples/configs/mmdet3d/mssf_pointpillars_vod.py"
 ENTRY = "python -m mssf_examples.mmdet3d"
+HTC = "--image-checkpoint checkpoints/htc_r50_fpn.pth"
 
 #: run exactly as printed, in page order
 RUN = {
     f"{ENTRY} infos --root data/view_of_delft --sensor radar_5frames",
-    f"{ENTRY} train {CONFIG} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check",
+    f"{ENTRY} train {CONFIG} {HTC} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check",
 }
 _QUICK = " --image-scale 320 200"
 #: run with the given texts replaced: {line: ({printed text: replacement}, reason)}
@@ -53,14 +55,14 @@ _TJ4D = "examples/configs/mmdet3d/mssf_pointpillars_tj4d.py"
 #: run exactly as printed by tests/integrations/test_mmdet3d_tj4d.py (on its generated TJ4DRadSet tree)
 RUN_TJ4D = [
     f"{ENTRY} infos --dataset tj4d --root data/TJ4DRadSet",
-    f"{ENTRY} train {_TJ4D} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check_tj4d",
+    f"{ENTRY} train {_TJ4D} {HTC} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check_tj4d",
 ]
 _PAPER = "the paper's 80 epochs (hours on a GPU)"
 #: not run, with the reason
 NOT_RUN = {
-    f"{ENTRY} train {CONFIG}": _PAPER + "; the quick check above is this line with --iters 2 --image-scale 320 200 "
+    f"{ENTRY} train {CONFIG} {HTC}": _PAPER + "; the quick check above is this line with --iters 2 --image-scale 320 200 "
                                "--work-dir, run as printed",
-    f"{ENTRY} train {_TJ4D}": _PAPER + "; the TJ4D quick check is this line with --iters 2 --image-scale 320 200 "
+    f"{ENTRY} train {_TJ4D} {HTC}": _PAPER + "; the TJ4D quick check is this line with --iters 2 --image-scale 320 200 "
                               "--work-dir, run as printed by test_mmdet3d_tj4d.py",
     f"{ENTRY} train examples/configs/mmdet3d/pointpillars_tj4d_radar.py":
         _PAPER + "; test_mmdet3d_tj4d.py trains this config 2 iterations (--iters, --image-scale, --data-root)",
@@ -110,10 +112,11 @@ def test_docs_commands_run(tmp_path, monkeypatch):
     write_tree(tmp_path / "data" / "view_of_delft")
     (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").unlink()  # the docs write it
     (tmp_path / "examples").symlink_to(REPO / "examples")
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "htc_r50_fpn.pth").symlink_to(fake_htc_checkpoint())  # the page's wget
     monkeypatch.chdir(tmp_path)
-    # the entry's `test` / `--resume` set this for the rest of the process (mmengine 0.10.7 checkpoints):
-    # set it through monkeypatch so that it is gone again after this test
-    monkeypatch.setenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
+    # test and --resume load mmengine's checkpoints weights-only (no TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD)
+    monkeypatch.delenv("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", raising=False)
     built = recording_runners(monkeypatch)
     for cmd in commands:
         if cmd not in NOT_RUN:
