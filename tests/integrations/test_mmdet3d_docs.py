@@ -133,8 +133,17 @@ def test_docs_commands_run(tmp_path, monkeypatch):
     first, resumed = (p.read_text() for p in runs)
     assert "Iter(train) [2/2]" in first and "VoD/driving_corridor/mAP/AP3D_R11" in first
     assert "resumed" in resumed.lower() and "Iter(train) [3/3]" in resumed
+    # loaded weights-only, with exactly what mmengine's checkpoints hold allowed (mssf_examples.mmdet3d.checkpoints)
+    assert "Loads checkpoint by local_weights_only backend" in resumed
+    import torch
+
+    unsafe = {g.replace("numpy.core.", "numpy._core.")  # numpy < 2 names its core module so
+              for g in torch.serialization.get_unsafe_globals_in_checkpoint(str(quick / "iter_2.pth"))}
+    assert unsafe == {"numpy._core.multiarray.scalar", "numpy._core.multiarray._reconstruct", "numpy.dtype",
+                      "numpy.ndarray", "builtins.getattr", "mmengine.logging.history_buffer.HistoryBuffer",
+                      "mmengine.optim.scheduler.param_scheduler.OneCycleParamScheduler"}, unsafe
     tested = "".join(p.read_text() for p in (tmp_path / "work_dirs" / "mssf_pointpillars_vod").glob("*/*.log"))
-    assert "VoD/driving_corridor/mAP/AP3D_R11" in tested
+    assert "VoD/driving_corridor/mAP/AP3D_R11" in tested and "Loads checkpoint by local_weights_only backend" in tested
 
 
 # ---------------------------------------------------------------------------------------------------

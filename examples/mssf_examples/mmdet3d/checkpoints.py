@@ -1,13 +1,15 @@
 """mmengine 0.10 checkpoints loaded with torch's weights-only unpickler: the allow-list of what they hold.
 
 A checkpoint written by mmengine's ``CheckpointHook`` (``Runner.save_checkpoint``) holds, besides tensors and
-plain Python values: the message hub's ``HistoryBuffer`` s (numpy arrays of the logged scalars) and numpy
-scalars (``runtime_info['eta']``), and the parameter schedulers' state, in which ``OneCycleParamScheduler``
-keeps its annealing function (pickled as ``getattr(OneCycleParamScheduler, '_annealing_cos')``). Measured on
-checkpoints of the shipped configs (``torch.serialization.get_unsafe_globals_in_checkpoint``): exactly
-``HistoryBuffer``, ``numpy.ndarray``, ``numpy.dtype``, numpy's ``scalar`` and ``_reconstruct``,
-``OneCycleParamScheduler`` and ``builtins.getattr``. ``getattr`` is not allow-listed as such (it would reach any
-attribute of any allowed object): a stand-in registered under its name gives only those annealing functions.
+plain Python values: the message hub's ``HistoryBuffer`` s (numpy arrays of the logged scalars, and their
+statistics methods, pickled as ``getattr(HistoryBuffer, 'mean')`` ...) and numpy scalars
+(``runtime_info['eta']``), and the parameter schedulers' state, in which ``OneCycleParamScheduler`` keeps its
+annealing function (``getattr(OneCycleParamScheduler, '_annealing_cos')``). Measured on checkpoints of the
+shipped configs (``torch.serialization.get_unsafe_globals_in_checkpoint``, then the pickle's ``getattr``
+calls): exactly ``HistoryBuffer``, ``numpy.ndarray``, ``numpy.dtype``, numpy's ``scalar`` and
+``_reconstruct``, ``OneCycleParamScheduler`` and ``builtins.getattr``. ``getattr`` is not allow-listed as such
+(it would reach any attribute of any allowed object): a stand-in registered under its name gives only those
+methods of those two classes.
 
 :func:`weights_only_checkpoints` makes mmengine's local checkpoint loader (``load_from``, ``--resume``,
 ``init_cfg=dict(type="Pretrained")``) call ``torch.load(weights_only=True)`` with that allow-list, whatever
@@ -31,35 +33,34 @@ from mssf_blocks.errors import MSSFError
 
 __all__ = ["checkpoint_globals", "weights_only_checkpoints", "load_from_local_weights_only"]
 
-#: the annealing functions mmengine's schedulers keep in their state (OneCycleParamScheduler.__init__)
-_ANNEALING = ("_annealing_cos", "_annealing_linear")
-
-
-def _scheduler_classes() -> tuple:
+def _methods() -> dict:
+    """class -> the method names mmengine keeps in a checkpoint: the annealing functions of
+    ``OneCycleParamScheduler.__init__`` and ``HistoryBuffer``'s statistics (``_statistics_methods``)."""
+    from mmengine.logging.history_buffer import HistoryBuffer
     from mmengine.optim.scheduler.param_scheduler import OneCycleParamScheduler
 
-    return (OneCycleParamScheduler,)
+    stats = {n for n, f in HistoryBuffer._statistics_methods.items() if getattr(HistoryBuffer, n, None) is f}
+    return {OneCycleParamScheduler: {"_annealing_cos", "_annealing_linear"},
+            HistoryBuffer: stats | {"min", "max", "current", "mean"}}
 
 
-def _annealing_function(owner: Any, name: str) -> Any:
-    """Registered as ``builtins.getattr``: only a scheduler class's annealing function, nothing else."""
-    if owner in _scheduler_classes() and name in _ANNEALING:
+def _checkpoint_method(owner: Any, name: str) -> Any:
+    """Registered as ``builtins.getattr``: only those methods (:func:`_methods`), nothing else."""
+    if isinstance(owner, type) and name in _methods().get(owner, ()):
         return getattr(owner, name)
-    raise pickle.UnpicklingError(f"getattr({owner!r}, {name!r}): not an mmengine scheduler's annealing function")
+    raise pickle.UnpicklingError(f"getattr({owner!r}, {name!r}): not a method mmengine keeps in its checkpoints")
 
 
 def checkpoint_globals() -> List[Any]:
     """What mmengine 0.10's checkpoints need beyond torch's weights-only defaults (module doc)."""
     import numpy as np
-    from mmengine.logging.history_buffer import HistoryBuffer
 
     try:
         from numpy._core.multiarray import _reconstruct, scalar
     except ImportError:  # numpy < 2
         from numpy.core.multiarray import _reconstruct, scalar
     dtypes = [type(np.dtype(k)) for k in (np.float64, np.float32, np.int64, np.int32, np.bool_)]
-    return [HistoryBuffer, np.ndarray, np.dtype, scalar, _reconstruct, *dtypes, *_scheduler_classes(),
-            (_annealing_function, "builtins.getattr")]
+    return [np.ndarray, np.dtype, scalar, _reconstruct, *dtypes, *_methods(), (_checkpoint_method, "builtins.getattr")]
 
 
 def _refusal(filename: str, exc: Exception) -> MSSFError:
