@@ -22,6 +22,13 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 HINT = "images resized without updating the calibration (lidar2img / P2)?"
 
 
+def measured_scale(message: str) -> float:
+    """The size factor the warning gives ("the calibration was made for images about S x this size")."""
+    import re
+
+    return float(re.search(r"made for images about ([0-9.]+) x this size", message).group(1))
+
+
 def halve_images(data_root: Path) -> int:
     from PIL import Image
 
@@ -69,4 +76,34 @@ def test_halved_images_with_full_size_calibration_warn(tmp_path):
     hits = [m for m in msgs if HINT in m]
     assert hits, msgs
     # the measured figure: the principal point at about twice the image centre, the calibration's size
-    assert "242 x 152 image" in hits[0] and "about 2.0 x this size" in hits[0], hits[0]
+    assert "242 x 152 image" in hits[0], hits[0]
+    assert 1.9 < measured_scale(hits[0]) < 2.1, hits[0]
+
+
+@pytest.mark.parametrize("frame", ["vod/radar/calib/01047.txt", "kitti/calib/000000.txt"])
+def test_real_calibrations_against_resized_images(frame, realdata_root):
+    """The real View-of-Delft and KITTI calibrations (``lidar2img = P2 R0 Tr``) in ``camera_from_meta``: silent
+    with their images' size; a warning naming the factor for images stored at 1/2, 0.8 x, 2 x that size; silent
+    at 0.9 x (within a real camera's principal-point spread)."""
+    from PIL import Image
+
+    from mssf_blocks.errors import MSSFGeometryWarning
+    from mssf_blocks.integrations.mmdet3d import camera_from_meta
+    from mssf_examples.kitti_calib import read_calibration
+
+    calib = realdata_root / frame
+    image = next((calib.parents[2 if frame.startswith("vod") else 1] / "image_2").glob(calib.stem + ".*"))
+    with Image.open(image) as im:
+        w, h = im.size
+    l2i = torch.eye(4, dtype=torch.float64)
+    l2i[:3] = read_calibration(calib).lidar2img.double()
+    for factor in (1.0, 0.9, 0.5, 0.8, 2.0):
+        meta = {"lidar2img": l2i.numpy(), "ori_shape": (round(h * factor), round(w * factor))}
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            camera_from_meta(meta)
+        hits = [str(c.message) for c in caught if issubclass(c.category, MSSFGeometryWarning) and HINT in str(c.message)]
+        if factor == 1.0 or factor == 0.9:
+            assert not hits, (factor, hits)
+        else:
+            assert len(hits) == 1 and abs(measured_scale(hits[0]) * factor - 1) < 0.1, (factor, hits)
