@@ -97,37 +97,12 @@ def evaluate_ground_truth(cfg, shift: float = 0.0):
     return metric.evaluate(len(ds))
 
 
-def write_fake_htc(path: Path, seed: int = 3) -> Path:
-    """An mmdet-style checkpoint shaped like the paper's HTC R-50-FPN (``{'meta', 'state_dict'}``, keys
-    ``backbone.*`` (ResNet-50), ``neck.*`` (FPN, 4 levels of 256) and a few of HTC's heads), every value drawn
-    from ``seed`` (nothing can be downloaded here): what the image branch's ``init_cfg`` / ``--image-checkpoint``
-    read. Running variances positive. Returns ``path``."""
-    import torch
-    from mmdet.models.backbones import ResNet
-    from mmdet.models.necks import FPN
-
-    g = torch.Generator().manual_seed(seed)
-    parts = {"backbone.": ResNet(depth=50).state_dict(),
-             "neck.": FPN(in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4).state_dict(),
-             "rpn_head.": {"rpn_conv.weight": torch.zeros(256, 256, 3, 3), "rpn_cls.weight": torch.zeros(3, 256, 1, 1)},
-             "roi_head.": {"bbox_head.0.fc_cls.weight": torch.zeros(11, 1024)}}
-    state = {}
-    for prefix, sd in parts.items():
-        for k, v in sd.items():
-            if v.is_floating_point():
-                v = torch.rand(v.shape, generator=g) + 0.5 if k.endswith("running_var") else \
-                    torch.randn(v.shape, generator=g) * 0.02
-            state[prefix + k] = v
-    path.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"meta": {"mmdet_version": "2.x", "CLASSES": ("car", "truck")}, "state_dict": state}, path)
-    return path
-
-
 _FAKE_HTC = []
 
 
 def fake_htc_checkpoint() -> Path:
-    """:func:`write_fake_htc` once per process (in a temporary folder removed at exit)."""
+    """``mssf_examples.mmdet3d.generated.write_generated_image_checkpoint`` (an HTC-shaped image-branch
+    checkpoint of seeded random values) once per process, in a temporary folder removed at exit."""
     if not _FAKE_HTC:
         import atexit
         import shutil
@@ -135,5 +110,7 @@ def fake_htc_checkpoint() -> Path:
 
         folder = Path(tempfile.mkdtemp(prefix="fake_htc_"))
         atexit.register(shutil.rmtree, folder, True)
-        _FAKE_HTC.append(write_fake_htc(folder / "htc_r50_fpn.pth"))
+        from mssf_examples.mmdet3d.generated import write_generated_image_checkpoint
+
+        _FAKE_HTC.append(write_generated_image_checkpoint(folder / "htc_r50_fpn.pth"))
     return _FAKE_HTC[0]
