@@ -90,7 +90,9 @@ class MSSFDetector(MVXTwoStageDetector):
 
     Args:
         seg_loss_weight: weight of the semantic head's focal loss (``loss_seg``); the paper's 1.0.
-        freeze_img: keep the image backbone and neck frozen (``requires_grad=False``, eval mode).
+        freeze_img: keep the image backbone and neck frozen (``requires_grad=False``, eval mode); their weights
+            must then come from a checkpoint (``init_cfg``, ``load_from``, ``resume``): training refuses them
+            otherwise (:func:`check_image_weights`).
         **kwargs: ``MVXTwoStageDetector``'s arguments.
     """
 
