@@ -30,7 +30,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet --no-deps av2==0.3.6 kornia==0.6.8
 	# test-only (tests/integrations): what mmdet3d's models, datasets and evaluation import at module level
 	$(PY) -m pip install --quiet scipy shapely terminaltables pycocotools tqdm matplotlib six pyquaternion \
-	    networkx plyfile scikit-image trimesh pandas scikit-learn cachetools
+	    networkx plyfile scikit-image trimesh pandas scikit-learn cachetools numba pyyaml
 	touch $(STAMP)
 
 demo: $(STAMP)

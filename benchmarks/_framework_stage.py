@@ -1,7 +1,8 @@
 """``make gpu-check`` stage 4: the shipped mmdetection3d config trained through our entry on the device.
 
-``python -m mssf_examples.mmdet3d train examples/configs/mmdet3d/mssf_pointpillars_vod.py --iters N`` on a
-generated View-of-Delft tree (``mssf_examples.mmdet3d.generated``; batch size, workers, model and pipeline as
+``python -m mssf_examples.mmdet3d train examples/configs/mmdet3d/mssf_pointpillars_vod.py --iters N
+--image-checkpoint PATH`` on a generated View-of-Delft tree and a generated HTC-shaped image checkpoint (the
+frozen branch must be loaded; ``mssf_examples.mmdet3d.generated``; batch size, workers, model and pipeline as
 shipped), in a subprocess: N = 20 on a GPU, 2 with ``--smoke`` (CPU, images at 320 x 200). Reports mmengine's
 time per iteration (the ``time:`` of its last training log line: the mean over the logged window), the last
 loss, and the wall time of the whole run (start-up, data, validation included).
@@ -49,12 +50,13 @@ def mmdet3d_training(device, smoke: bool, timeout_s: float) -> Dict[str, object]
     if reason:
         row["skipped"] = reason
         return row
-    from mssf_examples.mmdet3d.generated import write_generated_vod
+    from mssf_examples.mmdet3d.generated import write_generated_image_checkpoint, write_generated_vod
 
     with tempfile.TemporaryDirectory(prefix="mssf_gpu_check_mmdet3d_") as tmp:
         data_root = write_generated_vod(Path(tmp) / "vod")
+        weights = write_generated_image_checkpoint(Path(tmp) / "htc_r50_fpn.pth")
         cmd = [sys.executable, "-m", "mssf_examples.mmdet3d", "train", str(CONFIG), "--data-root", str(data_root),
-               "--iters", str(iters), "--work-dir", str(Path(tmp) / "work")]
+               "--iters", str(iters), "--work-dir", str(Path(tmp) / "work"), "--image-checkpoint", str(weights)]
         if smoke:
             cmd += ["--image-scale", "320", "200"]
         env = dict(os.environ)

@@ -95,3 +95,22 @@ def evaluate_ground_truth(cfg, shift: float = 0.0):
             "bboxes_3d": boxes, "scores_3d": torch.linspace(1.0, 0.5, n),
             "labels_3d": torch.as_tensor(ann["gt_labels_3d"])}}])
     return metric.evaluate(len(ds))
+
+
+_FAKE_HTC = []
+
+
+def fake_htc_checkpoint() -> Path:
+    """``mssf_examples.mmdet3d.generated.write_generated_image_checkpoint`` (an HTC-shaped image-branch
+    checkpoint of seeded random values) once per process, in a temporary folder removed at exit."""
+    if not _FAKE_HTC:
+        import atexit
+        import shutil
+        import tempfile
+
+        folder = Path(tempfile.mkdtemp(prefix="fake_htc_"))
+        atexit.register(shutil.rmtree, folder, True)
+        from mssf_examples.mmdet3d.generated import write_generated_image_checkpoint
+
+        _FAKE_HTC.append(write_generated_image_checkpoint(folder / "htc_r50_fpn.pth"))
+    return _FAKE_HTC[0]

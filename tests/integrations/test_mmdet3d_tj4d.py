@@ -22,7 +22,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import evaluate_ground_truth, require_mmdet3d, write_tj4d_tree  # noqa: E402
+from mmdet3d_vod_tree import evaluate_ground_truth, fake_htc_checkpoint, require_mmdet3d, write_tj4d_tree  # noqa: E402,E501
 from test_mmdet3d_docs import REPO, RUN_TJ4D  # noqa: E402
 from test_mmdet3d_train import recording_runners, run, small_cfg  # noqa: E402
 
@@ -55,7 +55,7 @@ def check_run(rec, fusion):
 
 def test_docs_lines_run_as_printed(tmp_path, monkeypatch):
     """docs/frameworks.md's TJ4DRadSet info and quick-check lines, verbatim, in a folder laid out as the docs
-    assume (``data/TJ4DRadSet``, ``examples``)."""
+    assume (``data/TJ4DRadSet``, ``examples``, ``checkpoints/htc_r50_fpn.pth`` a generated HTC-shaped file)."""
     require_mmdet3d()
     from mssf_examples.mmdet3d.cli import main
 
@@ -63,6 +63,8 @@ def test_docs_lines_run_as_printed(tmp_path, monkeypatch):
     for split in ("train", "val"):
         (root / f"tj4d_infos_{split}.pkl").unlink()  # the docs' line writes them
     (tmp_path / "examples").symlink_to(REPO / "examples")
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "htc_r50_fpn.pth").symlink_to(fake_htc_checkpoint())  # the page's wget
     monkeypatch.chdir(tmp_path)
     built = recording_runners(monkeypatch)
     for cmd in RUN_TJ4D:

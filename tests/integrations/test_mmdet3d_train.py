@@ -21,7 +21,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import CONFIGS, require_mmdet3d, write_tree  # noqa: E402
+from mmdet3d_vod_tree import CONFIGS, fake_htc_checkpoint, require_mmdet3d, write_tree  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF = ["mssf_pointpillars_vod.py", "mssf_second_vod.py"]
@@ -38,12 +38,15 @@ def data_root(tmp_path_factory):
 
 def small_cfg(name, data_root, work_dir, iters=2):
     """The shipped config with only the data root, the iteration count and the image scale overridden, as the
-    entry's ``--data-root``, ``--iters`` and ``--image-scale`` do (batch size, workers, schedule as shipped)."""
-    from mssf_examples.mmdet3d.cli import load_config, set_image_scale, set_iterations
+    entry's ``--data-root``, ``--iters`` and ``--image-scale`` do (batch size, workers, schedule as shipped), and
+    the frozen image branch given its weights as ``--image-checkpoint`` does (a generated HTC-shaped file)."""
+    from mssf_examples.mmdet3d.cli import load_config, set_image_checkpoint, set_image_scale, set_iterations
 
     cfg = load_config(str(CONFIGS / name), str(work_dir), data_root=str(data_root))
     set_image_scale(cfg, IMAGE_SCALE)
     set_iterations(cfg, iters)
+    if cfg.model.get("img_backbone") is not None:
+        set_image_checkpoint(cfg, fake_htc_checkpoint())
     return cfg
 
 

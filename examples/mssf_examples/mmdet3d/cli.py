@@ -3,20 +3,25 @@
 * ``infos --root DATA --sensor radar_5frames [--splits train val]``: the View-of-Delft info files, and
   ``infos --dataset tj4d --root DATA``: TJ4DRadSet's (:mod:`.infos`);
 * ``train CONFIG [--work-dir DIR] [--data-root DIR] [--image-scale W H] [--iters N] [--resume [CKPT]]
-  [--cfg-options k=v ...]``: ``Runner.from_cfg(cfg).train()``; ``--iters N`` (:func:`set_iterations`) trains N
-  iterations instead of the config's epochs, with the schedule, validation, checkpoint and logging bound to them;
-* ``test CONFIG CHECKPOINT [same options less --resume and --iters]``: ``Runner.test()`` with the checkpoint.
+  [--image-checkpoint PATH] [--cfg-options k=v ...]``: ``Runner.from_cfg(cfg).train()``; ``--iters N``
+  (:func:`set_iterations`) trains N iterations instead of the config's epochs, with the schedule, validation,
+  checkpoint and logging bound to them; ``--image-checkpoint`` (:func:`set_image_checkpoint`) loads the image
+  branch from an mmdet checkpoint (the paper's HTC R-50-FPN); a frozen image branch that nothing loads is
+  refused before anything is built (:func:`check_image_weights_given`);
+* ``test CONFIG CHECKPOINT [same options less --resume, --iters and --image-checkpoint]``: ``Runner.test()``.
 
-What mmdet3d's ``tools/train.py`` / ``tools/test.py`` do on one machine, less launchers and AMP.
+Checkpoints are unpickled weights-only with exactly what mmengine 0.10's checkpoints hold allowed
+(:mod:`.checkpoints`): a file holding anything else is refused. What mmdet3d's ``tools/train.py`` /
+``tools/test.py`` (in mmdet3d's repository, not in its package) do on one machine, less launchers and AMP.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 from pathlib import Path
 from typing import List, Optional
+
+from mssf_blocks.errors import MSSFError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -42,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
         s.add_argument("--image-scale", nargs=2, type=int, default=None, metavar=("W", "H"),
                        help="the network's image size (every pipeline's Resize; default the config's)")
         if name == "train":
+            s.add_argument("--image-checkpoint", default=None, metavar="PATH",
+                           help="load the image branch from an mmdet checkpoint with backbone.* / neck.* weights "
+                                "(the paper's HTC R-50-FPN): both modules' init_cfg")
             s.add_argument("--iters", type=int, default=None, metavar="N",
                            help="train N iterations instead of the config's epochs: the learning-rate schedule "
                                 "compressed into them, validation and a checkpoint (iter_N.pth) at the end, a log "
@@ -71,6 +79,39 @@ def set_image_scale(cfg, scale) -> None:
             for step in cfg[key].dataset.pipeline:
                 if step.get("type") == "Resize":
                     step.scale = tuple(scale)
+
+
+def set_image_checkpoint(cfg, path: str) -> None:
+    """``--image-checkpoint``: ``init_cfg=dict(type="Pretrained", checkpoint=path, prefix=...)`` of the image
+    backbone (``backbone.``) and neck (``neck.``), the key names of mmdet's HTC / Faster R-CNN checkpoints."""
+    model = cfg.model
+    missing = [k for k in ("img_backbone", "img_neck") if model.get(k) is None]
+    if missing:
+        raise MSSFError(f"--image-checkpoint: the config's model has no {' / '.join(missing)} (a radar-only model?)")
+    model.img_backbone.init_cfg = dict(type="Pretrained", checkpoint=str(path), prefix="backbone.")
+    model.img_neck.init_cfg = dict(type="Pretrained", checkpoint=str(path), prefix="neck.")
+
+
+def _pretrained(init_cfg) -> bool:
+    cfgs = init_cfg if isinstance(init_cfg, (list, tuple)) else [init_cfg]
+    return any(isinstance(c, dict) and c.get("type") == "Pretrained" for c in cfgs)
+
+
+def check_image_weights_given(cfg) -> None:
+    """Before anything is built: an ``MSSFDetector`` whose image branch is frozen (``freeze_img``, default True)
+    and that no ``init_cfg`` (the modules' or the model's), ``load_from`` or ``resume`` would load is refused,
+    with the error the model itself raises at its first training step (``check_image_weights``)."""
+    model = cfg.model
+    if model.get("type") != "MSSFDetector" or not model.get("freeze_img", True):
+        return
+    if cfg.get("load_from") or cfg.get("resume") or _pretrained(model.get("init_cfg")):
+        return  # the model's own check at the first step says whether the image weights were in there
+    parts = {k: "no init_cfg=dict(type='Pretrained', ...), no load_from" for k in ("img_backbone", "img_neck")
+             if model.get(k) is not None and not _pretrained(model[k].get("init_cfg"))}
+    if parts:
+        from .detector import frozen_image_message
+
+        raise MSSFError(frozen_image_message(parts, True))
 
 
 def set_iterations(cfg, iters: int) -> None:
@@ -159,22 +200,23 @@ def main(argv: Optional[List[str]] = None) -> int:
     if getattr(args, "iters", None) is not None:
         set_iterations(cfg, args.iters)
     init_default_scope(cfg.get("default_scope", "mmdet3d"))
-    if args.command == "test" or getattr(args, "resume", None) is not None:
-        # mmengine 0.10.7's checkpoints hold its message hub (HistoryBuffer, numpy values), which torch >= 2.6's
-        # weights-only torch.load refuses (mmengine does not pass weights_only); load them fully, as torch < 2.6 did
-        os.environ.setdefault("TORCH_FORCE_NO_WEIGHTS_ONLY_LOAD", "1")
-        print("python -m mssf_examples.mmdet3d: loading the checkpoint with torch.load(weights_only=False) "
-              "(mmengine 0.10.7 checkpoints); load only checkpoints you trust", file=sys.stderr)
+    from .checkpoints import weights_only_checkpoints
+
     if args.command == "train":
+        if args.image_checkpoint is not None:
+            set_image_checkpoint(cfg, args.image_checkpoint)
         if args.resume == "auto":
             cfg.resume, cfg.load_from = True, None
         elif args.resume is not None:
             cfg.resume, cfg.load_from = True, args.resume
+        check_image_weights_given(cfg)
         runner = Runner.from_cfg(cfg)
-        runner.train()
+        with weights_only_checkpoints():
+            runner.train()
     else:
         cfg.load_from = args.checkpoint
         runner = Runner.from_cfg(cfg)
-        runner.test()
+        with weights_only_checkpoints():
+            runner.test()
     release_workers(runner)
     return 0

@@ -12,7 +12,9 @@ What it changes against ``MVXTwoStageDetector``:
 * ``loss`` returns the box head's losses and the semantic head's focal loss as ``loss_seg`` (times
   ``seg_loss_weight``);
 * the image branch is frozen (``freeze_img=True``: no gradients, BN statistics fixed), the paper's setting
-  with a pretrained image backbone loaded through ``load_from`` or the backbone's ``init_cfg``;
+  with a pretrained image backbone loaded through the backbone's / neck's ``init_cfg`` or ``load_from``; a
+  frozen image weight that no checkpoint ever filled is refused at the first training step
+  (:func:`check_image_weights`: a random, frozen ResNet would otherwise train without a word);
 * clear errors instead of silent fallbacks: fusion blocks without an image branch or without images, an
   image neck whose levels / channels differ from ``image_channels``, metainfo without ``lidar2img``, a
   voxel encoder whose feature count differs from the encoder's ``in_channels``, a model without a box head.
@@ -29,7 +31,50 @@ from mmdet3d.models.detectors.mvx_two_stage import MVXTwoStageDetector
 
 from mssf_blocks.errors import MSSFError
 
-__all__ = ["MSSFDetector"]
+__all__ = ["MSSFDetector", "check_image_weights", "frozen_image_message"]
+
+_IMAGE_PARTS = ("img_backbone", "img_neck")
+
+
+def _record_loaded(module: torch.nn.Module, state_dict: Dict[str, Any], prefix: str, *args: Any) -> None:
+    """``load_state_dict`` pre-hook of the image backbone / neck: remember which of its parameters a checkpoint
+    gave. Runs inside ``_load_from_state_dict``, so torch's loader and mmengine's (``load_from``, ``--resume``,
+    ``init_cfg=dict(type="Pretrained")``) all pass here; the names live on the module (deep copies keep them)."""
+    loaded = module.__dict__.setdefault("_mssf_loaded", set())
+    loaded.update(n for n, _ in module.named_parameters() if prefix + n in state_dict)
+
+
+def frozen_image_message(parts: Dict[str, str], by_flag: bool) -> str:
+    """The error for frozen image weights that no checkpoint filled; ``parts``: module name -> what is unloaded."""
+    what = "; ".join(f"{k}: {v}" for k, v in parts.items())
+    frozen = ("model.freeze_img=True (the paper's setting: a pre-trained, frozen image branch)" if by_flag else
+              "the modules' own settings (e.g. img_backbone.frozen_stages, norm_cfg requires_grad=False)")
+    return (f"{', '.join(parts)}: frozen by {frozen} but never loaded from a checkpoint ({what}): training would "
+            "fuse the features of a random, frozen network. Either load pre-trained weights: "
+            "model.img_backbone.init_cfg=dict(type='Pretrained', checkpoint=..., prefix='backbone.') and "
+            "model.img_neck.init_cfg=dict(type='Pretrained', checkpoint=..., prefix='neck.') (the paper's HTC "
+            "R-50-FPN; `python -m mssf_examples.mmdet3d train --image-checkpoint PATH` sets both), or load_from / "
+            "--resume a checkpoint of this model; or train the branch: model.freeze_img=False "
+            "(docs/frameworks.md, mmdetection3d)")
+
+
+def check_image_weights(model: "MSSFDetector") -> None:
+    """Refuse frozen image weights (``requires_grad=False`` matrices and kernels, ``dim >= 2``) that no checkpoint
+    filled. Run at the first training step: mmengine builds the model, then ``init_weights`` (``init_cfg``), then
+    loads ``load_from`` / the resumed checkpoint, so before that step nothing tells whether weights will come.
+    Norm scales and biases (1-d) are not counted: frozen BN at its initial values is a setting of its own."""
+    parts = {}
+    for name in _IMAGE_PARTS:
+        module = getattr(model, name, None)
+        if module is None:
+            continue
+        loaded = module.__dict__.get("_mssf_loaded", set())
+        frozen = [n for n, p in module.named_parameters() if not p.requires_grad and p.dim() >= 2]
+        unloaded = [n for n in frozen if n not in loaded]
+        if unloaded:
+            parts[name] = f"{len(unloaded)} of its {len(frozen)} frozen weight tensors, e.g. {unloaded[0]}"
+    if parts:
+        raise MSSFError(frozen_image_message(parts, model.freeze_img))
 
 
 def _neck_levels(neck: Any) -> Optional[List[int]]:
@@ -45,7 +90,9 @@ class MSSFDetector(MVXTwoStageDetector):
 
     Args:
         seg_loss_weight: weight of the semantic head's focal loss (``loss_seg``); the paper's 1.0.
-        freeze_img: keep the image backbone and neck frozen (``requires_grad=False``, eval mode).
+        freeze_img: keep the image backbone and neck frozen (``requires_grad=False``, eval mode); their weights
+            must then come from a checkpoint (``init_cfg``, ``load_from``, ``resume``): training refuses them
+            otherwise (:func:`check_image_weights`).
         **kwargs: ``MVXTwoStageDetector``'s arguments.
     """
 
@@ -85,11 +132,14 @@ class MSSFDetector(MVXTwoStageDetector):
             if nf is not None and int(nf) != enc.in_channels:
                 raise MSSFError(f"pts_voxel_encoder.num_features: expected the middle encoder's in_channels "
                                 f"{enc.in_channels}, got {nf}")
-        if self.freeze_img:
-            for m in (getattr(self, "img_backbone", None), getattr(self, "img_neck", None)):
-                if m is not None:
-                    for p in m.parameters():
-                        p.requires_grad_(False)
+        for name in _IMAGE_PARTS:
+            m = getattr(self, name, None)
+            if m is None:
+                continue
+            m._register_load_state_dict_pre_hook(_record_loaded, with_module=True)
+            if self.freeze_img:
+                for p in m.parameters():
+                    p.requires_grad_(False)
 
     def train(self, mode: bool = True) -> "MSSFDetector":
         super().train(mode)
@@ -150,6 +200,8 @@ class MSSFDetector(MVXTwoStageDetector):
         return x
 
     def loss(self, batch_inputs_dict: Dict[str, Any], batch_data_samples: List[Any], **kwargs: Any) -> Dict[str, Tensor]:
+        if self.num_fusion_blocks:
+            check_image_weights(self)  # cheap (names, flags): every step, so a later load_state_dict counts too
         metas = [s.metainfo for s in batch_data_samples]
         self._encoder_ran = False
         img_feats, pts_feats = self.extract_feat(batch_inputs_dict, metas)

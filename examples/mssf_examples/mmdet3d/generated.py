@@ -1,10 +1,11 @@
-"""A View-of-Delft release tree of generated scenes with its mmdet3d info files, for checks that train a
-shipped mmdet3d config without the licensed data (the mmdet3d tests and ``make gpu-check``'s framework stage).
+"""A View-of-Delft release tree of generated scenes with its mmdet3d info files, and an image-branch checkpoint
+shaped like the paper's HTC R-50-FPN, for checks that train a shipped mmdet3d config without the licensed data
+or a download (the mmdet3d tests and ``make gpu-check``'s framework stage).
 
 The tree is what the VoD release holds for one radar sensor: ``<root>/radar_5frames/training/{velodyne,
 image_2,calib,label_2}`` (7-float radar points, ``.jpg`` images) plus ``ImageSets``, and the
 ``vod_infos_{train,val}.pkl`` that ``python -m mssf_examples.mmdet3d infos`` writes. Needs pillow (the
-``examples`` extra), not mmdet3d.
+``examples`` extra), not mmdet3d; the checkpoint needs mmdet (its ResNet and FPN give the key names).
 """
 
 from __future__ import annotations
@@ -37,3 +38,30 @@ def write_generated_vod(root, train: int = 4, val: int = 2, image_size: Tuple[in
         png.unlink()
     create_vod_infos(root, SENSOR, ("train", "val"))
     return root / SENSOR
+
+
+def write_generated_image_checkpoint(path, seed: int = 3) -> Path:
+    """An mmdet-style checkpoint shaped like the paper's HTC R-50-FPN: ``{'meta', 'state_dict'}`` with
+    ``backbone.*`` (ResNet-50), ``neck.*`` (FPN, 4 levels of 256) and a few of HTC's head keys, every value
+    drawn from ``seed`` (running variances positive): what ``train --image-checkpoint`` and the image branch's
+    ``init_cfg`` read, where the real file cannot be downloaded. Returns ``path``."""
+    import torch
+    from mmdet.models.backbones import ResNet
+    from mmdet.models.necks import FPN
+
+    g = torch.Generator().manual_seed(seed)
+    parts = {"backbone.": ResNet(depth=50).state_dict(),
+             "neck.": FPN(in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4).state_dict(),
+             "rpn_head.": {"rpn_conv.weight": torch.zeros(256, 256, 3, 3), "rpn_cls.weight": torch.zeros(3, 256, 1, 1)},
+             "roi_head.": {"bbox_head.0.fc_cls.weight": torch.zeros(11, 1024)}}
+    state = {}
+    for prefix, sd in parts.items():
+        for k, v in sd.items():
+            if v.is_floating_point():
+                v = torch.rand(v.shape, generator=g) + 0.5 if k.endswith("running_var") else \
+                    torch.randn(v.shape, generator=g) * 0.02
+            state[prefix + k] = v
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"meta": {"mmdet_version": "2.x", "CLASSES": ("car", "truck")}, "state_dict": state}, path)
+    return path

@@ -29,6 +29,7 @@ from torch import Tensor
 from ..errors import MSSFError
 from ..fusion import FusionInputs
 from ..geometry import apply_image_augmentation, augmentation_matrix
+from ._calibration import check_calibration_image_size
 from ._common import affine_4x4, as_bool, as_float64, check_affine_4x4, image_levels_bv, lidar2img_3x4, pixel_affine_from_4x4
 
 __all__ = [
@@ -140,6 +141,10 @@ def camera_from_meta(meta: Mapping, image_aug: str = "meta") -> Tensor:
         meta: one sample's metainfo.
         image_aug: ``"meta"`` folds in :func:`image_aug_affine`; ``"none"`` takes ``lidar2img`` as
             already describing the augmented image (pipelines that update it themselves).
+
+    Warns (:class:`~mssf_blocks.errors.MSSFGeometryWarning`) when ``lidar2img``'s principal point lies 1.2 x
+    or more (or 1 / 1.2 or less) off the centre of the image it describes (``ori_shape``, with ``"none"``
+    ``img_shape``) on both axes: images resized on disk while the calibration was kept (``_calibration``).
     """
     if image_aug not in _IMAGE_AUG:
         raise MSSFError(f"image_aug: expected one of {_IMAGE_AUG}, got {image_aug!r}")
@@ -150,6 +155,13 @@ def camera_from_meta(meta: Mapping, image_aug: str = "meta") -> Tensor:
         l2i = l2i[None]
     if l2i.dim() != 3:
         raise MSSFError(f"lidar2img: expected (4, 4) or (V, 4, 4), got {tuple(l2i.shape)}")
+    # lidar2img describes the loaded image (ori_shape), or with image_aug="none" the augmented one (img_shape)
+    key = "ori_shape" if image_aug == "meta" else "img_shape"
+    if meta.get(key) is not None:
+        hw = as_float64(meta[key], key)
+        if hw.dim() in (1, 2) and hw.shape[-1] in (2, 3):  # (H, W[, C]), or one per camera
+            where = f"{key} {tuple(int(v) for v in hw.reshape(-1)[:2])}"
+            check_calibration_image_size(l2i, hw[..., :2], "lidar2img", where)
     if image_aug == "meta":
         l2i = apply_image_augmentation(l2i[None], image_aug_affine(meta, l2i.shape[0])[None])[0]
     return l2i

@@ -12,6 +12,6 @@ env_cfg = dict(cudnn_benchmark=False, mp_cfg=dict(mp_start_method="fork", opencv
                dist_cfg=dict(backend="nccl"))
 log_processor = dict(type="LogProcessor", window_size=50, by_epoch=True)
 log_level = "INFO"
-load_from = None  # a checkpoint of this model (e.g. to fine-tune); the image branch: img_pretrained
+load_from = None  # a checkpoint of this model (e.g. to fine-tune); the image branch: its init_cfg (models/)
 resume = False
 randomness = dict(seed=0)

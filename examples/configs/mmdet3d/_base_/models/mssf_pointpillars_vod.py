@@ -4,17 +4,21 @@
 # is MSSFPillarEncoder, which takes the points: no voxelisation in the data preprocessor.
 grid_range = [0, -25.6, -3, 51.2, 25.6, 2]  # the grid (the datasets' point_cloud_range)
 pillar_size = [0.16, 0.16, 5]
-# The image branch is frozen (freeze_img); the paper initialises it from an mmdet HTC R-50-FPN checkpoint:
-# set init_cfg=dict(type="Pretrained", checkpoint=..., prefix="backbone.") / prefix="neck." (docs/frameworks.md).
+# The image branch is frozen (freeze_img=True, the only switch: with False the whole ResNet-50 + FPN trains) and
+# starts from the paper's mmdet HTC R-50-FPN weights, which you give (training refuses a frozen branch that no
+# checkpoint filled): `train --image-checkpoint PATH`, or in a config of your own (docs/frameworks.md)
+#     model = dict(img_backbone=dict(init_cfg=dict(type="Pretrained", checkpoint=PATH, prefix="backbone.")),
+#                  img_neck=dict(init_cfg=dict(type="Pretrained", checkpoint=PATH, prefix="neck.")))
+# or load_from / --resume a checkpoint of this model.
 model = dict(
     type="MSSFDetector",
     seg_loss_weight=1.0,
     freeze_img=True,
     data_preprocessor=dict(type="Det3DDataPreprocessor", voxel=False, mean=[123.675, 116.28, 103.53],
                            std=[58.395, 57.12, 57.375], bgr_to_rgb=True, pad_size_divisor=32),
-    img_backbone=dict(type="mmdet.ResNet", depth=50, num_stages=4, out_indices=(0, 1, 2, 3), frozen_stages=4,
-                      norm_cfg=dict(type="BN", requires_grad=False), norm_eval=True, style="pytorch", init_cfg=None),
-    img_neck=dict(type="mmdet.FPN", in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4, init_cfg=None),
+    img_backbone=dict(type="mmdet.ResNet", depth=50, num_stages=4, out_indices=(0, 1, 2, 3), frozen_stages=-1,
+                      norm_cfg=dict(type="BN", requires_grad=True), norm_eval=False, style="pytorch"),
+    img_neck=dict(type="mmdet.FPN", in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4),
     pts_middle_encoder=dict(
         type="MSSFPillarEncoder", in_channels=7, point_cloud_range=grid_range, voxel_size=pillar_size,
         lift_z_size=0.125, pfn_channels=64, layer_nums=[3, 5, 5], layer_strides=[2, 2, 2], num_filters=[64, 128, 256],

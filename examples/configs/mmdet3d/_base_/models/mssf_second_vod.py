@@ -4,8 +4,12 @@
 grid_range = [0, -25.6, -3, 51.2, 25.6, 2]  # the grid (the datasets' point_cloud_range)
 voxel_size = [0.05, 0.05, 0.125]
 sparse_shape = [41, 1024, 1024]  # (z + 1, y, x) cells, as SparseEncoder configs give it
-# The image branch is frozen (freeze_img); the paper initialises it from an mmdet HTC R-50-FPN checkpoint:
-# set init_cfg=dict(type="Pretrained", checkpoint=..., prefix="backbone.") / prefix="neck." (docs/frameworks.md).
+# The image branch is frozen (freeze_img=True, the only switch: with False the whole ResNet-50 + FPN trains) and
+# starts from the paper's mmdet HTC R-50-FPN weights, which you give (training refuses a frozen branch that no
+# checkpoint filled): `train --image-checkpoint PATH`, or in a config of your own (docs/frameworks.md)
+#     model = dict(img_backbone=dict(init_cfg=dict(type="Pretrained", checkpoint=PATH, prefix="backbone.")),
+#                  img_neck=dict(init_cfg=dict(type="Pretrained", checkpoint=PATH, prefix="neck.")))
+# or load_from / --resume a checkpoint of this model.
 model = dict(
     type="MSSFDetector",
     seg_loss_weight=1.0,
@@ -15,9 +19,9 @@ model = dict(
                                             voxel_size=voxel_size, max_voxels=(16000, 40000)),
                            mean=[123.675, 116.28, 103.53],
                            std=[58.395, 57.12, 57.375], bgr_to_rgb=True, pad_size_divisor=32),
-    img_backbone=dict(type="mmdet.ResNet", depth=50, num_stages=4, out_indices=(0, 1, 2, 3), frozen_stages=4,
-                      norm_cfg=dict(type="BN", requires_grad=False), norm_eval=True, style="pytorch", init_cfg=None),
-    img_neck=dict(type="mmdet.FPN", in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4, init_cfg=None),
+    img_backbone=dict(type="mmdet.ResNet", depth=50, num_stages=4, out_indices=(0, 1, 2, 3), frozen_stages=-1,
+                      norm_cfg=dict(type="BN", requires_grad=True), norm_eval=False, style="pytorch"),
+    img_neck=dict(type="mmdet.FPN", in_channels=[256, 512, 1024, 2048], out_channels=256, num_outs=4),
     pts_voxel_encoder=dict(type="HardSimpleVFE", num_features=7),
     pts_middle_encoder=dict(
         type="MSSFSparseEncoder", in_channels=7, sparse_shape=sparse_shape, point_cloud_range=grid_range,
