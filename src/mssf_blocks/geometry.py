@@ -16,7 +16,7 @@ from torch import Tensor, nn
 
 from ._checks import check_floating, check_points, check_radians, check_shape, check_triple
 from ._running_coverage import RunningCoverage
-from ._consistency import check_image_size_small, check_points_in_voxels, check_points_to_sensor, project_raw
+from ._first_call import check_image_size_small, check_points_in_voxels, check_points_to_sensor, project_raw
 from ._sanity import check_centroid_coverage, check_projection_coverage, geometry_checks_enabled, set_geometry_checks
 from .errors import MSSFError
 from .functional.geometry import project_points, voxel_centroids
@@ -147,7 +147,7 @@ class VoxelCentroidProjector(nn.Module):
                                   raw_uv=None if raw_uv is None else raw_uv[raw_inside])
         check_centroid_coverage(has_points, batch_index, points_batch, voxels.batch_size,
                                 getattr(self, "coverage", None), voxels.stride)
-        if checks:  # first-call consistency of voxels, points and points_to_sensor (_consistency's doc)
+        if checks:  # first-call consistency of voxels, points and points_to_sensor (_first_call's doc)
             check_points_in_voxels(points, points_batch, voxels.coords, batch_index, voxels.spatial_shape,
                                    voxels.batch_size, voxels.voxel_size, voxels.point_range_min, voxels.stride,
                                    self.point_range_max, has_points)
