@@ -1,6 +1,6 @@
 """Measurement: the figures of the first-call consistency checks on correct inputs and on mistakes.
 
-The checks of ``mssf_blocks._consistency`` (docs/conventions.md, "Common mistakes") warn on one call,
+The checks of ``mssf_blocks._first_call`` (docs/conventions.md, "Common mistakes") warn on one call,
 without a warm-up, so their thresholds must hold on every correct frame. This script records, wherever
 the projector runs the checks:
 
@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector  # noqa: E402
-from mssf_blocks import _consistency as cc  # noqa: E402
+from mssf_blocks import _first_call as cc  # noqa: E402
 from mssf_blocks import geometry as _geometry  # noqa: E402
 from mssf_blocks._sanity import _relative_centre  # noqa: E402
 from mssf_blocks.errors import MSSFGeometryWarning  # noqa: E402

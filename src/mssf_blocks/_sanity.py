@@ -152,7 +152,7 @@ def check_projection_coverage(uv: Tensor, depth: Tensor, batch_index: Tensor, ba
     swapped = front & (pix >= 0).all(-1) & (pix[..., 0] <= h) & (pix[..., 1] <= w)
     n_seen, n_swapped = int(inside.sum()), int(swapped.sum())
     if h != w and n_swapped - n_seen >= _MIN_VOXELS and n_swapped > 1.2 * n_seen and not bool(
-            (_relative_centre(lidar2img, h, w) >= 0.75).all()):  # (that is image_size too small: _consistency)
+            (_relative_centre(lidar2img, h, w) >= 0.75).all()):  # (that is image_size too small: _first_call)
         warnings.warn(MSSFGeometryWarning(
             f"projection: {n_seen} voxel projections inside image_size={(h, w)} but {n_swapped} inside "
             f"{(w, h)}: image_size (W, H) swapped? it is (H, W)"
