@@ -78,7 +78,13 @@ def _():
     assert SemanticGuidedHead(4, hidden=(8,), norm_layer=nn.LayerNorm).train()(one)[1].shape == (1,)
     qi = QueryInit(8, 4, 8, (0, 0, 0, 1, 1, 1)).train()
     v8 = SparseVoxels(torch.randn(1, 8), torch.tensor([[0, 0, 2, 2]], dtype=torch.int32), (4, 8, 8), 1, **fe.GRID)
-    runs = [lambda: SFF([4], 6).train()([torch.randn(1, 4, 8, 8)], fe.projection(5, [2]))]
+    from mssf_blocks._static import static_path
+
+    def static_sff():  # the static path (no row gather), where data checks run (here: the CPU)
+        with static_path():
+            SFF([4], 6).train()([torch.randn(1, 4, 8, 8)], fe.projection(5, [2]))
+
+    runs = [lambda: SFF([4], 6).train()([torch.randn(1, 4, 8, 8)], fe.projection(5, [2])), static_sff]
     runs += [lambda m=m: fe.msdff(method=m).train()(torch.randn(5, 8), [torch.randn(1, 4, 8, 8)], fe.projection(5, [2]))
              for m in ("auto", "reference", "fast", "grid")]
     runs += [lambda: qi(torch.randn(1, 8), torch.randn(1, 4), torch.rand(1, 3)),
