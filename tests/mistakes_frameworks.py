@@ -29,13 +29,12 @@ proved_by("OpenPCDet: `test.py` on a trained MSSF checkpoint",
 proved_by("OpenPCDet's documented commands on a machine without CUDA",
           f"{PCDET}cpu_route.py::test_the_documented_cpu_route_runs_on_an_unbuilt_clone")
 
-# mmdetection3d rows (merged into main after this branch began): uncomment once main is merged here; checked
-# on a trial merge with main at e0c41d5 (all rows then proved)
-# MM = "tests/integrations/test_mmdet3d_"
-# proved_by("mmdet3d: images stored resized", f"{MM}image_size.py::test_halved_images_with_full_size_calibration_warn",
-#           f"{MM}image_size.py::test_real_calibrations_against_resized_images")
-# proved_by("mmdet3d: the frozen image branch",
-#           f"{MM}image_weights.py::test_frozen_unloaded_branch_refused_at_the_first_training_step",
-#           f"{MM}image_weights.py::test_entry_refuses_before_building")
-# proved_by("mmdet3d: the HTC `init_cfg`", f"{MM}image_weights.py::test_documented_htc_snippets_load_the_branch")
-# proved_by("mmdet3d: a checkpoint whose pickle runs code", f"{MM}checkpoints.py::test_crafted_checkpoint_is_refused")
+# mmdetection3d rows
+MM = "tests/integrations/test_mmdet3d_"
+proved_by("mmdet3d: images stored resized", f"{MM}image_size.py::test_halved_images_with_full_size_calibration_warn",
+          f"{MM}image_size.py::test_real_calibrations_against_resized_images")
+proved_by("mmdet3d: the frozen image branch",
+          f"{MM}image_weights.py::test_frozen_unloaded_branch_refused_at_the_first_training_step",
+          f"{MM}image_weights.py::test_entry_refuses_before_building")
+proved_by("mmdet3d: the HTC `init_cfg`", f"{MM}image_weights.py::test_documented_htc_snippets_load_the_branch")
+proved_by("mmdet3d: a checkpoint whose pickle runs code", f"{MM}checkpoints.py::test_crafted_checkpoint_is_refused")
