@@ -28,8 +28,10 @@ def test_count_stays_hand_worked():
 _PKG = {
     "pkg/__init__.py": "",
     "pkg/a.py": """
+        import functools
+
         import outside
-        from pkg import b
+        from pkg import b, c
 
         def run(h):
             b.check(h.features)            # b, c (data: a tensor the holder carries)
@@ -38,7 +40,9 @@ _PKG = {
                 b.fails(h)                 # b, left by an exception
             except ValueError:
                 pass
+            c.via(functools.partial(b.check, h.features))  # c (not data) calls b with data
             outside.call_back(b.inner, h)  # outside code calls back into b
+            h.centre()                     # c: a method of the holder (data: self)
             return helper(h)               # same file: no new stay
 
         def helper(h):
@@ -63,11 +67,21 @@ _PKG = {
             return len(items)
     """,
     "pkg/c.py": """
+        class Holder:
+            def __init__(self):
+                self.features = object()
+
+            def centre(self):
+                return plain(0)
+
         def deep(t):
             return t
 
         def plain(n):
             return n
+
+        def via(fn):
+            return fn()
     """,
     "outside.py": """
         def call_back(fn, arg):
@@ -76,13 +90,12 @@ _PKG = {
 }
 
 
-class _Holder:
-    def __init__(self):
-        self.features = object()
-
-
 def _holder(obj):
-    return [obj.features] if isinstance(obj, _Holder) else None
+    return [obj.features] if type(obj).__name__ == "Holder" else None
+
+
+def _new_holder():
+    return sys.modules["pkg.c"].Holder()  # (build it before tracing: its __init__ is in c.py)
 
 
 @pytest.fixture
@@ -92,58 +105,63 @@ def pkg(tmp_path, monkeypatch):
         (tmp_path / name).write_text(textwrap.dedent(text))
     monkeypatch.syspath_prepend(str(tmp_path))
     yield importlib.import_module("pkg.a"), str(tmp_path / "pkg")
-    for m in ("pkg", "pkg.a", "pkg.b", "pkg.c", "outside"):
+    for m in ("pkg", "pkg.a", "pkg.b", "pkg.c", "outside"):  # (the next test imports its own copy)
         sys.modules.pop(m, None)
 
 
 def test_tracer_all_frames_hand_worked(pkg):
     a, root = pkg
+    h = _new_holder()
     with PathTracer(root) as tracer:
-        a.run(_Holder())
-    # a >check b >deep c >b >a >count b >plain c >b >a >fails b >a (exception) >inner b (from outside)
-    # >a (through outside) >helper a >done b >a; then the call is left
+        a.run(h)
+    # a >check b >deep c >b >a >count b >plain c >b >a >fails b >a (exception) >via c >check b >deep c >b >c
+    # >a >inner b (from outside) >a (through outside) >centre c (>plain c) >a >helper a >done b >a; then the
+    # call is left
     expected = ["a.py", "b.py", "c.py", "b.py", "a.py", "b.py", "c.py", "b.py", "a.py", "b.py", "a.py",
-                "b.py", "a.py", "b.py", "a.py", None]
+                "c.py", "b.py", "c.py", "b.py", "c.py", "a.py", "b.py", "a.py", "c.py", "a.py", "b.py", "a.py", None]
     assert tracer.sequence == expected
     c = count_stays(tracer.sequence)
-    assert (c["num_stays"], c["files_entered"], c["returns"]) == (15, 3, 12)
-    assert c["visits"] == {"a.py": 6, "b.py": 7, "c.py": 2}
+    assert (c["num_stays"], c["files_entered"], c["returns"]) == (23, 3, 20)
+    assert c["visits"] == {"a.py": 8, "b.py": 9, "c.py": 6}
 
 
 def test_tracer_data_frames_hand_worked(pkg):
     a, root = pkg
+    h = _new_holder()
     with PathTracer(root, _holder) as tracer:
-        a.run(_Holder())
-    # count(3) and plain(3) receive no voxel data: no stay in b or c for them
-    assert tracer.sequence == ["a.py", "b.py", "c.py", "b.py", "a.py", "b.py", "a.py", "b.py", "a.py", "b.py",
-                               "a.py", None]
+        a.run(h)
+    # count(3), plain(3) and via(partial) receive no voxel data: no stay for them, and check's return
+    # goes back to run's file, not via's
+    assert tracer.sequence == ["a.py", "b.py", "c.py", "b.py", "a.py", "b.py", "a.py", "b.py", "c.py", "b.py",
+                               "a.py", "b.py", "a.py", "c.py", "a.py", "b.py", "a.py", None]
     c = count_stays(tracer.sequence)
-    assert (c["num_stays"], c["files_entered"], c["returns"]) == (11, 3, 8)
-    assert c["visits"] == {"a.py": 5, "b.py": 5, "c.py": 1}
+    assert (c["num_stays"], c["files_entered"], c["returns"]) == (17, 3, 14)
+    assert c["visits"] == {"a.py": 7, "b.py": 7, "c.py": 3}
 
 
 def test_tracer_data_follows_an_attribute_one_level_deep(pkg):
-    a, root = pkg
+    _, root = pkg
     b = sys.modules["pkg.b"]
 
     class Box:
         def __init__(self, inner):
             self.inner = inner
 
+    one, two = Box(_new_holder()), Box(Box(_new_holder()))
     with PathTracer(root, _holder) as tracer:
-        b.inner(Box(_Holder()))         # the holder one level down: data
-        b.inner(Box(Box(_Holder())))    # two levels down: not followed
+        b.inner(one)  # the holder one level down: data
+        b.inner(two)  # two levels down: not followed
     assert tracer.sequence == ["b.py", None]
 
 
 def test_a_real_forward(tmp_path):
     pytest.importorskip("spconv")
-    from mssf_blocks import FusionBlock
-
     import mssf_blocks
+    from mssf_blocks import FusionBlock, SparseVoxels
 
     root = os.path.dirname(os.path.abspath(mssf_blocks.__file__))
-    home = os.path.relpath(inspect.getsourcefile(FusionBlock), root).replace(os.sep, "/")
+    home, voxels_home = (os.path.relpath(inspect.getsourcefile(c), root).replace(os.sep, "/")
+                         for c in (FusionBlock, SparseVoxels))
     counts = measure_variant("sff-voxels")
     for mode in ("all", "data"):
         c = counts[mode]
@@ -153,6 +171,7 @@ def test_a_real_forward(tmp_path):
     # following the data keeps a subset of the files and fewer stays
     assert set(counts["data"]["visits"]) < set(counts["all"]["visits"])
     assert counts["data"]["num_stays"] < counts["all"]["num_stays"]
+    assert voxels_home in counts["data"]["visits"]  # the voxels' own methods (self) are on the data's way
     out = tmp_path / "path.json"
     assert main(["--variants", "sff-voxels", "--json", str(out)]) == 0
     assert json.loads(out.read_text())["variants"]["sff-voxels"] == counts  # repeatable
