@@ -107,8 +107,10 @@ def test_a_failing_rank_stops_the_run_with_a_clear_message(tree, tmp_path):
     shutil.copytree(tree, bad)
     # which frame rank 1 reads in step 2 (global batch 1): the second half of it
     idx = batch_order(4, 2, 3, seed=0)[1][1]
-    frame = sorted((bad / "radar_5frames" / "training" / "velodyne").glob("*.bin"))[idx]
-    frame.write_bytes(b"xxxxx")  # not a multiple of 7 float32
+    # its camera image, not its points: the CLI reads the first point files before training starts
+    # (their layout), so a broken point file among them never reaches a training step
+    frame = sorted((bad / "radar_5frames" / "training" / "image_2").iterdir())[idx]
+    frame.write_bytes(b"xxxxx")  # not an image
     r = _torchrun(2, _args(bad, tmp_path / "out"), timeout=240)
     assert r.returncode != 0
     assert "rank 1 of 2 failed" in r.stderr and frame.name in r.stderr, r.stderr[-3000:]
