@@ -20,6 +20,7 @@ from mssf_examples import cli  # noqa: E402
 from mssf_examples.image_branch import ImageBranch  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
+from cli_refusal import refused_line as _fails  # noqa: E402
 from generated_tree import write_generated_tree  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -47,13 +48,6 @@ def _train(root, out, *extra):
             "--threads", "1", "--no-progress", "--workers", "0", "--no-augment", "--out", str(out), *extra]
 
 
-def _fails(argv, capsys) -> str:
-    with pytest.raises(SystemExit) as exc:
-        cli.main(argv)
-    assert exc.value.code == 2
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    return err.strip().splitlines()[-1]
 
 
 def test_paper_preset_frozen_branch_without_weights_is_refused(tree, tmp_path, capsys, no_training):

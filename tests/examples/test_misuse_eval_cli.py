@@ -23,6 +23,7 @@ from mssf_examples.evaluation import evaluate  # noqa: E402
 from mssf_examples.kitti_io import parse_labels  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
+from cli_refusal import refused_line as _fails  # noqa: E402
 from generated_tree import write_generated_tree  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -44,13 +45,6 @@ def _train(root, out, dataset="vod"):
             "--batch-size", "2", "--threads", "1", "--no-progress", "--workers", "0", "--out", str(out)]
 
 
-def _fails(argv, capsys) -> str:
-    with pytest.raises(SystemExit) as exc:
-        cli.main(argv)
-    assert exc.value.code == 2
-    err = capsys.readouterr().err
-    assert "Traceback" not in err
-    return err.strip().splitlines()[-1]
 
 
 def test_out_an_existing_file(tree, tmp_path, capsys):
