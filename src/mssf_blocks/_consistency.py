@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from .errors import MSSFError
 
 __all__ = ["check_agreement", "level_batch_entries", "check_batch_statistics", "batch_norm_in_training",
-           "check_channels"]
+           "check_channels", "check_query_range"]
 
 #: ``(name, size, shape)``: an argument, the size it gives (its batch size, its cameras...) and its shape (a
 #: tuple, or its text)
@@ -113,3 +113,37 @@ def check_channels(x: Any, name: str, channels: int, arg: str, dim: int = 1) -> 
             f"{name}: expected {channels} channels ({arg}={channels}), got shape {tuple(x.shape)} ({got} channels); "
             f"build it with {arg.split()[-1]}={got}, or pass {channels}-channel {name}"
         )
+
+
+def check_query_range(point_cloud_range: Sequence[float], spatial_shape: Sequence[Any], voxel_size: Sequence[float],
+                      point_range_min: Sequence[float], stride: Sequence[int]) -> None:
+    """``QueryInit``'s ``point_cloud_range`` is the block's grid: its minimum is ``point_range_min`` (within half
+    a voxel) and its maximum the grid's far corner ``point_range_min + spatial_shape * stride * voxel_size``
+    less at most two voxels at that stride (a padded shape: OpenPCDet's one extra z cell, a strided
+    convolution's rounding up). Another range (e.g. KITTI's copied beside VoD's grid) normalises every
+    voxel's position wrongly without any error. Numbers only (a symbolic shape is not compared).
+
+    Raises:
+        MSSFError: naming ``point_cloud_range``, the axis, and the range the grid gives.
+    """
+    shape_zyx = [_size(s) for s in spatial_shape]
+    if len(shape_zyx) != 3 or any(s is None for s in shape_zyx):
+        return
+    cells = shape_zyx[::-1]  # (x, y, z)
+    strides = list(stride)[::-1]
+    lo, hi = point_cloud_range[:3], point_cloud_range[3:]
+    for a, axis in enumerate("xyz"):
+        v = float(voxel_size[a]) * int(strides[a])
+        far = float(point_range_min[a]) + cells[a] * v
+        tol = 1e-4 * max(1.0, abs(far))
+        if abs(lo[a] - float(point_range_min[a])) > 0.5 * float(voxel_size[a]) + tol or not (
+                far - 2 * v - tol <= hi[a] <= far + tol):
+            grid = tuple(round(float(m), 6) for m in point_range_min) + tuple(
+                round(float(point_range_min[i]) + cells[i] * float(voxel_size[i]) * int(strides[i]), 6)
+                for i in range(3))
+            raise MSSFError(
+                f"point_cloud_range: expected the block's grid, about {grid} (point_range_min, and "
+                f"point_range_min + spatial_shape * stride * voxel_size in (x, y, z)), got "
+                f"{tuple(point_cloud_range)} (QueryInit; axis {axis}: [{lo[a]}, {hi[a]}]); build QueryInit with "
+                "the point-cloud range of the voxels' grid"
+            )

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from ._checks import check_triple, to_module_dtype
-from ._consistency import check_agreement, level_batch_entries
+from ._consistency import check_agreement, check_query_range, level_batch_entries
 from ._sanity import check_grid, check_indices_in_shape
 from ._fusion_utils import check_image_features
 from .errors import MSSFError
@@ -327,6 +327,8 @@ class FusionBlock(nn.Module):
             check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", x.batch_size))
         out_stride = self.output_stride(in_stride)
         check_grid(x.spatial_shape, grid[0], grid[1], in_stride, self.projector.point_range_max)
+        if self.query_init is not None:  # (its range normalises the query positions: the grid's, or wrong)
+            check_query_range(self.query_init.point_cloud_range, x.spatial_shape, grid[0], grid[1], in_stride)
 
         def as_spconv(t: Any) -> Any:
             return t.to_spconv() if isinstance(t, SparseVoxels) else t

@@ -1,0 +1,166 @@
+"""Realistic mistakes found by an independent pass over the README / docs examples (issue 42), each one
+silently wrong before: the batch-index column of OpenPCDet's points read as x, box yaw in degrees, the
+head's scores passed as logits, a QueryInit range of another grid. Each test fails on the code before
+its check; the no-mistake twins guard against false alarms."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import warnings
+
+import pytest
+import torch
+from torch import nn
+
+from mssf_blocks import FusionBlock, FusionInputs, MSDFF, QueryInit, SemanticGuidedHead, SparseVoxels
+from mssf_blocks.errors import MSSFError, MSSFGeometryWarning
+from mssf_blocks.functional.geometry import voxel_centroids
+from mssf_blocks.functional.heads import points_in_boxes, voxel_foreground_labels
+from mssf_blocks.functional.lift import voxelize_points
+from mssf_blocks.geometry import set_geometry_checks
+
+PC_MIN, PC_MAX = (0.0, -25.6, -3.0), (51.2, 25.6, 2.0)
+
+
+def _cloud(b=2, n=100, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    xyz = torch.rand(b * n, 3, generator=g) * torch.tensor([25.0, 10.0, 3.0]) + torch.tensor([5.0, -5.0, -2.5])
+    batch = torch.arange(b).repeat_interleave(n)
+    return xyz, batch
+
+
+@pytest.fixture(autouse=True)
+def _default_checks():
+    set_geometry_checks(None)
+    yield
+    set_geometry_checks(None)
+
+
+@contextlib.contextmanager
+def _no_mssf_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MSSFGeometryWarning)
+        yield
+
+
+# --- OpenPCDet's (b, x, y, z, ...) points where (x, y, z, ...) rows are expected ---------------------------
+def test_voxelize_points_refuses_a_batch_index_column():
+    xyz, batch = _cloud()
+    pts = torch.cat([batch[:, None].float(), xyz, torch.rand(len(xyz), 1)], 1)  # OpenPCDet: b, x, y, z, rcs
+    with pytest.raises(MSSFError, match=r"column 0 equals points_batch .*OpenPCDet's \(b, x, y, z, \.\.\.\)"):
+        voxelize_points(pts, batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    # one sample (all indices 0) is the same mistake
+    with pytest.raises(MSSFError, match="column 0 equals points_batch"):
+        voxelize_points(pts[batch == 0], batch[batch == 0], 1, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+
+
+def test_voxel_centroids_refuses_a_batch_index_column():
+    xyz, batch = _cloud()
+    vox = voxelize_points(xyz, batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    pts = torch.cat([batch[:, None].float(), xyz], 1)
+    with pytest.raises(MSSFError, match="column 0 equals points_batch"):
+        voxel_centroids(pts, batch, vox.coords, vox.spatial_shape, 2, vox.voxel_size, vox.point_range_min)
+
+
+def test_points_with_feature_columns_and_the_gate():
+    xyz, batch = _cloud()
+    pts = torch.cat([xyz, torch.rand(len(xyz), 2)], 1)  # x, y, z, rcs, v: accepted
+    vox = voxelize_points(pts, batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    ref = voxelize_points(xyz, batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    assert torch.equal(vox.coords, ref.coords)
+    # fewer than 8 rows: no verdict (a toy cloud at x = 0)
+    toy = torch.tensor([[0.0, 1.0, 1.0, 0.5]] * 7)
+    voxelize_points(toy, torch.zeros(7, dtype=torch.long), 1, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    # the data check is gated like the warnings
+    set_geometry_checks(False)
+    voxelize_points(torch.cat([batch[:, None].float(), xyz], 1), batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+
+
+# --- box yaw in degrees ------------------------------------------------------------------------------------
+def _centroids():
+    xyz, batch = _cloud()
+    return xyz, batch
+
+
+def test_gt_boxes_with_yaw_in_degrees_warn():
+    cent, batch = _centroids()
+    boxes = [torch.tensor([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 90.0]]), torch.zeros(0, 7)]
+    with pytest.warns(MSSFGeometryWarning, match=r"gt_boxes\[0\]: yaw .* up to 90 .*degrees\? pass radians"):
+        voxel_foreground_labels(cent, batch, boxes)
+    with pytest.warns(MSSFGeometryWarning, match=r"boxes: yaw .* degrees\?"):
+        points_in_boxes(cent, boxes[0])
+    head = SemanticGuidedHead(4)
+    with pytest.warns(MSSFGeometryWarning, match="degrees"):
+        head.loss_from_boxes(torch.randn(len(cent)), cent, batch, boxes)
+
+
+def test_gt_boxes_with_radian_yaw_after_flip_and_rotation_do_not_warn():
+    cent, batch = _centroids()
+    # yaw in [-pi, pi], flipped (pi - yaw) and rotated by pi/4: up to 2.25 pi
+    yaws = torch.tensor([-math.pi, 0.3, math.pi - (-math.pi) + math.pi / 4, -2.25 * math.pi])
+    boxes = torch.tensor([[10.0, 0.0, -1.0, 4.0, 2.0, 1.5, 0.0]]).repeat(4, 1)
+    boxes[:, 6] = yaws
+    with _no_mssf_warning():
+        labels, _ = voxel_foreground_labels(cent, batch, [boxes, boxes])
+        points_in_boxes(cent, boxes)
+    # same labels as per-box calls (the refactor kept the computation)
+    b0 = batch == 0
+    assert torch.equal(labels[b0].bool(), points_in_boxes(cent[b0], boxes).any(1))
+
+
+# --- the head's scores passed as logits ----------------------------------------------------------------------
+def _head_outputs(n=200):
+    torch.manual_seed(0)
+    head = SemanticGuidedHead(16)
+    coords = torch.stack([torch.zeros(n), torch.zeros(n), torch.arange(n) // 20, torch.arange(n) % 20], 1).int()
+    vox = SparseVoxels(torch.randn(n, 16), coords, (1, 20, 20), 1, (0.2, 0.2, 0.2), (0.0, 0.0, 0.0))
+    _, scores, logits = head(vox, return_logits=True)
+    return head, scores, logits, (torch.rand(n) > 0.5).float()
+
+
+def test_head_loss_of_scores_instead_of_logits_warns():
+    head, scores, logits, labels = _head_outputs()
+    with pytest.warns(MSSFGeometryWarning, match=r"logits: all 200 values lie in .* sigmoid scores passed as logits"):
+        head.loss(scores, labels)
+    with _no_mssf_warning():
+        head.loss(logits, labels)
+        head.loss(scores[:31], labels[:31])  # too few for a verdict
+        set_geometry_checks(False)
+        head.loss(scores, labels)
+
+
+# --- QueryInit's point_cloud_range against the block's grid -------------------------------------------------
+spconv = pytest.importorskip("spconv.pytorch")
+
+
+def _block(pcr):
+    down = spconv.SparseSequential(spconv.SparseConv3d(16, 32, 3, stride=2, padding=1, bias=False),
+                                   nn.BatchNorm1d(32), nn.ReLU())
+    return FusionBlock(MSDFF(embed_dim=32, value_channels=64, num_heads=8, num_levels=2, num_points=2),
+                       downsample=down, query_init=QueryInit(32, 64, 32, point_cloud_range=pcr),
+                       voxel_size=(0.05, 0.05, 0.125), point_range_min=PC_MIN, in_stride=(1, 1, 1))
+
+
+def _stage_inputs(shape):
+    xyz, batch = _cloud()
+    cells = ((xyz - torch.tensor(PC_MIN)) / torch.tensor([0.05, 0.05, 0.125])).floor()
+    coords = torch.unique(torch.cat([batch[:, None].float(), cells.flip(1)], 1), dim=0).int()
+    x = spconv.SparseConvTensor(torch.randn(len(coords), 16), coords, shape, 2)
+    h, w = 128, 256
+    k = torch.tensor([[100.0, 0, w / 2], [0, 100, h / 2], [0, 0, 1]])
+    l2i = (k @ torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])).expand(2, 1, 3, 4)
+    inputs = FusionInputs([torch.randn(2, 64, h // s, w // s) for s in (4, 8)], l2i, (h, w), xyz, batch)
+    return x, inputs
+
+
+def test_query_init_range_of_another_grid_is_refused():
+    x, inputs = _stage_inputs([40, 1024, 1024])
+    with pytest.raises(MSSFError, match=r"point_cloud_range: expected the block's grid, about \(0\.0, -25\.6, -3\.0, "
+                                        r"51\.2, 25\.6, 2\.0\).*got \(0\.0, -40\.0"):
+        _block((0.0, -40.0, -3.0, 70.4, 40.0, 1.0))(x, inputs)  # KITTI's range beside a VoD grid
+
+
+def test_query_init_range_of_the_grid_passes_padded_shapes():
+    _block(PC_MIN + PC_MAX)(*_stage_inputs([40, 1024, 1024]))
+    _block(PC_MIN + PC_MAX)(*_stage_inputs([41, 1024, 1024]))  # OpenPCDet's extra z cell
