@@ -168,3 +168,43 @@ def test_query_init_range_of_the_grid_passes_padded_shapes():
     with _no_mssf_warning():
         _block(PC_MIN + PC_MAX)(*_stage_inputs([40, 1024, 1024]))
         _block(PC_MIN + PC_MAX)(*_stage_inputs([41, 1024, 1024]))  # OpenPCDet's extra z cell
+
+
+# --- a channels-last BEV map / image level against a channels-first module ------------------------------------
+def test_channels_last_maps_name_the_permute():
+    from mssf_blocks import SFF, PillarLift, VoxelCentroidProjector
+
+    xyz, batch = _cloud()
+    vox = voxelize_points(xyz, batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    lift = PillarLift(channels=16, num_z=vox.spatial_shape[0])
+    hb, wb = lift.bev_shape(vox)
+    bev = torch.randn(2, 16, hb, wb)
+    with pytest.raises(MSSFError, match=r"bev: expected 16 channels.*channels-last.*bev\.permute\(0, 3, 1, 2\)"):
+        lift(bev.permute(0, 2, 3, 1), vox)
+    h, w = 64, 96
+    l2i = (torch.tensor([[50.0, 0, w / 2], [0, 50, h / 2], [0, 0, 1]])
+           @ torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])).expand(2, 1, 3, 4)
+    proj = VoxelCentroidProjector()(vox, xyz, batch, l2i, (h, w))
+    levels = [torch.randn(2, 32, h // s, w // s) for s in (4, 8)]
+    with pytest.raises(MSSFError, match=r"image_features\[0\].*channels-last.*permute\(0, 3, 1, 2\)"):
+        SFF([32, 32], 16)([lv.permute(0, 2, 3, 1) for lv in levels], proj)
+    with pytest.raises(MSSFError, match="build it with in_channels") as err:  # a plain width error: no hint
+        SFF([40, 32], 16)(levels, proj)
+    assert "channels-last" not in str(err.value)
+
+
+# --- lidar2img / points_to_sensor on another device than the points -------------------------------------------
+def test_matrices_on_another_device_are_named():
+    from mssf_blocks import VoxelCentroidProjector
+
+    xyz, batch = _cloud()
+    vox = voxelize_points(xyz, batch, 2, (0.16, 0.16, 0.5), PC_MIN, PC_MAX)
+    l2i = torch.tensor([[50.0, 0, 48], [0, 50, 32], [0, 0, 1]]) @ torch.tensor(
+        [[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])
+    l2i = l2i.expand(2, 1, 3, 4)
+    proj = VoxelCentroidProjector()
+    # (a "meta" tensor stands for a CUDA one beside CPU points: the same device comparison)
+    with pytest.raises(MSSFError, match=r"lidar2img: expected device cpu \(of points\), got meta"):
+        proj(vox, xyz, batch, l2i.to("meta"), (64, 96))
+    with pytest.raises(MSSFError, match=r"points_to_sensor: expected device cpu \(of points\), got meta"):
+        proj(vox, xyz, batch, l2i, (64, 96), torch.eye(4).expand(2, 4, 4).to("meta"))

@@ -16,7 +16,8 @@ from torch import Tensor, nn
 from .errors import MSSFError
 
 __all__ = ["check_agreement", "level_batch_entries", "check_batch_statistics", "batch_norm_in_training",
-           "check_channels", "query_range_mismatch"]
+           "check_channels", "query_range_mismatch",
+           "channels_last_hint"]
 
 #: ``(name, size, shape)``: an argument, the size it gives (its batch size, its cameras...) and its shape (a
 #: tuple, or its text)
@@ -109,10 +110,23 @@ def check_channels(x: Any, name: str, channels: int, arg: str, dim: int = 1) -> 
     are left to the shape checks that follow."""
     if isinstance(x, Tensor) and x.dim() > dim and x.shape[dim] != channels:
         got = x.shape[dim]
+        fix = f"build it with {arg.split()[-1]}={got}, or pass {channels}-channel {name}" + channels_last_hint(
+            x, channels, name)
         raise MSSFError(
             f"{name}: expected {channels} channels ({arg}={channels}), got shape {tuple(x.shape)} ({got} channels); "
-            f"build it with {arg.split()[-1]}={got}, or pass {channels}-channel {name}"
+            f"{fix}"
         )
+
+
+def channels_last_hint(x: Tensor, channels: int, name: str) -> str:
+    """For a channels-first map ``x`` ((B, C, H, W) or (B, V, C, H, W)) of the wrong width whose last dimension
+    is the expected ``channels``: the permute that fixes a channels-last (NHWC) tensor, offered beside the width
+    fix (the shape alone cannot tell an NHWC map from a width of ``channels``). ``""`` otherwise."""
+    if x.dim() not in (4, 5) or x.shape[-1] != channels or x.shape[-3] == channels:
+        return ""
+    perm = "0, 3, 1, 2" if x.dim() == 4 else "0, 1, 4, 2, 3"
+    return (f"; if it is channels-last (last dimension {channels}), pass {name}.permute({perm}) (channels-last "
+            "memory is fine: torch.channels_last)")
 
 
 def query_range_mismatch(point_cloud_range: Sequence[float], spatial_shape: Sequence[Any],
