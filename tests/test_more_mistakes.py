@@ -208,3 +208,33 @@ def test_matrices_on_another_device_are_named():
         proj(vox, xyz, batch, l2i.to("meta"), (64, 96))
     with pytest.raises(MSSFError, match=r"points_to_sensor: expected device cpu \(of points\), got meta"):
         proj(vox, xyz, batch, l2i, (64, 96), torch.eye(4).expand(2, 4, 4).to("meta"))
+
+
+# --- image_size of a feature level (feats[0].shape[-2:]) instead of the image ---------------------------------
+def _frustum_scene(n=400, h=320, w=512, f=200.0, seed=0):
+    """Points spread over the whole image (back-projected from uniform pixels at 5-10 m) for a camera looking
+    along +x, two samples, and their voxels."""
+    from mssf_blocks import VoxelCentroidProjector  # noqa: F401  (import check)
+
+    g = torch.Generator().manual_seed(seed)
+    u, v = torch.rand(2 * n, generator=g) * w, torch.rand(2 * n, generator=g) * h
+    d = 5 + 5 * torch.rand(2 * n, generator=g)
+    xyz = torch.stack([d, -(u - w / 2) * d / f, -(v - h / 2) * d / f], 1)
+    batch = torch.arange(2).repeat_interleave(n)
+    vox = voxelize_points(xyz, batch, 2, (0.4, 0.4, 0.4), (0.0, -12.8, -8.0), (12.8, 12.8, 8.0))
+    k = torch.tensor([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    l2i = (k @ torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])).expand(2, 1, 3, 4)
+    return xyz, batch, vox, l2i
+
+
+def test_image_size_of_a_feature_level_warns():
+    from mssf_blocks import VoxelCentroidProjector
+
+    xyz, batch, vox, l2i = _frustum_scene()
+    with pytest.warns(MSSFGeometryWarning, match=r"inside 4 x it.*principal point lands at \(2\.0, 2\.0\).*"
+                                                 r"is image_size smaller than the image lidar2img projects into"):
+        VoxelCentroidProjector()(vox, xyz, batch, l2i, (80, 128))  # level 0 at stride 4 of (320, 512)
+    with pytest.warns(MSSFGeometryWarning, match=r"inside 8 x it"):
+        VoxelCentroidProjector()(vox, xyz, batch, l2i, (40, 64))
+    with _no_mssf_warning():  # the right size
+        VoxelCentroidProjector()(vox, xyz, batch, l2i, (320, 512))
