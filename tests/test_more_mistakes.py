@@ -238,3 +238,18 @@ def test_image_size_of_a_feature_level_warns():
         VoxelCentroidProjector()(vox, xyz, batch, l2i, (40, 64))
     with _no_mssf_warning():  # the right size
         VoxelCentroidProjector()(vox, xyz, batch, l2i, (320, 512))
+
+
+# --- gt boxes in the camera frame (KITTI label files) for the semantic head's labels ---------------------------
+def test_gt_boxes_in_the_camera_frame_warn():
+    cent, batch = _centroids()  # sensor frame: x 5-30 m ahead, z -2.5..0.5 m
+    # the same cars in the sensor frame and as KITTI camera-frame labels (x = -y, y = -z + h/2, z = x)
+    sensor = torch.tensor([[12.0, 1.0, -1.0, 4.0, 1.8, 1.5, 0.2], [20.0, -2.0, -1.2, 4.2, 1.9, 1.6, -0.1]])
+    camera = torch.stack([-sensor[:, 1], -sensor[:, 2] + sensor[:, 5] / 2, sensor[:, 0], sensor[:, 3],
+                          sensor[:, 5], sensor[:, 4], sensor[:, 6]], 1)
+    with pytest.warns(MSSFGeometryWarning, match=r"gt_boxes\[0\]: every box lies .* camera frame"):
+        voxel_foreground_labels(cent, batch, [camera, camera])
+    with _no_mssf_warning():
+        voxel_foreground_labels(cent, batch, [sensor, sensor])
+        voxel_foreground_labels(cent, batch, [camera, sensor])  # one sample right: no verdict
+        voxel_foreground_labels(cent[:15], batch[:15], [camera, camera])  # fewer than 16 voxels: no verdict

@@ -341,3 +341,42 @@ def check_logits_not_probabilities(logits: Tensor, name: str = "logits") -> None
             f"{name}: all {logits.numel()} values lie in [{float(lo):.3g}, {float(hi):.3g}], within [0, 1]: "
             "sigmoid scores passed as logits? pass the logits (head(x, return_logits=True)[2]); the loss "
             "applies the sigmoid itself", MSSFGeometryWarning, stacklevel=3)
+
+
+#: boxes in another frame than the voxels: every box at least this far (metres) above or below every voxel
+#: centroid of its sample, in samples of at least _MIN_FRAME_VOXELS voxels
+_FRAME_GAP = 1.0
+_MIN_FRAME_VOXELS = 16
+
+
+def check_boxes_frame(centroids: Tensor, batch_index: Tensor, gt_boxes: Sequence[Tensor], origin: str) -> None:
+    """Warning when, in every sample with boxes and at least 16 voxels, every box lies entirely above (or below)
+    all of its sample's voxel centroids by more than 1 m: boxes in the camera frame (KITTI's label files: ``z``
+    the depth, 5-50 m; ``y`` down) given where the sensor frame (``z`` up) is expected, so no voxel is ever
+    foreground. Boxes stand on the ground the points see, so a real frame overlaps them in height. Reads data:
+    gated (:func:`geometry_checks_enabled`), one read-back for the batch."""
+    if centroids.shape[0] == 0 or not geometry_checks_enabled(centroids):
+        return
+    b = batch_index.long()
+    n = len(gt_boxes)
+    z = centroids[:, 2].detach().double()
+    zmax = torch.full((n,), -math.inf, dtype=torch.float64).scatter_reduce(0, b, z, "amax")
+    zmin = torch.full((n,), math.inf, dtype=torch.float64).scatter_reduce(0, b, z, "amin")
+    count = torch.bincount(b, minlength=n)
+    verdicts = []
+    for i, boxes in enumerate(gt_boxes):
+        if boxes.shape[0] == 0 or int(count[i]) < _MIN_FRAME_VOXELS:
+            continue
+        bx = boxes[:, :6].detach().double().cpu()
+        bottom = bx[:, 2] - (0.0 if origin == "bottom" else bx[:, 5] / 2)
+        top = bottom + bx[:, 5]
+        above = float(bottom.min()) - float(zmax[i])
+        below = float(zmin[i]) - float(top.max())
+        verdicts.append((i, max(above, below), float(bottom.min()), float(zmin[i]), float(zmax[i])))
+    if verdicts and all(v[1] > _FRAME_GAP for v in verdicts):
+        i, gap, bottom, lo, hi = verdicts[0]
+        warnings.warn(
+            f"gt_boxes[{i}]: every box lies {gap:.3g} m or more above or below all of the sample's voxel "
+            f"centroids (box bottoms from {bottom:.3g} m, centroid z in [{lo:.3g}, {hi:.3g}] m), in every sample "
+            "with boxes: boxes in the camera frame (x right, y down, z forward: KITTI label files)? pass them in "
+            "the sensor frame of the points (x, y, z, dx, dy, dz, yaw with z up)", MSSFGeometryWarning, stacklevel=3)

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
-from .._sanity import check_yaw_radians
+from .._sanity import check_boxes_frame, check_yaw_radians
 from ..errors import MSSFError
 
 __all__ = [
@@ -268,6 +268,7 @@ def voxel_foreground_labels(
         check_yaw_radians(boxes, f"gt_boxes[{i}]")
     _check_origin(origin)
     check_finite(centroids[:, :3], "points[:, :3]")  # (the name points_in_boxes gave it)
+    check_boxes_frame(centroids, batch_index, gt_boxes, origin)
     n = centroids.shape[0]
     labels = torch.zeros(n, dtype=centroids.dtype, device=centroids.device)
     ignore = torch.zeros(n, dtype=torch.bool, device=centroids.device)
