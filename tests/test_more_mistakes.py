@@ -214,8 +214,6 @@ def test_matrices_on_another_device_are_named():
 def _frustum_scene(n=400, h=320, w=512, f=200.0, seed=0):
     """Points spread over the whole image (back-projected from uniform pixels at 5-10 m) for a camera looking
     along +x, two samples, and their voxels."""
-    from mssf_blocks import VoxelCentroidProjector  # noqa: F401  (import check)
-
     g = torch.Generator().manual_seed(seed)
     u, v = torch.rand(2 * n, generator=g) * w, torch.rand(2 * n, generator=g) * h
     d = 5 + 5 * torch.rand(2 * n, generator=g)

@@ -356,8 +356,7 @@ def project_points(
         matrices) through valid-depth entries only; nothing is NaN.
     """
     check_points(points, points_batch, rows="N")
-    # (one device for all: lidar2img built from the metas on the CPU beside GPU points is the usual slip;
-    # torch's own error would come from inside the einsum, or a meta tensor's item())
+    # (one device: lidar2img built on the CPU from metas beside GPU points; else torch's error from the einsum)
     for t, tname in ((lidar2img, "lidar2img"), (points_to_sensor, "points_to_sensor"), (points_batch, "points_batch")):
         if isinstance(t, torch.Tensor) and t.device != points.device:
             raise MSSFError(f"{tname}: expected device {points.device} (of points), got {t.device}; move it with "
