@@ -263,6 +263,9 @@ def check_points(
         )
     check_floating(points, name)
     check_shape(points_batch, batch_name, (p,))
+    if not exact_xyz and c >= 4:  # (a batch-index column read as x; _sanity imports this module)
+        from ._sanity import check_batch_column
+        check_batch_column(points, points_batch, name, batch_name)
     return points
 
 

@@ -16,7 +16,8 @@ from torch import Tensor, nn
 from .errors import MSSFError
 
 __all__ = ["check_agreement", "level_batch_entries", "check_batch_statistics", "batch_norm_in_training",
-           "check_channels"]
+           "check_channels", "query_range_mismatch",
+           "channels_last_hint"]
 
 #: ``(name, size, shape)``: an argument, the size it gives (its batch size, its cameras...) and its shape (a
 #: tuple, or its text)
@@ -109,7 +110,53 @@ def check_channels(x: Any, name: str, channels: int, arg: str, dim: int = 1) -> 
     are left to the shape checks that follow."""
     if isinstance(x, Tensor) and x.dim() > dim and x.shape[dim] != channels:
         got = x.shape[dim]
+        fix = f"build it with {arg.split()[-1]}={got}, or pass {channels}-channel {name}" + channels_last_hint(
+            x, channels, name)
         raise MSSFError(
             f"{name}: expected {channels} channels ({arg}={channels}), got shape {tuple(x.shape)} ({got} channels); "
-            f"build it with {arg.split()[-1]}={got}, or pass {channels}-channel {name}"
+            f"{fix}"
         )
+
+
+def channels_last_hint(x: Tensor, channels: int, name: str) -> str:
+    """For a channels-first map ``x`` ((B, C, H, W) or (B, V, C, H, W)) of the wrong width whose last dimension
+    is the expected ``channels``: the permute that fixes a channels-last (NHWC) tensor, offered beside the width
+    fix (the shape alone cannot tell an NHWC map from a width of ``channels``). ``""`` otherwise."""
+    if x.dim() not in (4, 5) or x.shape[-1] != channels or x.shape[-3] == channels:
+        return ""
+    perm = "0, 3, 1, 2" if x.dim() == 4 else "0, 1, 4, 2, 3"
+    return (f"; if it is channels-last (last dimension {channels}), pass {name}.permute({perm}) (channels-last "
+            "memory is fine: torch.channels_last)")
+
+
+def query_range_mismatch(point_cloud_range: Sequence[float], spatial_shape: Sequence[Any],
+                         voxel_size: Sequence[float], point_range_min: Sequence[float],
+                         stride: Sequence[int]) -> Optional[str]:
+    """The warning's text when ``QueryInit``'s ``point_cloud_range`` is not the block's grid, else ``None``.
+
+    The grid's range: ``point_range_min`` (within half a voxel) to its far corner ``point_range_min +
+    spatial_shape * stride * voxel_size`` less at most two voxels at that stride (a padded shape: OpenPCDet's
+    extra z cell, a strided convolution's rounding up). Another range (KITTI's copied beside a VoD grid)
+    normalises every query position differently from what the range says, unseen; a warning, not an error,
+    since any fixed affine normalisation still trains (it matters for weights trained with the grid's range,
+    and for positions falling outside [0, 1]). Numbers only (a symbolic shape is not compared).
+    """
+    shape_zyx = [_size(s) for s in spatial_shape]
+    if len(shape_zyx) != 3 or any(s is None for s in shape_zyx):
+        return None
+    cells, strides = shape_zyx[::-1], list(stride)[::-1]  # (x, y, z)
+    lo, hi = point_cloud_range[:3], point_cloud_range[3:]
+    far = [float(point_range_min[a]) + cells[a] * float(voxel_size[a]) * int(strides[a]) for a in range(3)]
+    for a, axis in enumerate("xyz"):
+        v = float(voxel_size[a]) * int(strides[a])
+        tol = 1e-4 * max(1.0, abs(far[a]))
+        if abs(lo[a] - float(point_range_min[a])) > 0.5 * float(voxel_size[a]) + tol or not (
+                far[a] - 2 * v - tol <= hi[a] <= far[a] + tol):
+            grid = tuple(round(float(m), 6) for m in point_range_min) + tuple(round(f, 6) for f in far)
+            return (
+                f"point_cloud_range: expected the block's grid, about {grid} (point_range_min, and "
+                f"point_range_min + spatial_shape * stride * voxel_size in (x, y, z)), got "
+                f"{tuple(point_cloud_range)} (QueryInit; axis {axis}: [{lo[a]}, {hi[a]}]): the query positions "
+                "are normalised by another range; build QueryInit with the point-cloud range of the voxels' grid"
+            )
+    return None

@@ -166,20 +166,27 @@ def check_points_to_sensor(points: Tensor, points_batch: Tensor, lidar2img: Tens
 
 
 def check_image_size_small(uv: Tensor, inside: Tensor, lidar2img: Tensor, image_size: Sequence[int]) -> None:
-    """Warn when far more raw points project inside twice ``image_size`` than inside it and the principal
-    point lands at the image's far corner: ``image_size`` smaller than the image ``lidar2img`` projects into
-    (e.g. images stored at half size with the calibration of the full ones). ``uv``, ``inside`` from
-    :func:`project_raw` (``uv = -1`` behind the camera)."""
-    n_in = int(inside.sum())
-    n_twice = int(((uv >= 0) & (uv <= 2)).all(-1).sum())
-    if n_twice < MIN_CORNER or n_twice < SMALL_RATIO * n_in:
-        return
+    """Warn when far more raw points project inside a multiple of ``image_size`` than inside it and the
+    principal point lands at the image's far corner: ``image_size`` smaller than the image ``lidar2img``
+    projects into (e.g. images stored at half size with the calibration of the full ones; or a feature level's
+    size, ``feats[0].shape[-2:]``, whose principal point lands at 2 or more: then the multiple is twice the
+    principal point, the scale of the level). ``uv``, ``inside`` from :func:`project_raw` (``uv = -1`` behind
+    the camera)."""
     h, w = (int(v) for v in image_size)
     centre = _relative_centre(lidar2img, h, w)
-    if bool(((centre >= SMALL_CENTRE) & (centre < 1.5)).all()):
+    # (a centred principal point is at 0.5: at c, image_size is about 1 / (2 c) of the image; up to 1.5 the
+    # doubled size is compared, as always; beyond it (a quarter, a level's size) the size the centre implies)
+    top = float(centre.max()) if centre.numel() else 0.0
+    scale = 2.0 if top < 1.5 else 2.0 * top
+    n_in = int(inside.sum())
+    n_twice = int(((uv >= 0) & (uv <= scale)).all(-1).sum())
+    if n_twice < MIN_CORNER or n_twice < SMALL_RATIO * n_in:
+        return
+    if bool((centre >= SMALL_CENTRE).all()) and (scale > 2.0 or bool((centre < 1.5).all())):
+        big = "twice it" if scale == 2.0 else f"{scale:.3g} x it"
         warnings.warn(MSSFGeometryWarning(
-            f"projection: {n_in} raw point projections fall inside image_size={(h, w)} but {n_twice} inside twice "
-            f"it, and the principal point lands at {tuple(round(float(v), 2) for v in centre.reshape(-1, 2)[0])} "
+            f"projection: {n_in} raw point projections fall inside image_size={(h, w)} but {n_twice} inside {big}, "
+            f"and the principal point lands at {tuple(round(float(v), 2) for v in centre.reshape(-1, 2)[0])} "
             "of it: is image_size smaller than the image lidar2img projects into (e.g. half its size: images "
-            "resized without updating lidar2img)?"
+            "resized without updating lidar2img; or a feature level's size instead of the image's)?"
         ), stacklevel=2)

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor, nn
 
 from ._checks import autocast_off, check_dtype, convert_up, check_floating, check_index_range, check_shape
-from ._consistency import batch_norm_in_training, check_batch_statistics
+from ._consistency import batch_norm_in_training, channels_last_hint, check_batch_statistics
 from ._sanity import geometry_checks_enabled
 from ._static import use_static_path
 from .errors import MSSFError
@@ -117,8 +117,8 @@ def _check_level_shape(level: Tensor, lname: str, spec: tuple, dims: dict, chann
         if channels_name is None or c is None or got == c:
             raise
         arg = channels_name.format(l=l)
-        raise MSSFError(f"{exc}: {got} channels, but {arg}={c}; build it with {arg.split()[-1]}={got}, or pass "
-                        f"{c}-channel levels") from None
+        fix = f"build it with {arg.split()[-1]}={got}, or pass {c}-channel levels" + channels_last_hint(level, c, lname)
+        raise MSSFError(f"{exc}: {got} channels, but {arg}={c}; {fix}") from None
 
 
 def _check_projection(projection: CentroidProjection, batch_size: int, num_cameras: int,

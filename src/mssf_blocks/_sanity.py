@@ -17,6 +17,7 @@ Two kinds (``docs/conventions.md``, "Common mistakes"):
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import Optional, Sequence
 
@@ -280,3 +281,102 @@ def check_indices_in_shape(indices: Tensor, spatial_shape: Sequence[int], name: 
         f"{tuple(top)} (min {low}); spconv would drop those voxels"
         + (f"; they fit {perm}: spatial_shape given in (W, H, D) or another order?" if perm is not None else "")
     )
+
+
+#: fewer rows than this: no verdict on a batch-index column (a toy cloud of a few points may sit at x = 0)
+_MIN_BATCH_COLUMN_ROWS = 8
+
+
+def check_batch_column(points: Tensor, points_batch: Tensor, name: str = "points",
+                       batch_name: str = "points_batch") -> None:
+    """Error when ``points[:, 0]`` equals ``points_batch`` on every row: OpenPCDet's ``(b, x, y, z, ...)``
+    rows passed where ``(x, y, z, ...)`` rows are expected (the batch index read as x, x as y, y as z).
+
+    Only for ``(P, >=4)`` points of at least 8 rows (a measured x never equals the integer sample index of
+    every point of a cloud); reads data, so gated like the warnings (:func:`geometry_checks_enabled`).
+    """
+    if (points.dim() != 2 or points.shape[1] < 4 or points.shape[0] < _MIN_BATCH_COLUMN_ROWS
+            or not isinstance(points_batch, Tensor) or points_batch.shape != points.shape[:1]
+            or not geometry_checks_enabled(points)):
+        return
+    if bool((points[:, 0] == points_batch.to(points.dtype)).all()):
+        raise MSSFError(
+            f"{name}: expected rows (x, y, z, ...), got shape {tuple(points.shape)} whose column 0 equals "
+            f"{batch_name} on all {points.shape[0]} rows: OpenPCDet's (b, x, y, z, ...) layout? pass "
+            f"{name}[:, 1:] (and {batch_name}={name}[:, 0].long())"
+        )
+
+
+#: |yaw| above this (radians) in a box: degrees. Boxes from [-pi, pi] through a flip (pi - yaw: up to 2 pi)
+#: and a random rotation (the recipes' +-pi/4) stay below 2.25 pi; degrees exceed it from 9.5 degrees on
+_MAX_YAW = 3 * math.pi
+
+
+def check_yaw_radians(boxes: Tensor, name: str) -> None:
+    """Warning when a box's yaw (column 6) exceeds 3 pi in magnitude: yaw in degrees (a real box's yaw can
+    be unwrapped, so a warning, not an error). Reads data: gated (:func:`geometry_checks_enabled`)."""
+    if boxes.shape[0] == 0 or not geometry_checks_enabled(boxes):
+        return
+    top = float(boxes[:, 6].abs().max())
+    if top > _MAX_YAW:
+        warnings.warn(
+            f"{name}: yaw (column 6) up to {top:.4g} in magnitude, above 3 pi: degrees? pass radians "
+            "(torch.deg2rad); yaw is about +z, counter-clockwise from +x", MSSFGeometryWarning, stacklevel=3)
+
+
+#: fewer logits than this: no verdict on probabilities passed as logits
+_MIN_LOGITS = 32
+
+
+def check_logits_not_probabilities(logits: Tensor, name: str = "logits") -> None:
+    """Warning when every one of at least 32 logits lies in ``[0, 1]``: sigmoid scores (the head's
+    ``scores``) passed where logits are expected, which trains towards the wrong targets (a score of 0.1
+    reads as probability 0.52). A head's logits take both signs (PyTorch's init centres them on 0; a
+    trained head gives background voxels negative ones). Reads data: gated."""
+    if logits.numel() < _MIN_LOGITS or not geometry_checks_enabled(logits):
+        return
+    lo, hi = torch.aminmax(logits.detach())
+    if float(lo) >= 0.0 and float(hi) <= 1.0:
+        warnings.warn(
+            f"{name}: all {logits.numel()} values lie in [{float(lo):.3g}, {float(hi):.3g}], within [0, 1]: "
+            "sigmoid scores passed as logits? pass the logits (head(x, return_logits=True)[2]); the loss "
+            "applies the sigmoid itself", MSSFGeometryWarning, stacklevel=3)
+
+
+#: boxes in another frame than the voxels: every box at least this far (metres) above or below every voxel
+#: centroid of its sample, in samples of at least _MIN_FRAME_VOXELS voxels
+_FRAME_GAP = 1.0
+_MIN_FRAME_VOXELS = 16
+
+
+def check_boxes_frame(centroids: Tensor, batch_index: Tensor, gt_boxes: Sequence[Tensor], origin: str) -> None:
+    """Warning when, in every sample with boxes and at least 16 voxels, every box lies entirely above (or below)
+    all of its sample's voxel centroids by more than 1 m: boxes in the camera frame (KITTI's label files: ``z``
+    the depth, 5-50 m; ``y`` down) given where the sensor frame (``z`` up) is expected, so no voxel is ever
+    foreground. Boxes stand on the ground the points see, so a real frame overlaps them in height. Reads data:
+    gated (:func:`geometry_checks_enabled`), one read-back for the batch."""
+    if centroids.shape[0] == 0 or not geometry_checks_enabled(centroids):
+        return
+    b = batch_index.long()
+    n = len(gt_boxes)
+    z = centroids[:, 2].detach().double()
+    zmax = torch.full((n,), -math.inf, dtype=torch.float64).scatter_reduce(0, b, z, "amax")
+    zmin = torch.full((n,), math.inf, dtype=torch.float64).scatter_reduce(0, b, z, "amin")
+    count = torch.bincount(b, minlength=n)
+    verdicts = []
+    for i, boxes in enumerate(gt_boxes):
+        if boxes.shape[0] == 0 or int(count[i]) < _MIN_FRAME_VOXELS:
+            continue
+        bx = boxes[:, :6].detach().double().cpu()
+        bottom = bx[:, 2] - (0.0 if origin == "bottom" else bx[:, 5] / 2)
+        top = bottom + bx[:, 5]
+        above = float(bottom.min()) - float(zmax[i])
+        below = float(zmin[i]) - float(top.max())
+        verdicts.append((i, max(above, below), float(bottom.min()), float(zmin[i]), float(zmax[i])))
+    if verdicts and all(v[1] > _FRAME_GAP for v in verdicts):
+        i, gap, bottom, lo, hi = verdicts[0]
+        warnings.warn(
+            f"gt_boxes[{i}]: every box lies {gap:.3g} m or more above or below all of the sample's voxel "
+            f"centroids (box bottoms from {bottom:.3g} m, centroid z in [{lo:.3g}, {hi:.3g}] m), in every sample "
+            "with boxes: boxes in the camera frame (x right, y down, z forward: KITTI label files)? pass them in "
+            "the sensor frame of the points (x, y, z, dx, dy, dz, yaw with z up)", MSSFGeometryWarning, stacklevel=3)

@@ -22,16 +22,17 @@ reuse an ``indice_key`` keep working. spconv is imported only when a conversion 
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Optional, Sequence, Tuple, Union
 
 import torch
 from torch import nn
 
-from ._checks import check_triple, to_module_dtype
-from ._consistency import check_agreement, level_batch_entries
+from ._checks import check_triple, is_tracing, to_module_dtype
+from ._consistency import check_agreement, level_batch_entries, query_range_mismatch
 from ._sanity import check_grid, check_indices_in_shape
 from ._fusion_utils import check_image_features
-from .errors import MSSFError
+from .errors import MSSFError, MSSFGeometryWarning
 from .fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
 from .compat.spconv import check_spconv_input
 from .geometry import VoxelCentroidProjector
@@ -327,6 +328,12 @@ class FusionBlock(nn.Module):
             check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", x.batch_size))
         out_stride = self.output_stride(in_stride)
         check_grid(x.spatial_shape, grid[0], grid[1], in_stride, self.projector.point_range_max)
+        if self.query_init is not None and not getattr(self, "_query_range_warned", False) and not is_tracing():
+            # (its range normalises the query positions: the grid's; once per block, not every step)
+            msg = query_range_mismatch(self.query_init.point_cloud_range, x.spatial_shape, grid[0], grid[1], in_stride)
+            if msg is not None:
+                self._query_range_warned = True
+                warnings.warn(msg, MSSFGeometryWarning, stacklevel=4)  # (past nn.Module.__call__)
 
         def as_spconv(t: Any) -> Any:
             return t.to_spconv() if isinstance(t, SparseVoxels) else t

@@ -17,6 +17,7 @@ from torch import Tensor, nn
 
 from ._checks import to_module_dtype
 from ._consistency import check_batch_statistics, check_channels
+from ._sanity import check_logits_not_probabilities
 from .errors import MSSFError
 from .functional.heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
 from .sparse import SparseVoxels
@@ -171,6 +172,8 @@ class SemanticGuidedHead(nn.Module):
                 raise MSSFError(f"logits: expected a torch.Tensor, got {type(logits).__name__}")
             # Keep the graph (DDP expects every parameter to receive a gradient) but add nothing.
             return logits.sum() * 0
+        if isinstance(logits, Tensor):  # (sigmoid_focal_loss names a non-tensor)
+            check_logits_not_probabilities(logits)
         return sigmoid_focal_loss(logits, labels, ignore=ignore, alpha=alpha, gamma=gamma)
 
     def loss_from_boxes(

@@ -356,6 +356,11 @@ def project_points(
         matrices) through valid-depth entries only; nothing is NaN.
     """
     check_points(points, points_batch, rows="N")
+    # (one device: lidar2img built on the CPU from metas beside GPU points; else torch's error from the einsum)
+    for t, tname in ((lidar2img, "lidar2img"), (points_to_sensor, "points_to_sensor"), (points_batch, "points_batch")):
+        if isinstance(t, torch.Tensor) and t.device != points.device:
+            raise MSSFError(f"{tname}: expected device {points.device} (of points), got {t.device}; move it with "
+                            f".to(points.device)")
     check_finite(points[:, :3], "points[:, :3]")
     check_dtype(points_batch, "points_batch", _INT_DTYPES)
     l2i = normalize_lidar2img(lidar2img)

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
+from .._sanity import check_boxes_frame, check_yaw_radians
 from ..errors import MSSFError
 
 __all__ = [
@@ -202,6 +203,12 @@ def points_in_boxes(
     eps = _check_margin(eps, "eps")
     if boxes.device != points.device:
         raise MSSFError(f"boxes: expected device {points.device} (of points), got {boxes.device}")
+    check_yaw_radians(boxes, "boxes")
+    return _inside(points, boxes, origin, margin, eps)
+
+
+def _inside(points: Tensor, boxes: Tensor, origin: str, margin: float, eps: float) -> Tensor:
+    """:func:`points_in_boxes` on checked inputs (:func:`voxel_foreground_labels` checks them once)."""
     dtype = torch.promote_types(points.dtype, boxes.dtype)
     p = points[:, :3].to(dtype)
     b = boxes[:, :7].to(dtype)
@@ -258,6 +265,10 @@ def voxel_foreground_labels(
     margin = _check_margin(margin, "margin")
     for i, boxes in enumerate(gt_boxes):
         _check_boxes(boxes, f"gt_boxes[{i}]")
+        check_yaw_radians(boxes, f"gt_boxes[{i}]")
+    _check_origin(origin)
+    check_finite(centroids[:, :3], "points[:, :3]")  # (the name points_in_boxes gave it)
+    check_boxes_frame(centroids, batch_index, gt_boxes, origin)
     n = centroids.shape[0]
     labels = torch.zeros(n, dtype=centroids.dtype, device=centroids.device)
     ignore = torch.zeros(n, dtype=torch.bool, device=centroids.device)
@@ -268,9 +279,9 @@ def voxel_foreground_labels(
         if rows.numel() == 0 or boxes.shape[0] == 0:
             continue
         boxes = boxes.to(xyz.device)
-        inside = points_in_boxes(xyz[rows], boxes, origin=origin).any(dim=1)
+        inside = _inside(xyz[rows], boxes, origin, 0.0, 1e-6).any(dim=1)
         labels[rows] = inside.to(labels.dtype)
         if margin > 0:
-            near = points_in_boxes(xyz[rows], boxes, origin=origin, margin=margin).any(dim=1)
+            near = _inside(xyz[rows], boxes, origin, margin, 1e-6).any(dim=1)
             ignore[rows] = near & ~inside
     return labels, ignore

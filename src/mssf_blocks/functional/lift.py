@@ -29,6 +29,7 @@ from .._checks import (
     check_shape,
     check_triple,
 )
+from .._sanity import check_batch_column
 from ..errors import MSSFError
 from ..sparse import SparseVoxels
 
@@ -281,6 +282,7 @@ def voxelize_points(
     check_dtype(points_batch, "points_batch", _INT_DTYPES)
     batch_size = check_positive_int(batch_size, "batch_size")
     check_index_range(points_batch, "points_batch", batch_size, "batch_size")
+    check_batch_column(points, points_batch)
     vs = check_triple(voxel_size, "voxel_size", float, positive=True)
     lo = check_triple(point_range_min, "point_range_min", float)
     hi = check_triple(point_range_max, "point_range_max", float)
