@@ -3,8 +3,8 @@
 Each row's "Mistake" cell is matched by exactly one key (a part of that cell) of one of two registries
 (tests/mistakes_registry.py):
 
-* a **case** (tests/mistakes_geometry.py, mistakes_library.py, mistakes_cli.py) makes the mistake and
-  returns what the library did: the ``MSSFError`` (or the CLI's one line with exit status 2), the
+* a **case** (tests/mistakes_geometry.py, mistakes_library.py, mistakes_cli.py, mistakes_more.py) makes
+  the mistake and returns what the library did: the ``MSSFError`` (or the CLI's one line with exit status 2), the
   ``MSSFGeometryWarning`` s, or nothing. The row's "What you see now" cell decides: one that starts with
   "error" (or "our error") needs an error from every mistake the case runs, "warning" a warning and no
   error, "accepted" / "no warning" neither (what then works is the case's own assertion); and every
@@ -31,6 +31,7 @@ import mistakes_cli  # noqa: E402,F401  (each registers its cases)
 import mistakes_frameworks  # noqa: E402,F401
 import mistakes_geometry  # noqa: E402,F401
 import mistakes_library  # noqa: E402,F401
+import mistakes_more  # noqa: E402,F401
 from mistakes_registry import (CASES, PROOFS, Outcome, keys_of, problems, proof_problems,  # noqa: E402
                                rows)
 
