@@ -37,4 +37,5 @@ proved_by("mmdet3d: the frozen image branch",
           f"{MM}image_weights.py::test_frozen_unloaded_branch_refused_at_the_first_training_step",
           f"{MM}image_weights.py::test_entry_refuses_before_building")
 proved_by("mmdet3d: the HTC `init_cfg`", f"{MM}image_weights.py::test_documented_htc_snippets_load_the_branch")
-proved_by("mmdet3d: a checkpoint whose pickle runs code", f"{MM}checkpoints.py::test_crafted_checkpoint_is_refused")
+proved_by("mmdet3d: a checkpoint whose pickle runs code", f"{MM}checkpoints.py::test_crafted_checkpoint_is_refused",
+          f"{MM}checkpoints.py::test_allow_list_on_every_torch")
