@@ -17,24 +17,23 @@ torch's default, and turns a refusal into an :class:`~mssf_blocks.errors.MSSFErr
 < 2.6 cannot register the ``getattr`` stand-in (its allow-list takes objects, not names; mmdetection3d 1.4's
 mmcv 2.1 has wheels up to torch 2.1, so most of its users are there): there the same allow-list, plus the
 globals of torch's own weights-only unpickler (tensors, storages, ``OrderedDict``), is enforced by a
-restricted unpickler handed to ``torch.load`` as its ``pickle_module`` (:class:`_AllowListUnpickler`): a
-global outside it is refused before it is imported, so nothing in the file can run code.
+restricted unpickler handed to ``torch.load`` as its ``pickle_module``
+(:mod:`mssf_examples.checkpoint_allow_list`): a global outside it is refused before it is imported, so
+nothing in the file can run code.
 """
 
 from __future__ import annotations
 
-import _codecs
-import _compat_pickle
 import os
 import pickle
 from contextlib import contextmanager
-from types import SimpleNamespace
-from typing import Any, Dict, Iterator, List
+from typing import Any, Iterator, List
 
 import torch
 
 from mssf_blocks import _compat
-from mssf_blocks.errors import MSSFError
+
+from ..checkpoint_allow_list import allow_list_pickle_module, refusal
 
 __all__ = ["checkpoint_globals", "weights_only_checkpoints", "load_from_local_weights_only"]
 
@@ -68,75 +67,30 @@ def checkpoint_globals() -> List[Any]:
     return [np.ndarray, np.dtype, scalar, _reconstruct, *dtypes, *_methods(), (_checkpoint_method, "builtins.getattr")]
 
 
-def _refusal(filename: str, exc: Exception) -> MSSFError:
-    lines = [ln.strip() for ln in str(exc).splitlines() if "WeightsUnpickler error" in ln or "Unsupported" in ln]
-    detail = lines[0] if lines else str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-    return MSSFError(
-        f"checkpoint: {filename} holds objects that are neither tensors nor what mmengine 0.10's checkpoints hold "
-        f"({detail}); refused: unpickling them could run code from the file. Load checkpoints written by "
-        "mmengine's Runner (this model's training), or extract their weights yourself from a file you trust")
+_HOLDS = "what mmengine 0.10's checkpoints hold"
+_INSTEAD = ("Load checkpoints written by mmengine's Runner (this model's training), or extract their weights "
+            "yourself from a file you trust")
 
 
 def load_from_local_weights_only(filename: str, map_location: Any = None) -> Any:
     """``torch.load(filename, weights_only=True)`` with :func:`checkpoint_globals` allowed (torch >= 2.6;
-    before: the same allow-list through :class:`_AllowListUnpickler`); a refused file raises
+    before: the same allow-list through :func:`~mssf_examples.checkpoint_allow_list.allow_list_pickle_module`);
+    a refused file raises
     :class:`MSSFError`."""
     filename = os.path.expanduser(filename)
     if not os.path.isfile(filename):
         raise FileNotFoundError(f"{filename} can not be found.")
     if _compat.TORCH_VERSION < (2, 6):
         try:
-            return torch.load(filename, map_location=map_location, pickle_module=_allow_list_pickle(),
-                              weights_only=False)
+            return torch.load(filename, map_location=map_location,
+                              pickle_module=allow_list_pickle_module(checkpoint_globals()), weights_only=False)
         except pickle.UnpicklingError as exc:
-            raise _refusal(filename, exc) from None
+            raise refusal(filename, exc, _HOLDS, _INSTEAD) from None
     with torch.serialization.safe_globals(checkpoint_globals()):
         try:
             return torch.load(filename, map_location=map_location, weights_only=True)
         except pickle.UnpicklingError as exc:
-            raise _refusal(filename, exc) from None
-
-
-def _allowed_by_name() -> Dict[str, Any]:
-    """``"module.name"`` -> object: torch's weights-only globals, ``_codecs.encode`` (what torch >= 2.3 also
-    allows: bytes in protocol 2) and :func:`checkpoint_globals` (numpy's
-    ``multiarray`` under both of its module names: ``numpy.core`` before numpy 2, ``numpy._core`` after)."""
-    from torch import _weights_only_unpickler
-
-    allowed: Dict[str, Any] = dict(_weights_only_unpickler._get_allowed_globals())
-    allowed["_codecs.encode"] = _codecs.encode  # protocol 2's bytes (a numpy array's data); torch >= 2.3 lists it
-    for g in checkpoint_globals():
-        obj, name = g if isinstance(g, tuple) else (g, f"{g.__module__}.{g.__qualname__}")
-        allowed[name] = obj
-        if ".multiarray." in name:
-            for core in ("numpy.core.", "numpy._core."):
-                allowed[core + name.split("core.", 1)[1]] = obj
-    return allowed
-
-
-class _AllowListUnpickler(pickle.Unpickler):
-    """A pickle ``Unpickler`` whose globals come from :func:`_allowed_by_name` only (the standard library's
-    "restricting globals" recipe: every way a pickle runs code goes through a global)."""
-
-    allowed: Dict[str, Any] = {}
-
-    def find_class(self, module: str, name: str) -> Any:
-        # protocol 2 (torch.save's) names Python 2's modules (``__builtin__.getattr``): map them as pickle does
-        module, name = _compat_pickle.NAME_MAPPING.get((module, name), (module, name))
-        module = _compat_pickle.IMPORT_MAPPING.get(module, module)
-        key = f"{module}.{name}"
-        if key not in self.allowed:
-            raise pickle.UnpicklingError(f"WeightsUnpickler error: Unsupported global: GLOBAL {key} was not an "
-                                         "allowed global")
-        return self.allowed[key]
-
-
-def _allow_list_pickle() -> Any:
-    """A ``pickle_module`` for ``torch.load`` whose ``Unpickler`` is :class:`_AllowListUnpickler` (torch
-    subclasses it and resolves storages itself before asking it)."""
-    unpickler = type("Unpickler", (_AllowListUnpickler,), {"allowed": _allowed_by_name()})
-    return SimpleNamespace(__name__="mssf_allow_list_pickle", Unpickler=unpickler,
-                           load=lambda f, **kw: unpickler(f, **kw).load())
+            raise refusal(filename, exc, _HOLDS, _INSTEAD) from None
 
 
 @contextmanager

@@ -37,21 +37,31 @@ def _infos(argv) -> None:
                      Path(args.save_path) if args.save_path else data_path, workers=args.workers)
 
 
-def allow_numpy_scalars_in_checkpoints() -> None:
-    """OpenPCDet saves numpy scalars in its checkpoints (the one-cycle learning rate in the optimizer
-    state); torch >= 2.6 loads with ``weights_only=True`` by default and refuses them in ``test.py`` /
-    ``--ckpt``. Allow-list exactly those types (numpy scalars and float / int dtypes), nothing else."""
+def checkpoint_numpy_globals() -> list:
+    """What OpenPCDet's checkpoints hold beyond tensors: numpy scalars (the one-cycle learning rate in the
+    optimizer state) and their float / int dtypes."""
     import numpy as np
-
-    from mssf_blocks import _compat
 
     try:
         from numpy._core.multiarray import scalar
     except ImportError:  # numpy < 2
         from numpy.core.multiarray import scalar
     kinds = [np.float64, np.float32, np.int64, np.int32, np.bool_]
-    # torch < 2.4 has no allow-list and loads them anyway (weights_only=False by default there)
-    _compat.add_safe_globals([scalar, np.dtype] + [type(np.dtype(k)) for k in kinds])
+    return [scalar, np.dtype] + [type(np.dtype(k)) for k in kinds]
+
+
+def allow_numpy_scalars_in_checkpoints() -> None:
+    """torch >= 2.6 loads with ``weights_only=True`` by default and refuses OpenPCDet's numpy scalars in
+    ``test.py`` / ``--ckpt``: allow-list exactly :func:`checkpoint_numpy_globals`, nothing else (torch < 2.4
+    has no allow-list; before 2.6 :func:`main` restricts OpenPCDet's ``torch.load`` to the same list)."""
+    from mssf_blocks import _compat
+
+    _compat.add_safe_globals(checkpoint_numpy_globals())
+
+
+#: what a refused checkpoint was expected to hold, and what to do instead (the error's words)
+_HOLDS = "what OpenPCDet's checkpoints hold (numpy scalars)"
+_INSTEAD = "Load checkpoints written by OpenPCDet's train.py, or extract their weights from a file you trust"
 
 
 def _fresh_openpcdet_cfg() -> None:
@@ -91,6 +101,7 @@ def main(argv=None) -> None:
         from .cpu import prepare_cpu
 
         prepare_cpu(script.resolve().parent)
+    from ..checkpoint_allow_list import restricted_torch_load
     from . import register
     from .image_module import expect_trained_checkpoint
 
@@ -104,7 +115,10 @@ def main(argv=None) -> None:
     sys.argv = [str(script)] + argv[1:]
     sys.path.insert(0, str(script.resolve().parent))
     try:
-        runpy.run_path(str(script), run_name="__main__")
+        # torch < 2.6 unpickles OpenPCDet's torch.load(filename, map_location) in full: restrict it to tensors
+        # and the numpy scalars (later torch refuses by itself, with the allow-list above)
+        with restricted_torch_load(checkpoint_numpy_globals(), _HOLDS, _INSTEAD):
+            runpy.run_path(str(script), run_name="__main__")
     finally:
         expect_trained_checkpoint(False)  # for what this process builds next (main() called from Python)
 
