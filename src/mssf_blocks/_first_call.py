@@ -39,7 +39,7 @@ from torch import Tensor
 
 from ._sanity import _relative_centre
 from .errors import MSSFGeometryWarning
-from .functional.geometry import _grid_keys, _point_keys
+from .functional.geometry import _grid_keys, _point_keys, project_points
 
 #: warn when fewer than this fraction of a sample's on-grid raw points lie in one of its voxels
 POINTS_IN_VOXELS_MIN = 0.5
@@ -113,21 +113,11 @@ def check_points_in_voxels(points: Tensor, points_batch: Tensor, coords: Tensor,
 def project_raw(points: Tensor, points_batch: Tensor, lidar2img: Tensor, image_size: Sequence[int],
                 matrix: Optional[Tensor], eps: float) -> Tuple[Tensor, Tensor]:
     """``(uv (P, V, 2), inside (P, V))`` of the raw points mapped by ``matrix`` ``(B, 4, 4)`` (or not) and
-    projected with ``lidar2img`` (``uv`` as :func:`~mssf_blocks.functional.geometry.project_points`)."""
-    h, w = (int(v) for v in image_size)
-    wide = torch.float64 if torch.float64 in (points.dtype, lidar2img.dtype) else torch.float32
-    l2i = (lidar2img if lidar2img.dim() == 4 else lidar2img[:, None]).detach()[:, :, :3, :].to(wide)
-    pb = points_batch.long()
-    xyz = points.detach()[:, :3].to(wide)
-    hom = torch.cat([xyz, torch.ones_like(xyz[:, :1])], 1)
-    if matrix is not None:
-        hom = torch.einsum("nij,nj->ni", matrix.detach().to(wide)[pb], hom)
-    cam = torch.einsum("nvij,nj->nvi", l2i[pb], hom)
-    front = cam[..., 2] > eps
-    pix = cam[..., :2] / torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))[..., None]
-    uv = (pix + 0.5) / torch.tensor([w, h], dtype=wide, device=points.device)
-    uv = torch.where(front[..., None], uv, torch.full_like(uv, -1.0))  # behind the camera: outside any image
-    return uv, front & (uv >= 0).all(-1) & (uv <= 1).all(-1)
+    projected with ``lidar2img``: :func:`~mssf_blocks.functional.geometry.project_points` without gradients
+    (``uv = -1`` behind the camera, ``inside`` its ``valid``)."""
+    with torch.no_grad():
+        proj = project_points(points, points_batch, lidar2img, image_size, matrix, eps)
+    return proj.uv, proj.valid
 
 
 def sensor_fractions(points: Tensor, points_batch: Tensor, lidar2img: Tensor, image_size: Sequence[int],
