@@ -198,10 +198,11 @@ def _relative_centre(lidar2img: Tensor, h: int, w: int) -> Tensor:
 
 def _principal_points(lidar2img: Tensor) -> Tensor:
     """``(B, V, 2)`` pixel where each camera's optical axis lands: ``M m3 / (m3 . m3)`` for
-    ``lidar2img = [M | p]`` with ``m3`` M's last row (``(c_x, c_y)`` of ``K`` for ``K @ [R | t]``)."""
+    ``lidar2img = [M | p]`` with ``m3`` M's last row (``(c_x, c_y)`` of ``K`` for ``K @ [R | t]``, any scale).
+    NaN where ``m3`` is zero (no optical axis): every verdict that reads it then gives none."""
     m = (lidar2img if lidar2img.dim() == 4 else lidar2img[:, None]).detach().double()[..., :3, :3]
     p = (m @ m[..., 2, :, None])[..., 0]
-    return p[..., :2] / torch.where(p[..., 2:].abs() > 1e-12, p[..., 2:], torch.ones_like(p[..., 2:]))
+    return p[..., :2] / p[..., 2:]
 
 
 def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batch: Tensor,

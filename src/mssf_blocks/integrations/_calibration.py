@@ -19,21 +19,13 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
+from .._sanity import _principal_points
 from ..errors import MSSFGeometryWarning
 
 __all__: list = []
 
 #: principal point over the image centre, both axes, beyond this (or below its inverse): a resized image
 _RATIO = 1.2
-
-
-def principal_point(lidar2img: Tensor) -> Tensor:
-    """``(..., 2)`` pixel ``(u, v)`` of the principal point of ``(..., 3, 4)`` projections ``K [R | t]`` (any
-    scale): with ``M = K R`` and ``r3`` its last row, ``u = m1 . r3 / |r3|^2``, ``v = m2 . r3 / |r3|^2``."""
-    m = lidar2img[..., :3, :3]
-    r3 = m[..., 2, :]
-    n = (r3 * r3).sum(-1)
-    return torch.stack([(m[..., 0, :] * r3).sum(-1) / n, (m[..., 1, :] * r3).sum(-1) / n], -1)
 
 
 def check_calibration_image_size(lidar2img: Tensor, image_hw: Sequence, name: str, where: str) -> None:
@@ -43,7 +35,7 @@ def check_calibration_image_size(lidar2img: Tensor, image_hw: Sequence, name: st
     hw = torch.as_tensor(image_hw, dtype=torch.float64).reshape(-1, 2)
     if hw.shape[0] not in (1, lidar2img.shape[0]) or bool((hw <= 0).any()):
         return
-    pp = principal_point(lidar2img)  # (V, 2) u, v
+    pp = _principal_points(lidar2img[None])[0]  # (V, 2) u, v
     wh = hw.flip(-1).expand(pp.shape[0], 2)
     ratio = (pp + 0.5) / (wh / 2)  # 1 at the image centre (pixel centres at integers)
     for v in range(pp.shape[0]):
