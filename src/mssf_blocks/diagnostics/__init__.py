@@ -33,9 +33,9 @@ The functions live in three modules by concept: :mod:`.classify` (the per-point 
 ablation); import them from here.
 """
 
-from .classify import BlurClassification, classify_feature_blurring, classify_projection, instance_foreground_counts
-from .curves import BlurCurves, blur_curves, blur_ratio, foreground_recall, plot_blur_curves
-from .mask_blur import mask_blur_projection, mask_blur_valid, mask_blurred_features
+from mssf_blocks.diagnostics.classify import BlurClassification, classify_feature_blurring, classify_projection, instance_foreground_counts
+from mssf_blocks.diagnostics.curves import BlurCurves, blur_curves, blur_ratio, foreground_recall, plot_blur_curves
+from mssf_blocks.diagnostics.mask_blur import mask_blur_projection, mask_blur_valid, mask_blurred_features
 
 __all__ = [
     "BlurClassification",

@@ -12,10 +12,17 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from .._checks import check_dtype, check_finite, check_floating, check_image_size, check_index_range, check_shape
-from ..errors import MSSFError
-from ..functional.heads import _check_boxes, points_in_boxes
-from ..geometry import CentroidProjection
+from mssf_blocks.checks.tensors import (
+    check_dtype,
+    check_finite,
+    check_floating,
+    check_image_size,
+    check_index_range,
+    check_shape,
+)
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.functional.heads import _check_boxes, points_in_boxes
+from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
 
 __all__ = ["BlurClassification", "classify_feature_blurring", "classify_projection", "instance_foreground_counts"]
 

@@ -12,9 +12,9 @@ from typing import Mapping, Optional, Union
 import torch
 from torch import Tensor
 
-from .._checks import check_finite, check_floating, check_shape
-from ..errors import MSSFError
-from .classify import BlurClassification
+from mssf_blocks.checks.tensors import check_finite, check_floating, check_shape
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.diagnostics.classify import BlurClassification
 
 __all__ = ["BlurCurves", "blur_ratio", "foreground_recall", "blur_curves", "plot_blur_curves"]
 

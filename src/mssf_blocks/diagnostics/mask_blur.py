@@ -11,10 +11,10 @@ from typing import Union
 import torch
 from torch import Tensor
 
-from .._checks import check_dtype, check_shape
-from ..errors import MSSFError
-from ..geometry import CentroidProjection
-from .classify import BlurClassification, _tensor
+from mssf_blocks.checks.tensors import check_dtype, check_shape
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
+from mssf_blocks.diagnostics.classify import BlurClassification, _tensor
 
 __all__ = ["mask_blur_valid", "mask_blur_projection", "mask_blurred_features"]
 

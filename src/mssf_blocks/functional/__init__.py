@@ -1,6 +1,6 @@
 """Pure functions under every module (no parameters, no state)."""
 
-from .geometry import (
+from mssf_blocks.functional.geometry import (
     Projection,
     normalize_lidar2img,
     project_points,
@@ -8,10 +8,10 @@ from .geometry import (
     voxel_centroids,
     voxel_centroids_reference,
 )
-from .heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
-from .lift import bev_shape_for, pillar_lift, voxelize_points, voxels_to_bev, voxels_to_bev_sparse
-from .deform import deform_sample_project, ms_deform_sample, ms_deform_sample_project, ms_deform_sample_reference
-from .sampling import bilinear_sample, camera_mean
+from mssf_blocks.functional.heads import points_in_boxes, sigmoid_focal_loss, voxel_foreground_labels
+from mssf_blocks.functional.lift import bev_shape_for, pillar_lift, voxelize_points, voxels_to_bev, voxels_to_bev_sparse
+from mssf_blocks.functional.deform import deform_sample_project, ms_deform_sample, ms_deform_sample_project, ms_deform_sample_reference
+from mssf_blocks.functional.sampling import bilinear_sample, camera_mean
 
 __all__ = [
     "Projection",

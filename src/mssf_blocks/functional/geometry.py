@@ -16,7 +16,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from .._checks import (
+from mssf_blocks.checks.tensors import (
     autocast_off,
     check_dtype,
     check_finite,
@@ -30,9 +30,9 @@ from .._checks import (
     check_voxel_coords,
     value_check,
 )
-from .._static import use_static_path
-from ..errors import MSSFError
-from .static import segment_slots
+from mssf_blocks.static_path import use_static_path
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.static_path import segment_slots
 
 __all__ = [
     "voxel_centers",

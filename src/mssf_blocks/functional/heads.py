@@ -19,9 +19,15 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape
-from .._sanity import check_boxes_frame, check_yaw_radians
-from ..errors import MSSFError
+from mssf_blocks.checks.tensors import (
+    check_dtype,
+    check_finite,
+    check_floating,
+    check_index_range,
+    check_shape,
+)
+from mssf_blocks.checks.geometry import check_boxes_frame, check_yaw_radians
+from mssf_blocks.errors import MSSFError
 
 __all__ = [
     "sigmoid_focal_loss",

@@ -18,7 +18,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from .._checks import (
+from mssf_blocks.checks.tensors import (
     check_dtype,
     check_finite,
     check_floating,
@@ -29,9 +29,9 @@ from .._checks import (
     check_shape,
     check_triple,
 )
-from .._sanity import check_batch_column
-from ..errors import MSSFError
-from ..sparse import SparseVoxels
+from mssf_blocks.checks.geometry import check_batch_column
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 __all__ = [
     "pillar_lift",

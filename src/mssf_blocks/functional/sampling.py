@@ -21,13 +21,20 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._checks import check_dtype, check_finite, check_floating, check_index_range, check_shape, check_tensor
-from .._static import use_static_path
-from ..errors import MSSFError
-from .deform import ms_deform_sample, ms_deform_sample_reference  # noqa: F401 (their earlier home)
-from .deform import touched
-from .deform.grid import grid_sample_static
-from .plan_costs import bilinear_auto_method
+from mssf_blocks.checks.tensors import (
+    check_dtype,
+    check_finite,
+    check_floating,
+    check_index_range,
+    check_shape,
+    check_tensor,
+)
+from mssf_blocks.static_path import use_static_path
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.functional.deform import ms_deform_sample, ms_deform_sample_reference  # noqa: F401 (their earlier home)
+from mssf_blocks.functional.deform import touched
+from mssf_blocks.functional.deform.grid import grid_sample_static
+from mssf_blocks.functional.plan_costs import bilinear_auto_method
 
 __all__ = ["bilinear_sample", "camera_mean"]
 

@@ -13,8 +13,8 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from ..errors import MSSFError
-from ..sparse import SparseVoxels
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 __all__: list = []
 
@@ -74,7 +74,7 @@ def _input_voxels(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_
     coords = voxel_coords.to(torch.int32)
     if not torch.equal(coords.to(voxel_coords.dtype), voxel_coords):
         raise MSSFError("voxel_coords: expected integer voxel indices")
-    from ..compat.spconv import enable_cpu_backward
+    from mssf_blocks.integrations.spconv import enable_cpu_backward
 
     enable_cpu_backward()  # spconv's backward on a CPU-only torch (no effect on CUDA builds)
     return net.grid.sparse_voxels(voxel_features, coords, int(batch_size))
@@ -83,11 +83,11 @@ def _input_voxels(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_
 def run_dense_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int,
                      fusion_inputs: Any) -> Tuple[Any, Any]:
     """``(BackboneOutput, conv_out spconv tensor)`` of a SECOND/CenterPoint example backbone."""
-    from ..compat.spconv import quiet
+    from mssf_blocks.integrations.spconv import quiet
 
     voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net.forward_stages(voxels, fusion_inputs)
-    with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
+    with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.integrations.spconv)
         return out, net.conv_out(out.stages[-1].to_spconv())
 
 
@@ -97,7 +97,8 @@ def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor,
     ``(b, y, x)`` at stride 8 on the ``bev_shape`` grid, as OpenPCDet's ``VoxelResBackBone8xVoxelNeXt``."""
     import spconv.pytorch as spconv
 
-    from ..compat.spconv import check_module_input, quiet
+    from mssf_blocks.checks.spconv_inputs import check_module_input
+    from mssf_blocks.integrations.spconv import quiet
 
     voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net(voxels, fusion_inputs)
@@ -118,7 +119,7 @@ def stage_spconv(out: Any) -> Dict[str, Any]:
 
 def seg_loss(net: Any, out: Any, points: Tensor, points_batch: Tensor, gt_boxes: Sequence[Tensor]) -> Tensor:
     """Semantic-head focal loss on the centroids of the last fusion block's voxels (augmented frame)."""
-    from ..functional.geometry import voxel_centroids
+    from mssf_blocks.functional.geometry import voxel_centroids
 
     v: SparseVoxels = out.seg_voxels
     centroids, _ = voxel_centroids(points[:, :3], points_batch, v.coords, v.spatial_shape, v.batch_size,

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import MSSFError
+from mssf_blocks.errors import MSSFError
 
 __all__: List[str] = []  # private helpers; the public adapters live in openpcdet.py / mmdet3d.py
 
@@ -147,7 +147,7 @@ def mmdet3d_seg_loss(seg_head: Any, out: Any, points: Sequence[Tensor], gt_bboxe
     ``.tensor``) or ``(G, 7+)`` tensors, mmdet3d's bottom-centre boxes. The centroids are recomputed from
     the points, as the head's foreground labels are defined on them.
     """
-    from ..functional.geometry import voxel_centroids
+    from mssf_blocks.functional.geometry import voxel_centroids
 
     boxes = [getattr(b, "tensor", b)[:, :7] for b in gt_bboxes_3d]
     flat = torch.cat(list(points), 0)

@@ -1,4 +1,4 @@
-"""mmdetection3d ``batch_inputs_dict`` + ``data_samples`` -> :class:`~mssf_blocks.fusion.FusionInputs`.
+"""mmdetection3d ``batch_inputs_dict`` + ``data_samples`` -> :class:`~mssf_blocks.samplers.FusionInputs`.
 
 No mmdet3d import: the adapter reads plain metainfo dicts (``[s.metainfo for s in data_samples]``,
 the ``batch_input_metas`` that mmdet3d's detectors pass around). What mmdet3d 1.x records:
@@ -26,11 +26,11 @@ from typing import Any, List, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from ..errors import MSSFError
-from ..fusion import FusionInputs
-from ..geometry import apply_image_augmentation, augmentation_matrix
-from ._calibration import check_calibration_image_size
-from ._common import affine_4x4, as_bool, as_float64, check_affine_4x4, image_levels_bv, lidar2img_3x4, pixel_affine_from_4x4
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.samplers import FusionInputs
+from mssf_blocks.geometry import apply_image_augmentation, augmentation_matrix
+from mssf_blocks.checks.calibration import check_calibration_image_size
+from mssf_blocks.integrations._common import affine_4x4, as_bool, as_float64, check_affine_4x4, image_levels_bv, lidar2img_3x4, pixel_affine_from_4x4
 
 __all__ = [
     "lidar_aug_matrix",

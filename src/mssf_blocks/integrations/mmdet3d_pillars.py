@@ -17,8 +17,8 @@ from typing import Any, List, Mapping, Optional, Sequence, Union
 import torch
 from torch import Tensor, nn
 
-from ..errors import MSSFError
-from .mmdet3d import fusion_inputs_from_mmdet3d
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.integrations.mmdet3d import fusion_inputs_from_mmdet3d
 
 __all__ = ["MSSFPillarEncoder"]
 
@@ -122,6 +122,6 @@ class MSSFPillarEncoder(nn.Module):
         """The semantic head's focal loss of the latest forward (mmdet3d bottom-centre boxes)."""
         if self.last_output is None:
             raise MSSFError("seg_loss: no semantic-head output; build with seg_hidden and num_fusion_blocks > 0, then run forward")
-        from ._common import mmdet3d_seg_loss
+        from mssf_blocks.integrations._common import mmdet3d_seg_loss
 
         return mmdet3d_seg_loss(self.net.seg_head, self.last_output, points, gt_bboxes_3d)

@@ -24,11 +24,11 @@ from typing import Any, List, Mapping, Optional, Sequence, Tuple, Union
 
 from torch import Tensor, nn
 
-from .._consistency import check_agreement
-from ..errors import MSSFError
-from . import _backbones
-from .mmdet3d import fusion_inputs_from_mmdet3d
-from .mmdet3d_pillars import MSSFPillarEncoder
+from mssf_blocks.checks.agreement import check_agreement
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.integrations import _backbones
+from mssf_blocks.integrations.mmdet3d import fusion_inputs_from_mmdet3d
+from mssf_blocks.integrations.mmdet3d_pillars import MSSFPillarEncoder
 
 __all__ = ["MSSFSparseEncoder", "MSSFPillarEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
 
@@ -129,7 +129,7 @@ class MSSFSparseEncoder(nn.Module):
             inputs = fusion_inputs_from_mmdet3d(points, img_features, batch_input_metas, image_aug=self.image_aug)
         out, encoded = _backbones.run_dense_layout(self.net, voxel_features, coors, batch_size, inputs)
         self.last_output = out if out.seg_logits is not None else None
-        from ..compat.spconv import dense
+        from mssf_blocks.integrations.spconv import dense
 
         bev = dense(encoded).flatten(1, 2)  # (B, C, D, H, W) -> (B, C * D, H, W), as SparseEncoder
         if self.return_middle_feats:
@@ -146,7 +146,7 @@ class MSSFSparseEncoder(nn.Module):
         """
         if self.last_output is None:
             raise MSSFError("seg_loss: no semantic-head output; build with seg_hidden and num_fusion_blocks > 0, then run forward")
-        from ._common import mmdet3d_seg_loss
+        from mssf_blocks.integrations._common import mmdet3d_seg_loss
 
         return mmdet3d_seg_loss(self.net.seg_head, self.last_output, points, gt_bboxes_3d)
 

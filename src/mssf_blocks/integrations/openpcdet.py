@@ -1,4 +1,4 @@
-"""OpenPCDet ``batch_dict`` -> :class:`~mssf_blocks.fusion.FusionInputs` (no OpenPCDet import).
+"""OpenPCDet ``batch_dict`` -> :class:`~mssf_blocks.samplers.FusionInputs` (no OpenPCDet import).
 
 What an OpenPCDet batch holds (``DatasetTemplate.collate_batch`` then ``load_data_to_gpu``):
 
@@ -31,10 +31,10 @@ from typing import Any, Mapping, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from ..errors import MSSFError
-from ..fusion import FusionInputs
-from ..geometry import apply_image_augmentation, augmentation_matrix
-from ._common import (
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.samplers import FusionInputs
+from mssf_blocks.geometry import apply_image_augmentation, augmentation_matrix
+from mssf_blocks.integrations._common import (
     as_bool,
     as_float64,
     check_affine_4x4,

@@ -33,10 +33,10 @@ from typing import Any, Dict, Mapping, Tuple
 
 from torch import Tensor, nn
 
-from ..errors import MSSFError
-from . import _backbones
-from ._common import points_with_batch
-from .openpcdet import DEFAULT_AUGMENTOR_ORDER, fusion_inputs_from_batch_dict
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.integrations import _backbones
+from mssf_blocks.integrations._common import points_with_batch
+from mssf_blocks.integrations.openpcdet import DEFAULT_AUGMENTOR_ORDER, fusion_inputs_from_batch_dict
 
 __all__ = ["MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt", "OPENPCDET_BACKBONES",
            "settings_from_model_cfg"]

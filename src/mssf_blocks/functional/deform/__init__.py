@@ -17,8 +17,8 @@ and zero padding (pixel ``x = u * W_l - 0.5``; corners outside the map read zero
   (their embedding-bag path for values per head).
 """
 
-from .api import ms_deform_sample, ms_deform_sample_project
-from .op import deform_sample_project
-from .reference import ms_deform_sample_reference
+from mssf_blocks.functional.deform.api import ms_deform_sample, ms_deform_sample_project
+from mssf_blocks.functional.deform.op import deform_sample_project
+from mssf_blocks.functional.deform.reference import ms_deform_sample_reference
 
 __all__ = ["deform_sample_project", "ms_deform_sample", "ms_deform_sample_project", "ms_deform_sample_reference"]

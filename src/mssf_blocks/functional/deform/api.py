@@ -11,11 +11,11 @@ from typing import Optional, Sequence, Tuple, Union
 import torch  # noqa: F401 (the docstring examples use it)
 from torch import Tensor
 
-from ...errors import MSSFError
-from .bag import sample, sample_project_chunked
-from .checks import _check_deform_inputs, check_projection
-from .op import sample_project_unchecked
-from .reference import ms_deform_sample_reference
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.functional.deform.bag import sample, sample_project_chunked
+from mssf_blocks.checks.deform import _check_deform_inputs, check_projection
+from mssf_blocks.functional.deform.op import sample_project_unchecked
+from mssf_blocks.functional.deform.reference import ms_deform_sample_reference
 
 __all__ = ["ms_deform_sample", "ms_deform_sample_project"]
 

@@ -12,8 +12,8 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from ... import _compat
-from .touched.points import _pixel_coordinate
+from mssf_blocks import torch_versions
+from mssf_blocks.functional.deform.touched.points import _pixel_coordinate
 
 __all__ = ["sample", "sample_project_chunked"]
 
@@ -78,7 +78,7 @@ def sample(
         # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
         # along D); otherwise one layout copy of this level.
         table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
-        part = _compat.embedding_bag(
+        part = torch_versions.embedding_bag(
             rows[lvl].view(m * q, p * 4), table, per_sample_weights=psw[lvl].view(m * q, p * 4), mode="sum"
         )  # (M * Q, D)
         if out is None:

@@ -38,13 +38,13 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from ... import _compat
-from ..._checks import is_tracing
-from ...errors import MSSFError
-from ..plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK, TRITON_MIN_VERSION
-from . import grid, kept, touched
-from .checks import _check_deform_inputs, check_projection
-from .triton import installed_version as _triton_version
+from mssf_blocks import torch_versions
+from mssf_blocks.checks.tensors import is_tracing
+from mssf_blocks.errors import MSSFError
+from mssf_blocks.functional.plan_costs import SAMPLING_BACKENDS, SAMPLING_FALLBACK, TRITON_MIN_VERSION
+from mssf_blocks.functional.deform import grid, kept, touched
+from mssf_blocks.checks.deform import _check_deform_inputs, check_projection
+from mssf_blocks.functional.deform.triton import installed_version as _triton_version
 
 __all__ = ["deform_sample_project", "sample_project_unchecked", "resolve_backend", "BACKENDS", "ENV_VAR", "TRITON_MAX_HEAD_DIM"]
 
@@ -141,7 +141,7 @@ def _use_triton() -> bool:
 
 def _forward_impl(levels, image_index, locations, weights, proj_weight, proj_bias, backend) -> Tensor:
     if backend == "triton" and _use_triton():
-        from .triton import launch as triton_backend
+        from mssf_blocks.functional.deform.triton import launch as triton_backend
         try:
             return triton_backend.forward([v[:, 0] for v in levels], image_index, locations, weights,
                                           proj_weight, proj_bias)
@@ -203,7 +203,7 @@ def _backward_impl(grad, levels, image_index, locations, weights, proj_weight, p
     ``graph_key``: the key of the graph the forward kept (``kept.py``), if it did."""
     levels_grad = value_grad and levels_grad
     if backend == "triton" and _use_triton():
-        from .triton import launch as triton_backend
+        from mssf_blocks.functional.deform.triton import launch as triton_backend
         try:
             gl, gloc, gwt, gw, gb = triton_backend.backward(
                 grad, [v[:, 0] for v in levels], image_index, locations, weights, proj_weight, proj_bias,
@@ -245,7 +245,7 @@ def _unaliased(t: Tensor, taken: set) -> Tensor:
 # registration
 # ---------------------------------------------------------------------------------------------------
 _OP = _OP_KEEP = None
-if _compat.has("custom_op"):  # torch >= 2.4; older: the entry calls the backends itself
+if torch_versions.has("custom_op"):  # torch >= 2.4; older: the entry calls the backends itself
 
     @torch.library.custom_op("mssf_blocks::deform_sample_project", mutates_args=())
     def _op(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor, proj_weight: Tensor,
@@ -387,7 +387,7 @@ def sample_project_unchecked(levels: List[Tensor], image_index: Tensor, location
     if choice in _AUTOGRAD_BACKENDS and not is_tracing():
         return _AUTOGRAD_BACKENDS[choice](*args)  # native autograd: no second forward in backward (module doc)
     if _OP is not None:
-        if choice in _AUTOGRAD_BACKENDS and _compat.is_compiling() and not _compat.is_exporting():
+        if choice in _AUTOGRAD_BACKENDS and torch_versions.is_compiling() and not torch_versions.is_exporting():
             value_grad, levels_grad = _grad_flags(levels, proj_weight, proj_bias)
             if torch.is_grad_enabled() and (value_grad or locations.requires_grad or weights.requires_grad):
                 return _OP_KEEP(*args, choice, value_grad, levels_grad)[0]  # (no second forward: kept.py)

@@ -23,10 +23,10 @@ from typing import List, Optional
 import torch
 from torch import Tensor
 
-from .blocks import _ProjectedLevel, _RawLevel, _sum_levels
-from .order import _query_order
-from .plans import _is_row_table, _touched_level
-from .points import _level_points, _live_queries, _rows
+from mssf_blocks.functional.deform.touched.blocks import _ProjectedLevel, _RawLevel, _sum_levels
+from mssf_blocks.functional.deform.touched.order import _query_order
+from mssf_blocks.functional.deform.touched.plans import _is_row_table, _touched_level
+from mssf_blocks.functional.deform.touched.points import _level_points, _live_queries, _rows
 
 __all__ = ["sample_project", "sample_points"]
 

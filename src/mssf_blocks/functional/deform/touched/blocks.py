@@ -16,9 +16,9 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
-from .... import _compat
-from ...plan_costs import _RAW_CHUNK_BYTES
-from .points import _LevelLoc
+from mssf_blocks import torch_versions
+from mssf_blocks.functional.plan_costs import _RAW_CHUNK_BYTES
+from mssf_blocks.functional.deform.touched.points import _LevelLoc
 
 def _corner_cells(c00: Tensor, wp: int) -> Tensor:
     """``(Q, M, 4, P)`` cells of the four bilinear corners, offsets ``(0, 1, Wp, Wp + 1)`` from the
@@ -88,12 +88,12 @@ def _bag_raw(raw: _RawLevel, start: int, stop: int):
     # at 512 queries); x * 1.0 and x * 0.0 are the same bits either way. (Fresh arrays: in place.)
     psw = psw.mul_(torch.ne(rows, raw.n_rows, out=torch.empty_like(psw)))
     if raw.clamp is not None:
-        sampled = _compat.embedding_bag(rows.clamp_(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
+        sampled = torch_versions.embedding_bag(rows.clamp_(max=raw.clamp), raw.table, per_sample_weights=psw, mode="sum")
     else:
         inside = rows != raw.n_rows  # (the compaction's index: rare, see _RawLevel)
         counts = inside.sum(1)
         offsets = torch.cumsum(counts, 0) - counts
-        sampled = _compat.embedding_bag(rows[inside], raw.table, offsets=offsets, per_sample_weights=psw[inside],
+        sampled = torch_versions.embedding_bag(rows[inside], raw.table, offsets=offsets, per_sample_weights=psw[inside],
                                   mode="sum")
     return sampled, psw.view(-1, m, k).sum(-1, keepdim=True)
 
@@ -115,7 +115,7 @@ class _ProjectedLevel(NamedTuple):
 def _bag_projected(lvl: _ProjectedLevel, start: int, stop: int) -> Tensor:
     """``(n, M, d)`` samples of the queries ``[start, stop)`` of a projected level."""
     rows, psw = _block_corners(lvl, start, stop)
-    return _compat.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, lvl.c00.shape[1],
+    return torch_versions.embedding_bag(rows, lvl.table, per_sample_weights=psw, mode="sum").view(-1, lvl.c00.shape[1],
                                                                                      lvl.table.shape[1])
 
 

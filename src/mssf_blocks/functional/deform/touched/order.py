@@ -13,7 +13,7 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from ...plan_costs import _SORT_CELL
+from mssf_blocks.functional.plan_costs import _SORT_CELL
 
 # The Hilbert curve is walked a few levels at a time: per level, the two bits of a cell (x, y) and
 # the orientation of its sub-square (a swap of x and y, a complement of both: four states) give the

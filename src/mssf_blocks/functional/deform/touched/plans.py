@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ...plan_costs import (
+from mssf_blocks.functional.plan_costs import (
     _BAG_BACKWARD,
     _BAG_COST,
     _COPY_COST,
@@ -27,8 +27,8 @@ from ...plan_costs import (
     _GRID_SAMPLE_COST,
     _PROJECT_CHUNK,
 )
-from .blocks import _bag_projected, _bag_raw, _ProjectedLevel, _RawLevel
-from .points import _LevelLoc
+from mssf_blocks.functional.deform.touched.blocks import _bag_projected, _bag_raw, _ProjectedLevel, _RawLevel
+from mssf_blocks.functional.deform.touched.points import _LevelLoc
 
 def _top_left_cells(lv: _LevelLoc, image_index: Tensor, num_images: int, h: int, w: int) -> Tensor:
     """``(Q, M, P)`` int64 cell of every point's top-left bilinear corner on its image's ``h x w`` level

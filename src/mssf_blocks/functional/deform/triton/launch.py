@@ -17,7 +17,7 @@ from typing import List, Optional, Tuple
 import torch
 from torch import Tensor
 
-from . import kernels as tk
+from mssf_blocks.functional.deform.triton import kernels as tk
 
 
 @functools.lru_cache(maxsize=64)

@@ -1,0 +1,377 @@
+"""Input validation shared by every function and module.
+
+One place that turns a wrong shape, dtype or value into an :class:`MSSFError` whose message names the
+argument, what was expected and what was received.
+
+Graph capture (``torch.compile``, ``torch.export``, ``torch.jit.trace``, ``torch.onnx.export``): checks
+of tensor *values* (finite entries, index ranges) read data, i.e. synchronise with the device and, while
+a graph is being captured, break it, guard on the data or crash the tracer. Every such check is a
+:func:`value_check`: it runs eagerly and is skipped while :func:`is_tracing` (the captured graph then
+contains no check at all, so it costs nothing there). Shape, dtype and type checks stay: they read no
+data and run once at capture time on the (symbolic) shapes. See ``docs/conventions.md``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, Callable, Mapping, MutableMapping, Sequence, TypeVar, Union
+
+import torch
+from torch import Tensor
+
+from mssf_blocks import torch_versions
+from mssf_blocks.errors import MSSFError
+
+Dim = Union[int, str, None]
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def is_tracing() -> bool:
+    """Whether a graph is being captured: ``torch.compile`` / ``torch.export`` (dynamo or non-strict),
+    ``torch.jit.trace`` or the ONNX exporters. Value checks are skipped then; the fusion modules also take
+    their static-shape path (``docs/deployment.md``)."""
+    # (is_compiling is constant-folded by dynamo, so this costs nothing in a compiled graph)
+    if torch_versions.is_compiling() or torch_versions.is_exporting():
+        return True
+    if torch.jit.is_tracing():
+        return True
+    onnx = getattr(torch, "onnx", None)
+    return bool(onnx is not None and onnx.is_in_onnx_export())
+
+
+# FakeTensors carry no data: torch.export builds its inputs' dataclasses from them before is_exporting()
+_is_fake = torch_versions.is_fake
+
+
+def _has_no_data(x: Any) -> bool:
+    """A FakeTensor, or a list / tuple (of tuples) holding one (e.g. ``check_index_ranges``' checks)."""
+    if isinstance(x, Tensor):
+        return _is_fake(x)
+    if isinstance(x, (list, tuple)):
+        return any(_has_no_data(item) for item in x[:8])
+    return False
+
+
+def value_check(fn: _F) -> _F:
+    """Mark a check that reads tensor values: it runs eagerly and is skipped while :func:`is_tracing`.
+
+    The decorated check returns its first argument in both cases, so ``x = check(x, ...)`` keeps working.
+    Every check of data (not of shapes or dtypes) in the library is written through this decorator.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if is_tracing() or _has_no_data(args):
+            return args[0] if args else None
+        return fn(*args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _fmt_spec(spec: Sequence[Dim], dims: Mapping[str, int]) -> str:
+    parts = []
+    for d in spec:
+        if d is None:
+            parts.append("*")
+        elif isinstance(d, str) and d in dims:
+            parts.append(f"{d}={dims[d]}")
+        else:
+            parts.append(str(d))
+    return "(" + ", ".join(parts) + ("," if len(parts) == 1 else "") + ")"
+
+
+def check_tensor(x: Any, name: str) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise MSSFError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    return x
+
+
+def check_shape(
+    x: Any,
+    name: str,
+    spec: Sequence[Dim],
+    dims: MutableMapping[str, int] | None = None,
+) -> Tensor:
+    """Check ``x`` against a shape spec with named dimensions.
+
+    Args:
+        x: the tensor.
+        name: the argument name used in the error message.
+        spec: one entry per dimension: an ``int`` (exact size), a ``str`` (a named size that must agree
+            with every other use of the same name in ``dims``) or ``None`` (any size).
+        dims: named sizes bound so far; new names are bound here (so several arguments can be checked
+            against each other).
+
+    Raises:
+        MSSFError: naming ``name``, the expected shape (with bound sizes) and the received shape.
+    """
+    x = check_tensor(x, name)
+    dims = {} if dims is None else dims
+    if x.dim() != len(spec):
+        raise MSSFError(
+            f"{name}: expected a {len(spec)}-d tensor of shape {_fmt_spec(spec, dims)}, "
+            f"got shape {tuple(x.shape)}"
+        )
+    for size, d in zip(x.shape, spec):
+        if d is None:
+            continue
+        if isinstance(d, (int, torch.SymInt)):  # (a SymInt: a size read from another tensor under export)
+            if size != d:
+                raise MSSFError(
+                    f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)}"
+                )
+        else:
+            if d in dims and dims[d] != size:
+                raise MSSFError(
+                    f"{name}: expected shape {_fmt_spec(spec, dims)}, got shape {tuple(x.shape)} "
+                    f"({d} disagrees with another argument)"
+                )
+            # (the size itself, not int(size): under torch.compile(dynamic=True) it is symbolic and int()
+            # would specialise the graph to this voxel count)
+            dims.setdefault(d, size)
+    return x
+
+
+def check_floating(x: Tensor, name: str) -> Tensor:
+    if not x.is_floating_point():
+        raise MSSFError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    return x
+
+
+def check_dtype(x: Tensor, name: str, dtypes: Sequence[torch.dtype], hint: str = "") -> Tensor:
+    if x.dtype not in dtypes:
+        names = " or ".join(str(d) for d in dtypes)
+        raise MSSFError(f"{name}: expected dtype {names}, got {x.dtype}{hint}")
+    return x
+
+
+def autocast_on(device_type: str) -> bool:
+    """Whether ``torch.autocast`` is enabled for ``device_type`` (``"cpu"``, ``"cuda"``, ...)."""
+    return torch_versions.autocast_enabled(device_type)
+
+
+def autocast_off(device_type: str):
+    """A context that disables autocast for ``device_type`` when it is on (else does nothing).
+
+    Geometry (projection, centroids, sampling locations) runs inside it: autocast would round its
+    matrix products to bfloat16 / float16, pixels off by several pixels at 50 m.
+    """
+    return torch_versions.autocast_off(device_type)
+
+
+@value_check
+def check_finite(x: Tensor, name: str) -> Tensor:
+    # A NaN or inf entry makes the sum NaN or inf, so a finite sum proves every entry finite: one
+    # reduction instead of abs, compare and reduce (6.7 -> 0.24 ms on the 15 MiB of locations and
+    # weights of 8,000 MSDFF queries, one thread). Only a non-finite sum (a bad entry, or finite
+    # entries overflowing) takes the exact test.
+    if x.is_floating_point() and x.numel() and not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
+        bad = int((~torch.isfinite(x)).sum())
+        raise MSSFError(f"{name}: expected finite values, got {bad} NaN/inf entries")
+    return x
+
+
+@value_check
+def check_index_ranges(checks) -> None:
+    """:func:`check_index_range` for several ``(x, name, upper, upper_name)`` at once, with one host
+    synchronisation for all of them (each ``min`` / ``max`` read back stalls a GPU); same messages."""
+    checks = [c for c in checks if c[0].numel()]
+    if not checks:
+        return
+    bounds = torch.stack([t for c in checks for t in (c[0].min().long(), c[0].max().long())]).tolist()
+    for i, (_, name, upper, upper_name) in enumerate(checks):
+        lo, hi = bounds[2 * i], bounds[2 * i + 1]
+        if lo < 0 or hi >= upper:
+            raise MSSFError(
+                f"{name}: expected values in [0, {upper}) ({upper_name}={upper}), got values in [{lo}, {hi}]"
+            )
+
+
+@value_check
+def check_index_range(x: Tensor, name: str, upper: int, upper_name: str) -> Tensor:
+    """Integer tensor with every entry in ``[0, upper)``."""
+    if x.numel():
+        lo, hi = torch.stack([x.min(), x.max()]).tolist()  # one host synchronisation, not two
+        if lo < 0 or hi >= upper:
+            raise MSSFError(
+                f"{name}: expected values in [0, {upper}) ({upper_name}={upper}), "
+                f"got values in [{lo}, {hi}]"
+            )
+    return x
+
+
+@value_check
+def check_nonnegative(x: Tensor, name: str, what: str = "indices") -> Tensor:
+    """Integer tensor with every entry ``>= 0``."""
+    if x.numel():
+        lo = int(x.min())
+        if lo < 0:
+            raise MSSFError(f"{name}: expected non-negative {what}, got min {lo}")
+    return x
+
+
+@value_check
+def check_voxel_coords(coords: Tensor, spatial_shape: Sequence[int], batch_size: int, name: str = "coords") -> Tensor:
+    """``(N, 4)`` ``(batch, z, y, x)`` rows inside ``[0, batch_size) x [0, D) x [0, H) x [0, W)``.
+
+    The error names the column and its bound, as :class:`~mssf_blocks.sparse_voxels.SparseVoxels` does. Two
+    reductions over ``coords`` (not one per column).
+    """
+    if coords.numel():
+        lows, highs = coords.amin(0).tolist(), coords.amax(0).tolist()
+        bounds = [(batch_size, "batch_size", "batch index")] + [
+            (int(spatial_shape[a]), f"spatial_shape[{a}]", f"{axis} index") for a, axis in enumerate("zyx")
+        ]
+        for col, ((upper, upper_name, what), lo, hi) in enumerate(zip(bounds, lows, highs)):
+            if lo < 0 or hi >= upper:
+                raise MSSFError(
+                    f"{name}[:, {col}] ({what}): expected values in [0, {upper}) ({upper_name}={upper}), "
+                    f"got values in [{lo}, {hi}]"
+                )
+    return coords
+
+
+def check_points(
+    points: Any, points_batch: Any, exact_xyz: bool = False, name: str = "points", batch_name: str = "points_batch",
+    rows: str = "P",
+) -> Tensor:
+    """Raw points ``(P, 3)`` (``exact_xyz``) or ``(P, 3+)`` with x, y, z first, and ``points_batch (P,)``.
+
+    A transposed ``(3, P)`` array is blamed on ``points`` (not on ``points_batch``'s length); with
+    ``exact_xyz`` extra columns are refused with how to slice them (OpenPCDet's ``batch_dict["points"]``
+    is ``(b, x, y, z, ...)``: taking its first three columns as x, y, z would silently be wrong).
+    """
+    check_tensor(points, name)
+    expected = f"({rows}, 3)" if exact_xyz else f"({rows}, >=3) with x, y, z first"
+    if points.dim() != 2:
+        raise MSSFError(f"{name}: expected a 2-d tensor of shape {expected}, got shape {tuple(points.shape)}")
+    p, c = points.shape
+    n_batch = points_batch.shape[0] if isinstance(points_batch, Tensor) and points_batch.dim() == 1 else None
+    if c != 3 and p == 3 and (n_batch is None or n_batch == c):
+        raise MSSFError(
+            f"{name}: expected shape {expected} (one row per point), got shape {tuple(points.shape)}; "
+            f"transposed? pass {name}.T"
+        )
+    if c < 3:
+        raise MSSFError(f"{name}: expected shape {expected}, got shape {tuple(points.shape)}")
+    if exact_xyz and c != 3:
+        raise MSSFError(
+            f"{name}: expected shape {expected}, got shape {tuple(points.shape)}; slice the coordinates: "
+            f"{name}[:, :3] for (x, y, z, features...) rows, or for OpenPCDet's batch_dict['points'] "
+            f"(b, x, y, z, ...) {name}=pts[:, 1:4] and {batch_name}=pts[:, 0].long()"
+        )
+    check_floating(points, name)
+    check_shape(points_batch, batch_name, (p,))
+    if not exact_xyz and c >= 4:  # (a batch-index column read as x; _sanity imports this module)
+        from mssf_blocks.checks.geometry import check_batch_column
+        check_batch_column(points, points_batch, name, batch_name)
+    return points
+
+
+def to_module_dtype(x: Any, name: str, dtype: torch.dtype, owner: str) -> Tensor:
+    """``x`` in the dtype of ``owner``'s parameters, by the library's one dtype rule
+    (``docs/conventions.md``, "Dtypes").
+
+    Lower or equal precision is converted (float16 / bfloat16 into float32, float32 into float64,
+    float32 into a half-precision module); a float64 ``x`` into a module whose parameters are not
+    float64 is refused: a float64 input means a float64 check, which silent rounding would defeat.
+    """
+    x = check_floating(check_tensor(x, name), name)
+    return convert_up(x, dtype, name, f"the dtype of {owner}'s parameters")
+
+
+def convert_up(x: Tensor, dtype: torch.dtype, name: str, what: str) -> Tensor:
+    """The dtype rule on a floating ``x``: ``x`` itself if already ``dtype``, refused (naming ``what``
+    ``dtype`` is) if float64 for another ``dtype``, else converted."""
+    if x.dtype == dtype:
+        return x
+    if x.dtype == torch.float64:
+        raise MSSFError(
+            f"{name}: expected dtype {dtype} or lower precision ({what}), got "
+            f"torch.float64; convert the module with .double() or the tensor with .to({dtype})"
+        )
+    return x.to(dtype)
+
+
+def check_image_size(image_size: Any, level_hw: Sequence[int] | None = None, name: str = "image_size",
+                     level_name: str = "image_features[0]") -> tuple:
+    """``(H, W)`` positive ints; with ``level_hw = (H_0, W_0)`` (the first image level), also that some
+    stride ``s`` gives ``|H / s - H_0| <= 1`` and ``|W / s - W_0| <= 1`` (one level-0 pixel each way,
+    which allows the rounding of strided convolutions and padding): a swapped ``(W, H)`` fails it."""
+    try:
+        h, w = (int(v) for v in image_size)
+    except (TypeError, ValueError, RuntimeError):
+        raise MSSFError(f"{name}: expected (H, W), got {image_size!r}{_per_sample_hint(image_size)}") from None
+    if h <= 0 or w <= 0:
+        raise MSSFError(f"{name}: expected positive (H, W), got {image_size!r}")
+    if level_hw is not None and not is_tracing():  # (int() of a symbolic level size would specialise a graph)
+        h0, w0 = (int(v) for v in level_hw)
+        # 1 / s must lie in [(H_0 - 1) / H, (H_0 + 1) / H] and in [(W_0 - 1) / W, (W_0 + 1) / W].
+        if max((h0 - 1) / h, (w0 - 1) / w) > min((h0 + 1) / h, (w0 + 1) / w):
+            hint = " (swapped? image_size is (H, W))" if (
+                max((h0 - 1) / w, (w0 - 1) / h) <= min((h0 + 1) / w, (w0 + 1) / h)) else ""
+            raise MSSFError(
+                f"{name}: expected (H, W) with the aspect of {level_name} (H_0, W_0) = ({h0}, {w0}) within "
+                f"one level-0 pixel, got {(h, w)}{hint}"
+            )
+    return h, w
+
+
+def _per_sample_hint(image_size: Any) -> str:
+    """Where ``image_size`` holds one ``(H, W)`` per sample (mmdet3d's per-sample ``img_shape``), say what to pass."""
+    try:
+        rows = [tuple(int(v) for v in row) for row in image_size]
+    except (TypeError, ValueError, RuntimeError):
+        return ""
+    if not rows or any(len(r) != 2 for r in rows):
+        return ""
+    return (f": {len(rows)} per-sample sizes; pass one (H, W) for the whole batch, the size lidar2img projects "
+            f"into (the padded batch input{'' if len(set(rows)) == 1 else ': the samples differ, pad them to one size'})")
+
+
+def check_triple(value: Any, name: str, kind: type, positive: bool = False) -> tuple:
+    """Turn a length-3 sequence (or tensor) into a tuple of ``kind``, with a clear error."""
+    if isinstance(value, Tensor):
+        value = value.detach().cpu().tolist()
+    try:
+        items = list(value)
+    except TypeError:
+        raise MSSFError(f"{name}: expected a sequence of 3 numbers, got {value!r}") from None
+    if len(items) != 3:
+        raise MSSFError(f"{name}: expected 3 values, got {len(items)}: {value!r}")
+    out = []
+    for v in items:
+        if kind is int:
+            if isinstance(v, bool) or int(v) != v:
+                raise MSSFError(f"{name}: expected integers, got {value!r}")
+            v = int(v)
+        else:
+            v = float(v)
+            if v != v or v in (float("inf"), float("-inf")):
+                raise MSSFError(f"{name}: expected finite values, got {value!r}")
+        if positive and v <= 0:
+            raise MSSFError(f"{name}: expected positive values, got {value!r}")
+        out.append(v)
+    return tuple(out)
+
+
+def check_positive_int(value: Any, name: str, allow_zero: bool = False) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise MSSFError(f"{name}: expected an int, got {type(value).__name__} {value!r}")
+    if value < 0 or (value == 0 and not allow_zero):
+        raise MSSFError(f"{name}: expected a {'non-negative' if allow_zero else 'positive'} int, got {value}")
+    return value
+
+
+def check_radians(angle: Any, name: str) -> float:
+    """A finite angle in radians: a magnitude above ``2 pi`` is an angle in degrees (45 for pi / 4)."""
+    try:
+        a = float(angle)
+    except (TypeError, ValueError):
+        raise MSSFError(f"{name}: expected an angle in radians (a float), got {angle!r}") from None
+    if not math.isfinite(a) or abs(a) > 2 * math.pi + 1e-9:
+        raise MSSFError(f"{name}: expected radians with |{name}| <= 2 pi, got {angle!r}: degrees? pass radians "
+                        f"(math.radians({angle!r}) = {math.radians(a):.4f})" if math.isfinite(a) else
+                        f"{name}: expected a finite angle in radians, got {angle!r}")
+    return a
