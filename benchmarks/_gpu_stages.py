@@ -71,7 +71,7 @@ def msdff_benchmark(device, smoke: bool, repeats: int, deadline: Optional[float]
     after ``deadline`` (a ``time.perf_counter()`` value) are listed as skipped; ``on_row`` gets each row."""
     import torch
 
-    from mssf_blocks.fusion import MSDFF
+    from mssf_blocks.samplers import MSDFF
     from mssf_blocks.geometry import CentroidProjection
 
     h, w = (64, 96) if smoke else (1216, 1952)
@@ -96,9 +96,9 @@ def msdff_benchmark(device, smoke: bool, repeats: int, deadline: Optional[float]
                                   batch_index=torch.zeros(n, dtype=torch.long, device=device))
         query = torch.randn(n, embed, generator=g).to(device)
         torch.manual_seed(0)
-        ref = MSDFF(embed, channels, num_heads=heads, num_levels=len(strides), num_points=points,
+        ref = MSDFF(channels, embed, num_heads=heads, num_levels=len(strides), num_points=points,
                     method="reference", value_projection="before_sampling").to(device).train()
-        ours = MSDFF(embed, channels, num_heads=heads, num_levels=len(strides), num_points=points,
+        ours = MSDFF(channels, embed, num_heads=heads, num_levels=len(strides), num_points=points,
                      method="auto").to(device).train()
         ours.load_state_dict(ref.state_dict())
         for amp in ("float32", "bfloat16"):
@@ -215,7 +215,7 @@ def detector_steps(device, smoke: bool, repeats: int, deadline: Optional[float] 
     import torch
 
     spconv_missing = _spconv_or_stand_in()
-    from mssf_blocks import _compat
+    from mssf_blocks import torch_versions as _compat
     from mssf_examples.detectors import DETECTOR_NAMES, build_detector
     from mssf_examples.spconv_compat import enable_cpu_backward
 

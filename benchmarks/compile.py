@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import print_table, write_json  # noqa: E402
 
 from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels, static_path  # noqa: E402
-from mssf_blocks import _compat  # noqa: E402
+from mssf_blocks import torch_versions as _compat  # noqa: E402
 from mssf_blocks.geometry import CentroidProjection  # noqa: E402
 
 RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)
@@ -50,7 +50,7 @@ def _frame(n: int, seed: int):
     d, h, w = GRID
     idx = torch.randperm(d * h * w, generator=g)[:n]
     coords = torch.stack([torch.zeros(n, dtype=torch.long), idx // (h * w), idx // w % h, idx % w], 1).int()
-    vox = SparseVoxels(torch.randn(n, C_VOX, generator=g), coords, GRID, 1, (0.4, 0.4, 0.5), RANGE[:3])
+    vox = SparseVoxels(torch.randn(n, C_VOX, generator=g), coords, GRID, 1, voxel_size=(0.4, 0.4, 0.5), point_range_min=RANGE[:3])
     pts = torch.rand(4 * n, 3, generator=g) * torch.tensor([51.2, 51.2, 5.0]) + torch.tensor(RANGE[:3])
     # a forward-looking pinhole camera at the origin (x forward): u = 320 - 320 y / x, v = 192 - 320 z / x
     l2i = torch.tensor([[[320.0, -320.0, 0.0, 0.0], [192.0, 0.0, -320.0, 0.0], [1.0, 0.0, 0.0, 0.0]]])
@@ -68,11 +68,11 @@ def _cases():
         return m, lambda mod, vox, inp, proj: mod(inp.image_features, proj)
 
     def msdff():
-        m = MSDFF(C_VOX, C_IMG, num_heads=8, num_levels=4, num_points=4)
+        m = MSDFF(C_IMG, C_VOX, num_heads=8, num_levels=4, num_points=4)
         return m, lambda mod, vox, inp, proj: mod(vox.features, inp.image_features, proj)
 
     def block():
-        m = FusionBlock(MSDFF(C_VOX, C_IMG, num_heads=8, num_levels=4, num_points=4),
+        m = FusionBlock(MSDFF(C_IMG, C_VOX, num_heads=8, num_levels=4, num_points=4),
                         query_init=QueryInit(C_VOX, C_IMG, C_VOX, RANGE))
         return m, lambda mod, vox, inp, proj: mod(vox, inp).features
 

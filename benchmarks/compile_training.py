@@ -22,7 +22,7 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import compile as bench  # noqa: E402
 
-from mssf_blocks import _compat  # noqa: E402
+from mssf_blocks import torch_versions as _compat  # noqa: E402
 from mssf_blocks.functional import plan_costs  # noqa: E402
 
 CHOICES = ("op", "grid")

@@ -1,6 +1,6 @@
 """Measurement: how far a sample's coverage strays from its running value in correct training.
 
-The collapse warnings of the projector (``mssf_blocks._running_coverage``, docs/conventions.md "Common
+The collapse warnings of the projector (``mssf_blocks.checks.coverage``, docs/conventions.md "Common
 mistakes") fire when a sample's in-image fraction or centroid fraction falls below ``COLLAPSE_RATIO``
 times its running value. This script trains the CLI's detector on a tree of generated VoD-like scenes
 (augmentation on: flips, rotations +-pi/4, scaling) with correct geometry, records every sample's
@@ -24,7 +24,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples"))
 
-from mssf_blocks import _running_coverage as rc  # noqa: E402
+from mssf_blocks.checks import coverage as rc  # noqa: E402
 from mssf_examples import cli  # noqa: E402
 from mssf_examples.kitti_export import write_vod_tree  # noqa: E402
 from mssf_examples.scenes import SceneConfig, SyntheticDataset  # noqa: E402

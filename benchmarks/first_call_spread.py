@@ -1,6 +1,6 @@
 """Measurement: the figures of the first-call consistency checks on correct inputs and on mistakes.
 
-The checks of ``mssf_blocks._first_call`` (docs/conventions.md, "Common mistakes") warn on one call,
+The checks of ``mssf_blocks.checks.first_call`` (docs/conventions.md, "Common mistakes") warn on one call,
 without a warm-up, so their thresholds must hold on every correct frame. This script records, wherever
 the projector runs the checks:
 
@@ -37,9 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
 
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector  # noqa: E402
-from mssf_blocks import _first_call as cc  # noqa: E402
+from mssf_blocks.checks import first_call as cc  # noqa: E402
 from mssf_blocks import geometry as _geometry  # noqa: E402
-from mssf_blocks._sanity import _relative_centre  # noqa: E402
+from mssf_blocks.checks.geometry import _relative_centre  # noqa: E402
 from mssf_blocks.errors import MSSFGeometryWarning  # noqa: E402
 from mssf_blocks.geometry import augmentation_matrix  # noqa: E402
 
@@ -118,7 +118,7 @@ def spconv_strides(vox: SparseVoxels, n: int):
     for _ in range(n):
         t = conv(t)
         stride *= 2
-        out.append(SparseVoxels.from_spconv(t, vox.voxel_size, vox.point_range_min, (stride,) * 3))
+        out.append(SparseVoxels.from_spconv(t, voxel_size=vox.voxel_size, point_range_min=vox.point_range_min, stride=(stride,) * 3))
     return out
 
 

@@ -33,7 +33,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from detectors import vod_frame  # noqa: E402  (this folder)
 from mssf_blocks import blocks as _blocks  # noqa: E402
-from mssf_blocks import fusion as _fusion  # noqa: E402
+from mssf_blocks import samplers as _fusion  # noqa: E402
 from mssf_blocks import geometry as _geometry  # noqa: E402
 from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.presets import VOD  # noqa: E402

@@ -110,7 +110,7 @@ class ImagePath(nn.Module):
         m, l, p = HEADS, levels, POINTS
         value_dim = embed_dim if value_dim is None else value_dim
         self.m, self.l, self.p, self.d = m, l, p, value_dim // m
-        self.module = MSDFF(embed_dim, IMAGE_CHANNELS, value_dim=value_dim, num_heads=m, num_levels=l,
+        self.module = MSDFF(IMAGE_CHANNELS, embed_dim, value_dim=value_dim, num_heads=m, num_levels=l,
                             num_points=p, norm_layer=None)
         self.sampling_offsets = self.module.sampling_offsets
         self.attention_weights = self.module.attention_weights

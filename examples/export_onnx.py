@@ -23,7 +23,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from mssf_blocks._compat import require  # noqa: E402
+from mssf_blocks.torch_versions import require  # noqa: E402
 from mssf_examples.data import RadarCameraBatch  # noqa: E402
 from mssf_examples.detectors import build_detector  # noqa: E402
 from mssf_examples.export import PointPillarsGraph, graph_dynamic_shapes, graph_inputs, input_names  # noqa: E402
@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, nargs=3, default=(150, 260, 400), help="points of the 3 scenes")
     ap.add_argument("--tolerance", type=float, default=1e-4)
     args = ap.parse_args(argv)
-    require("onnx_dynamo", "export_onnx.py")  # (torch-version dependent: mssf_blocks._compat)
+    require("onnx_dynamo", "export_onnx.py")  # (torch-version dependent: mssf_blocks.torch_versions)
     import onnxruntime as ort
 
     preset = TINY if args.preset == "tiny" else VOD

@@ -34,7 +34,7 @@ import torch
 from mssf_blocks.diagnostics import BlurCurves, blur_curves, classify_feature_blurring, plot_blur_curves
 from mssf_blocks.functional.heads import voxel_foreground_labels
 from mssf_blocks.heads import SemanticGuidedHead
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 H, W, FOCAL, CX, CY = 240, 480, 300.0, 240.0, 100.0
 #: (dx, dy, dz) of the toy classes
@@ -133,7 +133,7 @@ def as_voxels(feats: torch.Tensor) -> SparseVoxels:
     n = feats.shape[0]
     coords = torch.stack([torch.zeros(n, dtype=torch.long), torch.zeros(n, dtype=torch.long),
                           torch.zeros(n, dtype=torch.long), torch.arange(n)], 1).int()
-    return SparseVoxels(feats, coords, (1, 1, n), 1, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    return SparseVoxels(feats, coords, (1, 1, n), 1, voxel_size=(1.0, 1.0, 1.0), point_range_min=(0.0, 0.0, 0.0))
 
 
 def train_head(scenes: List[Dict[str, torch.Tensor]], variant: str, steps: int, seed: int) -> SemanticGuidedHead:

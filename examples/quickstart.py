@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mssf_blocks import SparseVoxels  # noqa: E402
 from mssf_blocks.blocks import FusionBlock  # noqa: E402
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit  # noqa: E402
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead, voxel_foreground_labels  # noqa: E402
 from mssf_examples.image_branch import ImageBranch  # noqa: E402
 from mssf_examples.scenes import SceneConfig, generate_scene  # noqa: E402
@@ -61,7 +61,8 @@ def main(argv=None) -> int:
     points = torch.cat([s.points for s in scenes])
     points_batch = torch.cat([torch.full((len(s.points),), i, dtype=torch.long) for i, s in enumerate(scenes)])
     vox = dynamic_voxelize(points, points_batch, 2, grid)
-    x = SparseVoxels(vox.features, vox.coords, grid.spatial_shape, 2, grid.voxel_size, grid.point_range_min)
+    x = SparseVoxels(vox.features, vox.coords, grid.spatial_shape, 2, voxel_size=grid.voxel_size,
+                     point_range_min=grid.point_range_min)
     print(f"scenes: {[len(s.points) for s in scenes]} radar points, {[len(s.gt_boxes) for s in scenes]} objects, "
           f"lighting {[s.lighting for s in scenes]}")
     print(f"voxels at stride 1: {x.num_voxels} on grid {x.spatial_shape} (D, H, W)")
@@ -81,16 +82,16 @@ def main(argv=None) -> int:
     down1, res1 = sparse_stage(spconv, c1, c1, "1")
     down2, res2 = sparse_stage(spconv, c1, c2, "2")
     if args.fusion == "msdff":
-        sampler1 = MSDFF(embed_dim=c1, value_channels=32, num_heads=4, num_levels=4, num_points=4)
+        sampler1 = MSDFF(32, c1, num_heads=4, num_levels=4, num_points=4)
         query_init = QueryInit(c1, 32, c1, cfg.point_cloud_range)
     else:
         sampler1, query_init = SFF([32] * 4, c1), None
-    stage1 = FusionBlock(sampler1, down1, res1, query_init=query_init)
-    stage2 = FusionBlock(SFF([32] * 4, c2), down2, res2)
+    stage1 = FusionBlock(sampler1, downsample=down1, blocks=res1, query_init=query_init)
+    stage2 = FusionBlock(SFF([32] * 4, c2), downsample=down2, blocks=res2)
     head = SemanticGuidedHead(c2, hidden=(64, 64))
 
     t0 = time.perf_counter()
-    h = SparseVoxels.from_spconv(stem(x.to_spconv()), x.voxel_size, x.point_range_min)
+    h = SparseVoxels.from_spconv(stem(x.to_spconv()), x.grid, stride=(1, 1, 1))
     before1 = stage1.downsample(h.to_spconv())
     h1 = stage1(h, inputs)
     h2 = stage2(h1, inputs)
@@ -102,7 +103,7 @@ def main(argv=None) -> int:
         print(f"{name} ({type(block.fusion).__name__}): {v.num_voxels} voxels at stride {v.stride}, "
               f"{int(proj.has_points.sum())} hold radar points (the rest use their centre), "
               f"{int(proj.valid.any(1).sum())} project into the image")
-    f_img = stage1.fuse(SparseVoxels.from_spconv(before1, x.voxel_size, x.point_range_min, (2, 2, 2)), inputs).features \
+    f_img = stage1.fuse(SparseVoxels.from_spconv(before1, x.grid, stride=(2, 2, 2)), inputs).features \
         - before1.features
     print(f"stage 1 image feature added: mean |f_img| = {f_img.abs().mean():.4f} "
           f"(voxels outside the image get exactly 0: {int((f_img.abs().sum(1) == 0).sum())} of them)")

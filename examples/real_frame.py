@@ -4,7 +4,7 @@ Reads a KITTI-format radar frame (``mssf_examples.kitti_io``), voxelises the rad
 of the paper (voxel 0.05 x 0.05 x 0.125 m; x 0..51.2, y -25.6..25.6, z -3..2 m), projects the voxel
 centroids at strides 1, 2 and 4 with :class:`~mssf_blocks.VoxelCentroidProjector`, samples a small image
 pyramid (average-pooled RGB at strides 4, 8, 16; no learned weights) with ``SFF`` and ``MSDFF`` from
-``mssf_blocks.fusion``, prints what it computed and writes a PNG: the image with radar points coloured
+``mssf_blocks.samplers``, prints what it computed and writes a PNG: the image with radar points coloured
 by depth, labelled 2D boxes, projected 3D boxes and voxel centroids per stride, plus a bird's-eye view.
 
 Needs the ``examples`` and ``plot`` extras (``pip install -e ".[examples,plot]"`` from a clone: matplotlib
@@ -111,9 +111,9 @@ def sample_features(pyramid: List[Tensor], projections: Dict[int, object], voxel
     """SFF and MSDFF outputs per stride (randomly initialised, eval mode: only the sampling matters)."""
     out: Dict[int, Dict[str, Tensor]] = {s: {} for s in projections}
     try:
-        from mssf_blocks.fusion import MSDFF, SFF
+        from mssf_blocks.samplers import MSDFF, SFF
     except ImportError as exc:
-        print(f"mssf_blocks.fusion not available ({exc}); trying the plain bilinear sampler")
+        print(f"mssf_blocks.samplers not available ({exc}); trying the plain bilinear sampler")
         try:
             from mssf_blocks.functional.sampling import bilinear_sample, camera_mean
         except ImportError as exc2:

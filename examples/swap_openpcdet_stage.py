@@ -14,7 +14,7 @@ Runs on CPU in a few seconds with random radar points and random FPN features::
 
 Notes: spconv 2.3 on CPU supports no bias in sparse convolutions, so this demo builds bias-free
 convolutions; it runs forward only (on a CPU-only torch, spconv's backward needs
-``mssf_blocks.compat.spconv.enable_cpu_backward()`` first, as in the README's drop-in snippet).
+``mssf_blocks.integrations.spconv.enable_cpu_backward()`` first, as in the README's drop-in snippet).
 """
 
 from __future__ import annotations
@@ -26,9 +26,10 @@ import torch
 from torch import nn
 
 import spconv.pytorch as spconv
+from mssf_blocks import VoxelGrid
 from mssf_blocks.blocks import FusionBlock
-from mssf_blocks.compat.spconv import quiet
-from mssf_blocks.fusion import MSDFF, FusionInputs, QueryInit
+from mssf_blocks.integrations.spconv import quiet
+from mssf_blocks.samplers import MSDFF, FusionInputs
 
 POINT_CLOUD_RANGE = (0.0, -25.6, -3.0, 51.2, 25.6, 2.0)  # (x_min, y_min, z_min, x_max, y_max, z_max)
 VOXEL_SIZE = (0.4, 0.4, 0.125)  # (x, y, z); the paper uses 0.05 m in x, y - coarser keeps the demo fast
@@ -99,7 +100,7 @@ class VoxelResBackBone8x(nn.Module):
         )
 
     def forward(self, voxel_features, voxel_coords, batch_size, fusion_inputs: Optional[FusionInputs] = None):
-        with quiet():  # spconv's own torch.fx message (not part of the swap; see mssf_blocks.compat.spconv)
+        with quiet():  # spconv's own torch.fx message (not part of the swap; see mssf_blocks.integrations.spconv)
             x = spconv.SparseConvTensor(voxel_features, voxel_coords, self.sparse_shape, batch_size)
             x = self.conv_input(x)
             outputs = {}
@@ -119,11 +120,11 @@ def swap_conv2_for_fusion(backbone: VoxelResBackBone8x) -> FusionBlock:
     """Replace ``backbone.conv2`` by a fusion block built from the stage's own parts."""
     downsample, *residual = list(backbone.conv2)
     backbone.conv2 = FusionBlock(
-        MSDFF(32, FPN_CHANNELS, num_heads=4, num_levels=len(FPN_STRIDES), num_points=4),
+        MSDFF(FPN_CHANNELS, 32, num_heads=4, num_levels=len(FPN_STRIDES), num_points=4),
         downsample=downsample,  # the stride-2 SparseConv3d block; its stride (2, 2, 2) is read from it
         blocks=spconv.SparseSequential(*residual),
-        query_init=QueryInit(32, FPN_CHANNELS, 32, POINT_CLOUD_RANGE),  # first MSDFF block (eq. 8)
-        voxel_size=VOXEL_SIZE, point_range_min=POINT_CLOUD_RANGE[:3], in_stride=(1, 1, 1),
+        grid=VoxelGrid(VOXEL_SIZE, POINT_CLOUD_RANGE),  # the input's stride is read from its spatial_shape
+        query_init=True,  # the first MSDFF block builds its query (eq. 8) from the fusion's channels and the grid
     )
     return backbone.conv2
 

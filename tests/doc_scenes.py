@@ -117,7 +117,7 @@ def camera_scene(channels: int = 8, stride: int = 1):
     idx = ((points - torch.tensor(lo)) / (torch.tensor(vs) * stride)).floor().int()
     coords = torch.unique(torch.cat([torch.zeros(4, 1, dtype=torch.int32), idx.flip(1)], 1), dim=0)
     voxels = SparseVoxels(torch.randn(coords.shape[0], channels, generator=torch.Generator().manual_seed(0)), coords,
-                          (8 // stride, 40 // stride, 60 // stride), 1, vs, lo, stride=(stride,) * 3)
+                          (8 // stride, 40 // stride, 60 // stride), 1, voxel_size=vs, point_range_min=lo, stride=(stride,) * 3)
     assert points_in_boxes(points, gt_boxes[0])[:, 0].tolist() == [True, False, False, True]
     return dict(projector=VoxelCentroidProjector(), voxels=voxels, points=points, points_batch=points_batch,
                 lidar2img=lidar2img, image_size=image_size, gt_boxes=gt_boxes, gt_boxes_2d=gt_boxes_2d)

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from mssf_blocks.fusion import MSDFF
+from mssf_blocks.samplers import MSDFF
 from mssf_blocks.geometry import CentroidProjection
 
 

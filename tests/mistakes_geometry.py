@@ -34,7 +34,7 @@ def _():
 def _():
     vox, pts, pb, l2i = gs.scene()
     half = [torch.zeros(1, 4, 60, 80)]
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks.samplers import FusionInputs
 
     def run():  # the image and its level resized to half, lidar2img kept: image_size is the new size
         FusionInputs(half, l2i, (240, 320), pts, pb)
@@ -96,33 +96,36 @@ def _():
     return outcome(lambda: fc.VoxelCentroidProjector()(fc.voxelize(pts, pb), pts, pb, l2i, size, aug[None]))
 
 
-@case("`voxel_size` in `(z, y, x)` order, a wrong `in_stride` or `point_range_min`")
+@case("`voxel_size` in `(z, y, x)` order, a wrong voxels' `stride` or `point_range_min`")
 def _():
     vox, pts, pb, l2i, size = _coarse()
-    coarse = fc.SparseVoxels(vox.features, vox.coords, fc.SHAPE, 1, fc.COARSE[::-1], fc.RANGE[:3])
+    coarse = fc.SparseVoxels(vox.features, vox.coords, fc.SHAPE, 1, voxel_size=fc.COARSE[::-1], point_range_min=fc.RANGE[:3])
     fine, fpts, fpb, fl2i = gs.scene()  # a scene where no voxel holds a point
-    zero = fc.SparseVoxels(fine.features, fine.coords, gs.SHAPE, 1, gs.VOXEL[::-1], gs.LO)
+    zero = fc.SparseVoxels(fine.features, fine.coords, gs.SHAPE, 1, voxel_size=gs.VOXEL[::-1], point_range_min=gs.LO)
     return outcome(lambda: fc.VoxelCentroidProjector()(coarse, pts, pb, l2i, size),
                    lambda: fc.VoxelCentroidProjector()(zero, fpts, fpb, fl2i, gs.HW))
 
 
-@case("`in_stride` of a `FusionBlock` given as its output stride")
+@case("a `FusionBlock` built with another grid than its voxels'")
 def _():
     spconv = pytest.importorskip("spconv.pytorch")
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks.samplers import FusionInputs
 
     vox, pts, pb, l2i, size = _coarse()
     inputs = FusionInputs([torch.zeros(1, 3, size[0] // 4, size[1] // 4)], l2i, size, pts, pb)
     torch.manual_seed(0)
     x = spconv.SparseConv3d(4, 4, 3, 2, 1)(vox.to_spconv())
-    return outcome(lambda: fc._block((4, 4, 4))(x, inputs))
+    from mssf_blocks import VoxelGrid
+
+    kitti = VoxelGrid(fc.COARSE, (0.0, -40.0, -3.0, 70.4, 40.0, 1.0))
+    return outcome(lambda: fc._block(grid=kitti)(x, inputs))
 
 
 @case("coords in `(batch, x, y, z)` order")
 def _():
     vox, pts, pb, l2i, size = _coarse()
-    wrong = fc.SparseVoxels(vox.features, vox.coords[:, [0, 3, 2, 1]].contiguous(), fc.SHAPE[::-1], 1, fc.COARSE,
-                            fc.RANGE[:3])
+    wrong = fc.SparseVoxels(vox.features, vox.coords[:, [0, 3, 2, 1]].contiguous(), fc.SHAPE[::-1], 1, voxel_size=fc.COARSE,
+                            point_range_min=fc.RANGE[:3])
     return outcome(lambda: fc.VoxelCentroidProjector()(wrong, pts, pb, l2i, size))
 
 
@@ -131,7 +134,7 @@ def _():
     spconv = pytest.importorskip("spconv.pytorch")
     import test_spconv_inputs as si
     from mssf_blocks import SparseVoxels
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks.samplers import FusionInputs
 
     # a 1.6 x 0.8 x 0.8 m range over voxels (0.1, 0.1, 0.2): (D, H, W) = (4, 8, 16); (16, 8, 4) given
     grid = ((0.1, 0.1, 0.2), (0.0, 0.0, 0.0))

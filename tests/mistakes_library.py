@@ -38,14 +38,14 @@ def _():
     fe = _foreign()
     from mssf_blocks import SparseVoxels
     from mssf_blocks.blocks import FusionBlock
-    from mssf_blocks.fusion import SFF
+    from mssf_blocks.samplers import SFF
     from mssf_blocks.integrations import _backbones
     from torch import nn
 
     spconv = fe.spconv
     runs = [lambda make=make: fe.block(SFF([4], 8)).eval()(make(), fe.inputs())  # the six of test_foreign_errors
             for make, _ in fe.SPCONV_CASES.values()]
-    bare = FusionBlock(SFF([4], 4), in_stride=(1, 1, 1), **fe.GRID).eval()  # no downsample: the same checks
+    bare = FusionBlock(SFF([4], 4), grid=fe.VOXEL_GRID).eval()  # no downsample: the same checks
     biased = spconv.SparseSequential(spconv.SparseConv3d(4, 8, 3, stride=2, padding=1), nn.BatchNorm1d(8))
     net = _backbones.build("VoxelBackBone8x", 4, [0, -25.6, -3, 51.2, 25.6, 2], [0.8, 0.8, 0.125], num_fusion_blocks=0)
     coords = torch.tensor([[0, 1, 2, 3], [0, 2, 3, 4]], dtype=torch.int32)
@@ -56,8 +56,7 @@ def _():
         lambda: fe.block(SFF([4], 8)).eval()(SparseVoxels.from_spconv(fe.sparse(torch.randn(20, 6)), **fe.GRID),
                                              fe.inputs()),  # what a FusionBlock hands its downsample
         lambda: fe.block(SFF([4], 8), blocks=fe.residual(6)).eval()(fe.sparse(torch.randn(20, 4)), fe.inputs()),
-        lambda: FusionBlock(SFF([4], 8, norm_layer=None), downsample=biased, in_stride=(1, 1, 1),
-                            **fe.GRID).eval()(fe.sparse(torch.randn(20, 4)), fe.inputs()),
+        lambda: FusionBlock(SFF([4], 8, norm_layer=None), downsample=biased, grid=fe.VOXEL_GRID).eval()(fe.sparse(torch.randn(20, 4)), fe.inputs()),
         lambda: _backbones.run_dense_layout(net, torch.randn(2, 4, dtype=torch.float64), coords, 1, None),
         lambda: _backbones.run_dense_layout(net, torch.randn(2, 5), coords, 1, None),
     ]
@@ -69,7 +68,7 @@ def _():
     fe = _foreign()
     from mssf_blocks import SparseVoxels
     from mssf_blocks.blocks import FusionBlock
-    from mssf_blocks.fusion import SFF, QueryInit
+    from mssf_blocks.samplers import SFF, QueryInit
     from mssf_blocks.heads import SemanticGuidedHead
     from torch import nn
 
@@ -78,7 +77,7 @@ def _():
     assert SemanticGuidedHead(4, hidden=(8,), norm_layer=nn.LayerNorm).train()(one)[1].shape == (1,)
     qi = QueryInit(8, 4, 8, (0, 0, 0, 1, 1, 1)).train()
     v8 = SparseVoxels(torch.randn(1, 8), torch.tensor([[0, 0, 2, 2]], dtype=torch.int32), (4, 8, 8), 1, **fe.GRID)
-    from mssf_blocks._static import static_path
+    from mssf_blocks.static_path import static_path
 
     def static_sff():  # the static path (no row gather), where data checks run (here: the CPU)
         with static_path():
@@ -88,7 +87,7 @@ def _():
     runs += [lambda m=m: fe.msdff(method=m).train()(torch.randn(5, 8), [torch.randn(1, 4, 8, 8)], fe.projection(5, [2]))
              for m in ("auto", "reference", "fast", "grid")]
     runs += [lambda: qi(torch.randn(1, 8), torch.randn(1, 4), torch.rand(1, 3)),
-             lambda: FusionBlock(fe.msdff(), query_init=qi, **fe.GRID).train()(v8, fe.inputs()),
+             lambda: FusionBlock(fe.msdff(), query_init=qi, grid=fe.VOXEL_GRID).train()(v8, fe.inputs()),
              lambda: SemanticGuidedHead(4, hidden=(8,)).train()(one)]
     return outcome(*runs)
 
@@ -96,7 +95,7 @@ def _():
 @case("camera inputs of different batch sizes")
 def _():
     fe = _foreign()
-    from mssf_blocks.fusion import SFF, FusionInputs
+    from mssf_blocks.samplers import SFF, FusionInputs
 
     runs = [lambda: fe.inputs(batch=2, l2i=fe.L2I),
             lambda: fe.inputs(batch=1, l2i=fe.L2I.expand(2, 3, 4), points_to_sensor=torch.eye(4).expand(2, 4, 4)),
@@ -123,7 +122,7 @@ def _():
     fe = _foreign()
     from mssf_blocks import SparseVoxels
     from mssf_blocks.blocks import FusionBlock
-    from mssf_blocks.fusion import MSDFF, SFF, QueryInit
+    from mssf_blocks.samplers import MSDFF, SFF, QueryInit
     from mssf_blocks.heads import SemanticGuidedHead
     from mssf_blocks.lift import PillarLift
 
@@ -132,9 +131,9 @@ def _():
     qi = QueryInit(8, 4, 8, (0, 0, 0, 1, 1, 1))
     return outcome(
         lambda: fe.block(fe.msdff(embed_dim=16)).eval()(fe.sparse(torch.randn(20, 4)), fe.inputs()),
-        lambda: FusionBlock(SFF([4], 6), **fe.GRID).eval()(v, fe.inputs()),
+        lambda: FusionBlock(SFF([4], 6), grid=fe.VOXEL_GRID).eval()(v, fe.inputs()),
         lambda: SFF([4, 6], 8).eval()(levels, fe.projection(3, [0, 1])),
-        lambda: MSDFF(8, 6, num_heads=2, num_levels=2, num_points=1).eval()(torch.randn(3, 8), levels,
+        lambda: MSDFF(6, 8, num_heads=2, num_levels=2, num_points=1).eval()(torch.randn(3, 8), levels,
                                                                            fe.projection(3, [0, 1])),
         lambda: fe.msdff().eval()(torch.randn(3, 4), [torch.randn(1, 4, 8, 8)], fe.projection(3, [0, 1])),
         lambda: qi(torch.randn(3, 6), torch.randn(3, 4), torch.rand(3, 3)),
@@ -147,8 +146,8 @@ def _():
 @case("converter: a missing tensor")
 def _():
     ol = _helpers("test_mssf_official_load")
-    from mssf_blocks.compat.mssf_official import ModuleMap, load_official, official_to_ours
-    from mssf_blocks.fusion import QueryInit
+    from mssf_blocks.weights import ModuleMap, load_official, official_to_ours
+    from mssf_blocks.samplers import QueryInit
 
     maps = [ModuleMap("query_init", f"{ol.ENC}.query_proj", "", voxel_channels=4)]
     missing = ol._theirs_query_init(4, 6, 4)

@@ -14,18 +14,18 @@ import numpy as np
 import pytest
 import torch
 
-from mssf_blocks import MSSFError, SparseVoxels, VoxelCentroidProjector, _compat
+from mssf_blocks import MSSFError, SparseVoxels, VoxelCentroidProjector, torch_versions as _compat
 from mssf_blocks.blocks import FusionBlock
 from mssf_blocks.functional.deform import touched
 from mssf_blocks.functional.geometry import project_points, voxel_centroids, voxel_centroids_reference
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit
 from mssf_blocks.geometry import CentroidProjection
 from mssf_blocks.heads import SemanticGuidedHead
 from mssf_blocks.lift import PillarLift
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-# float16 CPU autocast needs a newer torch than the library's floor (mssf_blocks._compat); skipped there
+# float16 CPU autocast needs a newer torch than the library's floor (mssf_blocks.torch_versions); skipped there
 _NO_CPU_F16 = _compat.missing("cpu_float16_autocast")
 AMP = [torch.bfloat16, pytest.param(torch.float16, marks=pytest.mark.skipif(_NO_CPU_F16 is not None,
                                                                             reason=str(_NO_CPU_F16)))]
@@ -135,10 +135,10 @@ def test_fusion_block_samples_at_float64_exact_spots_under_autocast(amp):
     voxel, lo = (0.4, 0.4, 0.5), (0.0, -25.6, -3.0)
     coords = torch.unique(torch.cat([torch.zeros(len(pts), 1), ((pts - torch.tensor(lo)) / torch.tensor(voxel))
                                      .floor()[:, [2, 1, 0]]], 1).int(), dim=0)
-    vox = SparseVoxels(torch.randn(len(coords), 8), coords, (10, 128, 128), 1, voxel, lo)
+    vox = SparseVoxels(torch.randn(len(coords), 8), coords, (10, 128, 128), 1, voxel_size=voxel, point_range_min=lo)
     levels = [torch.randn(1, 6, VOD_HW[0] // s, VOD_HW[1] // s) for s in (16, 32)]
     inputs = FusionInputs(levels, torch.from_numpy(l2i)[None], VOD_HW, pts, torch.zeros(len(pts), dtype=torch.long))
-    block = FusionBlock(MSDFF(8, 6, num_heads=2, num_levels=2, num_points=2),
+    block = FusionBlock(MSDFF(6, 8, num_heads=2, num_levels=2, num_points=2),
                         query_init=QueryInit(8, 6, 8, lo + (51.2, 25.6, 2.0)), projector=RecordingProjector()).eval()
     with torch.autocast("cpu", dtype=amp):
         block(vox, inputs)
@@ -224,8 +224,8 @@ def small_scene(c_img=6, levels_hw=((12, 16), (6, 8)), image_size=(48, 64), dtyp
     pb = torch.zeros(30, dtype=torch.long)
     idx = ((pts - torch.tensor([0.0, -4, -1])) / 0.5).floor().long()
     coords = torch.unique(torch.cat([pb[:, None], idx[:, [2, 1, 0]]], 1), dim=0).int()
-    vox = SparseVoxels(torch.randn(len(coords), 8, generator=g, dtype=dtype), coords, (4, 16, 20), 1, (0.5,) * 3,
-                       (0.0, -4.0, -1.0))
+    vox = SparseVoxels(torch.randn(len(coords), 8, generator=g, dtype=dtype), coords, (4, 16, 20), 1, voxel_size=(0.5,) * 3,
+                       point_range_min=(0.0, -4.0, -1.0))
     l2i = torch.tensor([[[32.0, -40, 0, 0], [24, 0, -40, 0], [1, 0, 0, 0]]])
     levels = [torch.randn(1, c_img, h, w, generator=g) for h, w in levels_hw]
     return vox, levels, l2i, image_size, pts, pb
@@ -274,7 +274,7 @@ def test_swapped_image_size_is_refused(levels_hw, size):
 
 def test_wrong_level_channels_in_msdff_block_name_the_image_level():
     vox, levels, l2i, size, pts, pb = small_scene(c_img=256)
-    block = FusionBlock(MSDFF(8, 64, num_heads=2, num_levels=2, num_points=2),
+    block = FusionBlock(MSDFF(64, 8, num_heads=2, num_levels=2, num_points=2),
                         query_init=QueryInit(8, 64, 8, (0, -4, -1, 10, 4, 1))).eval()
     with pytest.raises(MSSFError, match=r"^inputs\.image_features\[0\]: expected shape \(B=1, 64, \*, \*\)") as info:
         block(vox, FusionInputs(levels, l2i, size, pts, pb))
@@ -301,7 +301,7 @@ def _case(name):
             r"image_features\[0\]"
     if name == "MSDFF":
         levels = [torch.randn(1, 6, 12, 16, generator=g), torch.randn(1, 6, 6, 8, generator=g)]
-        mod = MSDFF(8, 6, num_heads=2, num_levels=2, num_points=2).eval()
+        mod = MSDFF(6, 8, num_heads=2, num_levels=2, num_points=2).eval()
         return mod, lambda mod, x: mod(x, levels, _proj(20)), torch.randn(20, 8, generator=g), "query"
     if name == "QueryInit":
         f_img0, centers = torch.randn(20, 6, generator=g), torch.rand(20, 3, generator=g) * 4
@@ -310,7 +310,7 @@ def _case(name):
     if name.startswith("FusionBlock"):
         vox, levels, l2i, size, pts, pb = small_scene()
         inputs = FusionInputs(levels, l2i, size, pts, pb)
-        fusion = SFF([6, 6], 8) if name == "FusionBlock-SFF" else MSDFF(8, 6, num_heads=2, num_levels=2, num_points=2)
+        fusion = SFF([6, 6], 8) if name == "FusionBlock-SFF" else MSDFF(6, 8, num_heads=2, num_levels=2, num_points=2)
         qi = QueryInit(8, 6, 8, (0, -4, -1, 10, 4, 1)) if name == "FusionBlock-MSDFF" else None
         mod = FusionBlock(fusion, query_init=qi).eval()
         return mod, lambda mod, x: mod(vox.replace(features=x), inputs).features, vox.features, r"x\.features"
@@ -372,7 +372,7 @@ def test_projector_geometry_is_float32_or_better(dtype, expected):
 def test_check_finite_sum_shortcut_is_exact():
     # finite entries whose sum overflows to inf are still finite (the exact test decides); one NaN or
     # inf anywhere is refused, named, and counted
-    from mssf_blocks._checks import check_finite
+    from mssf_blocks.checks.tensors import check_finite
 
     big = torch.full((4,), 3e38)
     assert not bool(torch.isfinite(big.sum()))

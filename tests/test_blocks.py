@@ -9,10 +9,11 @@ spconv = pytest.importorskip("spconv.pytorch")
 
 from mssf_blocks.blocks import FusionBlock, infer_downsample_stride  # noqa: E402
 from mssf_blocks.errors import MSSFError  # noqa: E402
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit  # noqa: E402
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
-from mssf_blocks.sparse import SparseVoxels  # noqa: E402
+from mssf_blocks.sparse_voxels import SparseVoxels  # noqa: E402
 from mssf_blocks.testing import assert_close  # noqa: E402
+from mssf_blocks.voxel_grid import VoxelGrid  # noqa: E402
 
 
 VOXEL_SIZE = (0.5, 0.5, 0.5)
@@ -38,7 +39,7 @@ def make_scene(seed=0, b=2, c=8, v=2, image_channels=6, num_points=60, stride=(1
     idx = ((pts - lo) / cell).floor().long()
     coords = torch.unique(torch.cat([pb[:, None], idx[:, [2, 1, 0]]], 1), dim=0).int()
     feats = torch.randn(coords.shape[0], c, generator=gen)
-    voxels = SparseVoxels(feats, coords, shape, b, VOXEL_SIZE, RANGE_MIN, stride=stride)
+    voxels = SparseVoxels(feats, coords, shape, b, voxel_size=VOXEL_SIZE, point_range_min=RANGE_MIN, stride=stride)
     # camera 0 looks along +x (u = 32 - 40 y / x, v = 24 - 40 z / x), camera 1 is shifted sideways.
     cam0 = torch.tensor([[32.0, -40, 0, 0], [24, 0, -40, 0], [1, 0, 0, 0]])
     cam1 = cam0.clone()
@@ -74,8 +75,8 @@ def test_spconv_in_spconv_out_keeps_index_cache():
     voxels, inputs = make_scene()
     torch.manual_seed(0)
     down, blocks = stage(8, 16)
-    block = FusionBlock(SFF([6, 6], 16), down, blocks, voxel_size=VOXEL_SIZE, point_range_min=RANGE_MIN,
-                        in_stride=(1, 1, 1)).eval()
+    block = FusionBlock(SFF([6, 6], 16), VoxelGrid.covering(VOXEL_SIZE, RANGE_MIN, SHAPE), downsample=down,
+                        blocks=blocks).eval()
     x = spconv.SparseConvTensor(voxels.features, voxels.coords, list(SHAPE), 2)
     out = block(x, inputs)
     assert isinstance(out, spconv.SparseConvTensor)
@@ -84,7 +85,7 @@ def test_spconv_in_spconv_out_keeps_index_cache():
     # Independent composition: downsample, then fuse at stride 2 (the stride changes the centres of
     # empty voxels, so a wrong stride changes f_img), then the residual part.
     d = down(spconv.SparseConvTensor(voxels.features, voxels.coords, list(SHAPE), 2))
-    dv = SparseVoxels(d.features, d.indices, tuple(d.spatial_shape), 2, VOXEL_SIZE, RANGE_MIN, stride=(2, 2, 2))
+    dv = SparseVoxels(d.features, d.indices, tuple(d.spatial_shape), 2, voxel_size=VOXEL_SIZE, point_range_min=RANGE_MIN, stride=(2, 2, 2))
     f_img, proj = f_img_of(block.fusion, dv, inputs)
     assert proj.valid.any() and not proj.valid.all()
     want = blocks(d.replace_feature(d.features + f_img)).features
@@ -105,7 +106,7 @@ def test_spconv_in_spconv_out_keeps_index_cache():
 def test_sparse_voxels_in_out_with_stride(position):
     voxels, inputs = make_scene(seed=1, stride=(2, 2, 2), shape=(2, 8, 10))
     down, blocks = stage(8, 16)
-    block = FusionBlock(MSDFF(16, 6, num_heads=2, num_levels=2, num_points=2), down, blocks, position=position)
+    block = FusionBlock(MSDFF(6, 16, num_heads=2, num_levels=2, num_points=2), downsample=down, blocks=blocks, position=position)
     assert block.downsample_stride == (2, 2, 2)
     out = block(voxels, inputs)
     assert isinstance(out, SparseVoxels)
@@ -121,7 +122,7 @@ def test_gradients_reach_images_and_parameters(value_dim):
     voxels, inputs = make_scene(seed=6, c=8)
     levels = [l.clone().requires_grad_(True) for l in inputs.image_features]
     inputs = FusionInputs(levels, inputs.lidar2img, IMAGE, inputs.points, inputs.points_batch)
-    msdff = MSDFF(8, 6, value_dim, num_heads=2, num_levels=2, num_points=2)
+    msdff = MSDFF(6, 8, value_dim, num_heads=2, num_levels=2, num_points=2)
     qi = QueryInit(8, 6, 8, (*RANGE_MIN, 10.0, 4.0, 1.0))
     with torch.no_grad():  # at Deformable-DETR init the query has no effect (zero offset/attention weights)
         msdff.sampling_offsets.weight.normal_(0.0, 0.1)
@@ -135,7 +136,7 @@ def test_gradients_reach_images_and_parameters(value_dim):
 def test_anisotropic_downsample_stride():
     voxels, inputs = make_scene(seed=2)
     down = spconv.SparseConv3d(8, 8, 3, stride=(1, 2, 2), padding=1, bias=False, indice_key="a")
-    block = FusionBlock(SFF([6, 6], 8), down).eval()
+    block = FusionBlock(SFF([6, 6], 8), downsample=down).eval()
     assert block.downsample_stride == (1, 2, 2)
     out = block(voxels, inputs)
     assert out.stride == (1, 2, 2) and out.spatial_shape == (4, 8, 10)
@@ -152,7 +153,7 @@ def test_infer_downsample_stride():
         infer_downsample_stride(nn.Identity())
     with pytest.raises(MSSFError, match="downsample_stride"):
         infer_downsample_stride(spconv.SparseInverseConv3d(2, 2, 3, indice_key="x"))
-    assert FusionBlock(SFF([6], 8), nn.Identity(), downsample_stride=(1, 1, 1)).downsample_stride == (1, 1, 1)
+    assert FusionBlock(SFF([6], 8), downsample=nn.Identity(), downsample_stride=(1, 1, 1)).downsample_stride == (1, 1, 1)
 
 
 def test_position_order_is_observable():
@@ -178,7 +179,7 @@ def test_position_order_is_observable():
 def test_first_msdff_block_uses_query_init(value_dim):
     voxels, inputs = make_scene(seed=4, c=8, v=1, num_points=40)
     pcr = (*RANGE_MIN, 10.0, 4.0, 1.0)
-    msdff = MSDFF(8, 6, value_dim, num_heads=2, num_levels=2, num_points=2).eval()
+    msdff = MSDFF(6, 8, value_dim, num_heads=2, num_levels=2, num_points=2).eval()
     qi = QueryInit(8, 6, 8, pcr).eval()
     block = FusionBlock(msdff, query_init=qi)
     captured = {}
@@ -210,7 +211,7 @@ def test_bad_arguments():
     with pytest.raises(MSSFError, match="query_init"):
         FusionBlock(SFF([6, 6], 8), query_init=QueryInit(8, 6, 8, (0, 0, 0, 1, 1, 1)))
     with pytest.raises(MSSFError, match="query_init"):
-        FusionBlock(MSDFF(8, 6, num_heads=2, num_levels=2), query_init=QueryInit(8, 6, 16, (0, 0, 0, 1, 1, 1)))
+        FusionBlock(MSDFF(6, 8, num_heads=2, num_levels=2), query_init=QueryInit(8, 6, 16, (0, 0, 0, 1, 1, 1)))
     with pytest.raises(MSSFError, match="position"):
         FusionBlock(SFF([6, 6], 8), position="middle")
     with pytest.raises(MSSFError, match="fusion"):

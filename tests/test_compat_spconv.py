@@ -1,4 +1,4 @@
-"""mssf_blocks.compat.spconv: CPU backward (gradients equal a dense conv3d), quiet spconv calls, dense().
+"""mssf_blocks.integrations.spconv: CPU backward (gradients equal a dense conv3d), quiet spconv calls, dense().
 
 The message checks run in fresh interpreters: torch.fx prints its ``is_fx_tracing`` message once per
 process, so only a new process shows whether a run prints it.
@@ -15,8 +15,8 @@ import torch.nn.functional as F
 
 spconv = pytest.importorskip("spconv.pytorch")
 
-from mssf_blocks import _compat  # noqa: E402
-from mssf_blocks.compat.spconv import dense, enable_cpu_backward, quiet  # noqa: E402
+from mssf_blocks import torch_versions as _compat  # noqa: E402
+from mssf_blocks.integrations.spconv import dense, enable_cpu_backward, quiet  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 FX_MESSAGE = "is_fx_tracing will return true"
@@ -92,7 +92,7 @@ def _run(code: str) -> str:
 
 _RAW = """
 import torch, spconv.pytorch as spconv
-from mssf_blocks.compat.spconv import quiet
+from mssf_blocks.integrations.spconv import quiet
 coords = torch.tensor([[0, 1, 1, 1], [0, 2, 2, 2]], dtype=torch.int32)
 with {ctx}:
     x = spconv.SparseConvTensor(torch.randn(2, 4), coords, [4, 4, 4], 1)

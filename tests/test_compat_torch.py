@@ -1,4 +1,4 @@
-"""mssf_blocks._compat: the torch-version shims give the same results on every torch, and a missing feature
+"""mssf_blocks.torch_versions: the torch-version shims give the same results on every torch, and a missing feature
 is refused with the torch version it needs. Runs in every environment of `make test-compat`."""
 
 import re
@@ -6,7 +6,7 @@ import re
 import pytest
 import torch
 
-from mssf_blocks import MSSFError, _compat
+from mssf_blocks import MSSFError, torch_versions as _compat
 
 
 def test_missing_feature_is_refused_naming_the_versions(monkeypatch):

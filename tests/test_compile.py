@@ -22,14 +22,14 @@ from mssf_blocks import (
     SemanticGuidedHead,
     SparseVoxels,
 )
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 from mssf_blocks.functional.deform import kept
 from mssf_blocks.geometry import CentroidProjection
 
 torch._dynamo = pytest.importorskip("torch._dynamo")
 from torch._dynamo.testing import CompileCounterWithBackend  # noqa: E402
 
-# fullgraph capture of the blocks (their input checks) needs a newer dynamo than the floor's (mssf_blocks._compat)
+# fullgraph capture of the blocks (their input checks) needs a newer dynamo than the floor's (mssf_blocks.torch_versions)
 _NO_COMPILE = _compat.missing("compile_dynamic")
 pytestmark = [pytest.mark.usefixtures("one_thread"),
               pytest.mark.skipif(_NO_COMPILE is not None, reason=str(_NO_COMPILE))]
@@ -50,7 +50,7 @@ def _scene(n, seed):
     idx = torch.randperm(4 * 16 * 16, generator=g)[:n]
     coords = torch.stack([torch.zeros(n, dtype=torch.long), idx // 256, idx // 16 % 16, idx % 16], 1).int()
     feats = torch.randn(n, 16, generator=g, dtype=F64).requires_grad_()
-    vox = SparseVoxels(feats, coords, (4, 16, 16), 1, (0.5, 0.5, 0.5), RANGE[:3])
+    vox = SparseVoxels(feats, coords, (4, 16, 16), 1, voxel_size=(0.5, 0.5, 0.5), point_range_min=RANGE[:3])
     pts = torch.rand(3 * n, 3, generator=g, dtype=F64) * torch.tensor([8.5, 8.0, 2.0], dtype=F64) + torch.tensor(
         RANGE[:3], dtype=F64)
     uv = torch.rand(n, 1, 2, generator=g, dtype=F64) * 1.2 - 0.1  # a projection for the samplers alone
@@ -86,10 +86,10 @@ def _query_init_run(m, vox, pts, pb, proj):
 
 CASES = {
     "SFF": (lambda: SFF([8, 8], 16), _sampler_run),
-    "MSDFF": (lambda: MSDFF(16, 8, num_heads=2, num_levels=2, num_points=2), _sampler_run),
+    "MSDFF": (lambda: MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2), _sampler_run),
     "QueryInit": (lambda: QueryInit(16, 8, 16, RANGE), _query_init_run),
     "FusionBlock-SFF": (lambda: FusionBlock(SFF([8, 8], 16)), _fusion_run),
-    "FusionBlock-MSDFF": (lambda: FusionBlock(MSDFF(16, 8, num_heads=2, num_levels=2, num_points=2),
+    "FusionBlock-MSDFF": (lambda: FusionBlock(MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2),
                                               query_init=QueryInit(16, 8, 16, RANGE)), _fusion_run),
     "SemanticGuidedHead": (lambda: SemanticGuidedHead(16, hidden=(8,)), _head_run),
     "PillarLift": (lambda: PillarLift(16, 4), _lift_run),

@@ -19,7 +19,8 @@ import torch
 
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector
 from mssf_blocks.errors import MSSFGeometryWarning
-from mssf_blocks.geometry import augmentation_matrix, set_geometry_checks
+from mssf_blocks.geometry import augmentation_matrix
+from mssf_blocks.checks import set_geometry_checks
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_geometry_sanity import LO, SHAPE, VOXEL, scene  # noqa: E402
@@ -51,7 +52,7 @@ def rotated(rotation: float, seed: int):
            / torch.tensor(VOXEL, dtype=torch.float64)).floor().long()
     cells = torch.unique(torch.stack([idx[:, 2], idx[:, 1], idx[:, 0]], 1), dim=0)
     coords = torch.cat([torch.zeros(len(cells), 1, dtype=torch.long), cells], 1).int()
-    vox = SparseVoxels(torch.zeros(len(cells), 4), coords, (30, 480, 240), 1, VOXEL, WIDE_LO)
+    vox = SparseVoxels(torch.zeros(len(cells), 4), coords, (30, 480, 240), 1, voxel_size=VOXEL, point_range_min=WIDE_LO)
     return vox, pts_aug, pb, l2i, aug
 
 
@@ -97,7 +98,7 @@ def test_a_drop_within_the_threshold_is_quiet():
 
 def test_point_range_min_a_voxel_off_collapses_the_centroid_fraction():
     vox, pts, pb, l2i = scene(seed=3)
-    shifted = SparseVoxels(vox.features, vox.coords, SHAPE, 1, VOXEL, (LO[0], LO[1] + VOXEL[1], LO[2]))
+    shifted = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=VOXEL, point_range_min=(LO[0], LO[1] + VOXEL[1], LO[2]))
     out, msgs = run(VoxelCentroidProjector(), shifted, pts, pb, l2i)
     # a few neighbours: not zero (the zero check is silent; the first-call points-in-voxels check names it)
     assert 0.0 < out.has_points.float().mean().item() < 0.05 and first_call(msgs, "points: only") == []
@@ -113,7 +114,7 @@ def test_point_range_min_a_voxel_off_collapses_the_centroid_fraction():
 def test_points_labelled_with_another_sample_warn_for_the_sample_left_without_points():
     (v0, p0, b0, l0), (v1, p1, b1, l1) = scene(seed=1), scene(seed=2)
     coords = torch.cat([v0.coords, v1.coords + torch.tensor([1, 0, 0, 0], dtype=torch.int32)])
-    vox = SparseVoxels(torch.zeros(len(coords), 4), coords, SHAPE, 2, VOXEL, LO)
+    vox = SparseVoxels(torch.zeros(len(coords), 4), coords, SHAPE, 2, voxel_size=VOXEL, point_range_min=LO)
     pts, l2i = torch.cat([p0, p1]), torch.cat([l0, l1])
     right = torch.cat([b0, b1 + 1])
     wrong = torch.zeros_like(right)  # every point labelled sample 0: sample 1 has voxels and no points

@@ -20,11 +20,11 @@ import torch
 from torch import nn
 
 from mssf_blocks.blocks import FusionBlock
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit
 from mssf_blocks.geometry import CentroidProjection
 from mssf_blocks.heads import SemanticGuidedHead
 from mssf_blocks.lift import PillarLift
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 TOL32 = dict(rtol=1e-4, atol=1e-4)
 TOL64 = dict(rtol=1e-10, atol=1e-10)
@@ -184,14 +184,14 @@ def test_msdff_every_method_matches_the_loop_reference(device, dtype):
     g = torch.Generator().manual_seed(4)
     query = torch.randn(uv.shape[0], e, generator=g, dtype=torch.float64)
     torch.manual_seed(0)
-    base = randomize(MSDFF(e, 4, num_heads=m, num_levels=2, num_points=pts))
+    base = randomize(MSDFF(4, e, num_heads=m, num_levels=2, num_points=pts))
     ref_p = cpu64(dict(base.named_parameters()))
     ref = msdff_ref(query, levels, uv, valid, bidx, ref_p, m, pts)
     w = torch.randn(ref.shape, dtype=torch.float64, generator=g)
     (ref * w).sum().backward()
     tol = TOL64 if dtype == torch.float64 else TOL32
     for method, order in (("auto", "after_sampling"), ("fast", "after_sampling"), ("reference", "before_sampling")):
-        mod = MSDFF(e, 4, num_heads=m, num_levels=2, num_points=pts, method=method, value_projection=order)
+        mod = MSDFF(4, e, num_heads=m, num_levels=2, num_points=pts, method=method, value_projection=order)
         mod.load_state_dict(base.state_dict())
         mod = mod.to(device, dtype).train()
         out = mod(query.to(device, dtype), [l.to(device, dtype) for l in levels],
@@ -226,7 +226,7 @@ def _voxels(device, dtype, seed=6):
                                      torch.randint(0, 6, (30, 1), generator=g), torch.randint(0, 8, (30, 1), generator=g)],
                                     1), dim=0).int()
     feats = torch.randn(coords.shape[0], 6, generator=g, dtype=torch.float64)
-    return SparseVoxels(feats.to(device, dtype), coords.to(device), (4, 6, 8), 2, (0.5, 0.5, 0.5), (0.0, -1.5, -1.0))
+    return SparseVoxels(feats.to(device, dtype), coords.to(device), (4, 6, 8), 2, voxel_size=(0.5, 0.5, 0.5), point_range_min=(0.0, -1.5, -1.0))
 
 
 def test_pillar_lift_matches_the_gather(device):
@@ -322,7 +322,7 @@ def test_msdff_host_syncs_do_not_grow_with_the_voxels_on_cuda(method):  # GPU ma
         uv, valid, bidx = make_projection(n=n, v=1, b=1)
         valid[:] = True
         levels = [lvl.float().to(dev) for lvl in make_levels(b=1, v=1, c=4)]
-        mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=2, method=method).to(dev).train()
+        mod = MSDFF(4, 8, num_heads=2, num_levels=2, num_points=2, method=method).to(dev).train()
         q = torch.randn(n, 8, device=dev, requires_grad=True)
         proj = projection_on(uv, valid, bidx, dev, torch.float32)
         mod(q, levels, proj).sum().backward()  # warm-up (cuBLAS handles, caches)

@@ -19,7 +19,7 @@ from test_docs_snippets import _SIGNATURES, FRAGMENTS  # noqa: E402 - the classi
 
 
 _SIGNATURE_START = re.compile(r"^([ \t]*)(\.?)(\w+)\(", re.M)
-_SIGNATURE_MODULES = ("mssf_blocks", "mssf_blocks.diagnostics", "mssf_blocks.fusion", "mssf_blocks.heads",
+_SIGNATURE_MODULES = ("mssf_blocks", "mssf_blocks.diagnostics", "mssf_blocks.samplers", "mssf_blocks.heads",
                       "mssf_blocks.lift", "mssf_blocks.functional.lift", "mssf_blocks.functional.sampling",
                       "mssf_blocks.functional.deform")
 

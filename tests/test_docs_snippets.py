@@ -235,7 +235,7 @@ def diagnostics_mask_blur(run, tmp_path):
     assert ns["f_img"].shape == (len(centroid_x), 8)
 
 
-@snippet("docs/fusion.md", "from mssf_blocks.fusion import MSDFF")
+@snippet("docs/fusion.md", "from mssf_blocks.samplers import MSDFF")
 def fusion_value_projection_orders(run, tmp_path):
     ns = camera_scene(channels=64)
     proj = ns["projector"](ns["voxels"], ns["points"], ns["points_batch"], ns["lidar2img"], ns["image_size"])

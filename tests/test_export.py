@@ -7,7 +7,7 @@ The whole MSSF-PointPillars detector goes through ONNX in tests/examples/test_ex
 import pytest
 import torch
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 from mssf_blocks import (
     MSDFF,
     SFF,
@@ -18,7 +18,6 @@ from mssf_blocks import (
     SemanticGuidedHead,
     SparseVoxels,
 )
-from mssf_blocks.deploy import PYTREE_FIELDS
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -35,7 +34,7 @@ def _scene(n, seed):
     g = torch.Generator().manual_seed(seed)
     idx = torch.randperm(4 * 16 * 16, generator=g)[:n]
     coords = torch.stack([torch.zeros(n, dtype=torch.long), idx // 256, idx // 16 % 16, idx % 16], 1).int()
-    vox = SparseVoxels(torch.randn(n, 16, generator=g), coords, (4, 16, 16), 1, (0.5, 0.5, 0.5), RANGE[:3])
+    vox = SparseVoxels(torch.randn(n, 16, generator=g), coords, (4, 16, 16), 1, voxel_size=(0.5, 0.5, 0.5), point_range_min=RANGE[:3])
     pts = torch.rand(3 * n, 3, generator=g) * torch.tensor([8.5, 8.0, 2.0]) + torch.tensor(RANGE[:3])
     uv = torch.rand(n, 1, 2, generator=g) * 1.2 - 0.1
     valid = (uv >= 0).all(-1) & (uv <= 1).all(-1)
@@ -43,7 +42,7 @@ def _scene(n, seed):
     return vox, FusionInputs(FEATS, L2I, (48, 64), pts, torch.zeros(3 * n, dtype=torch.long)), proj
 
 
-# torch.export with dynamic shapes needs a newer torch than the library's floor (mssf_blocks._compat)
+# torch.export with dynamic shapes needs a newer torch than the library's floor (mssf_blocks.torch_versions)
 NO_EXPORT = _compat.missing("export_dynamic_shapes")
 NO_ONNX_DYNAMO = NO_EXPORT or _compat.missing("onnx_dynamo")
 if NO_EXPORT is None:
@@ -52,7 +51,7 @@ if NO_EXPORT is None:
     N, P = Dim("N", min=2), Dim("P", min=2)
 else:
     N = P = None
-VOXELS = [{0: N}, {0: N}]  # SparseVoxels: features, coords (deploy.PYTREE_FIELDS)
+VOXELS = [{0: N}, {0: N}]  # SparseVoxels: features, coords (SparseVoxels.PYTREE_FIELDS)
 INPUTS = [[None, None], None, {0: P}, {0: P}, None]  # FusionInputs: levels, lidar2img, points, points_batch, p2s
 PROJ = [{0: N}] * 6  # CentroidProjection: uv, depth, valid, centroid, has_points, batch_index
 
@@ -62,13 +61,13 @@ def _case(name):
     if name == "SFF":
         return SFF([8, 8], 16), lambda v, i, p: (FEATS, p), ([None, None], PROJ)
     if name == "MSDFF":
-        return (MSDFF(16, 8, num_heads=2, num_levels=2, num_points=2), lambda v, i, p: (v.features, FEATS, p),
+        return (MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2), lambda v, i, p: (v.features, FEATS, p),
                 ({0: N}, [None, None], PROJ))
     if name == "QueryInit":
         return (QueryInit(16, 8, 16, RANGE), lambda v, i, p: (v.features, v.features[:, :8].clone(), v.voxel_centers()),
                 ({0: N}, {0: N}, {0: N}))
     if name == "FusionBlock":
-        block = FusionBlock(MSDFF(16, 8, num_heads=2, num_levels=2, num_points=2), query_init=QueryInit(16, 8, 16, RANGE))
+        block = FusionBlock(MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2), query_init=QueryInit(16, 8, 16, RANGE))
         return block, lambda v, i, p: (v, i), (VOXELS, INPUTS)
     if name == "SemanticGuidedHead":
         return SemanticGuidedHead(16, hidden=(8,)), lambda v, i, p: (v,), (VOXELS,)
@@ -103,7 +102,7 @@ def test_sparse_voxels_round_trip_through_pytree():
     assert [id(t) for t in leaves] == [id(vox.features), id(vox.coords)]
     back = torch.utils._pytree.tree_unflatten(leaves, spec)
     assert isinstance(back, SparseVoxels) and back.spatial_shape == vox.spatial_shape and back.stride == vox.stride
-    assert PYTREE_FIELDS[SparseVoxels] == ("features", "coords")
+    assert SparseVoxels.PYTREE_FIELDS == ("features", "coords")
 
 
 @pytest.mark.skipif(NO_ONNX_DYNAMO is not None, reason=str(NO_ONNX_DYNAMO))

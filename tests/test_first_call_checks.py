@@ -41,7 +41,7 @@ def voxelize(points: torch.Tensor, points_batch: torch.Tensor, batch_size: int =
     idx = ((points[keep].double() - lo.double()) / torch.tensor(COARSE, dtype=torch.float64)).floor().long()
     rows = torch.cat([points_batch[keep, None], idx[:, [2, 1, 0]]], 1)
     coords = torch.unique(rows, dim=0).int()
-    return SparseVoxels(torch.zeros(len(coords), 4), coords, SHAPE, batch_size, COARSE, RANGE[:3])
+    return SparseVoxels(torch.zeros(len(coords), 4), coords, SHAPE, batch_size, voxel_size=COARSE, point_range_min=RANGE[:3])
 
 
 def scene(seed: int = 0):
@@ -71,7 +71,7 @@ def test_correct_coarse_scene_is_quiet_at_every_stride():
         t = vox.to_spconv()
         for k in range(2):  # the voxels of SparseConv3d(kernel 3, stride 2, padding 1), as backbones build them
             t = spconv.SparseConv3d(4, 4, 3, 2, 1)(t)
-            down = SparseVoxels.from_spconv(t, COARSE, RANGE[:3], (2 ** (k + 1),) * 3)
+            down = SparseVoxels.from_spconv(t, voxel_size=COARSE, point_range_min=RANGE[:3], stride=(2 ** (k + 1),) * 3)
             assert project(down, pts, pb, l2i, size)[1] == []
 
 
@@ -87,7 +87,7 @@ def test_correct_augmented_batch_of_two_is_quiet():
 
 def test_voxel_size_in_zyx_order_is_named_on_the_first_call():
     vox, pts, pb, l2i, size = scene()
-    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, COARSE[::-1], RANGE[:3])
+    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=COARSE[::-1], point_range_min=RANGE[:3])
     out, msgs = project(wrong, pts, pb, l2i, size)
     _zero_checks_silent(out)
     assert any(m.startswith("points: only") and "voxel_size (x, y, z order)" in m for m in msgs), msgs
@@ -95,7 +95,7 @@ def test_voxel_size_in_zyx_order_is_named_on_the_first_call():
 
 def test_point_range_min_a_voxel_off_is_named_on_the_first_call():
     vox, pts, pb, l2i, size = scene()
-    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, COARSE, (RANGE[0], RANGE[1] + COARSE[1], RANGE[2]))
+    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=COARSE, point_range_min=(RANGE[0], RANGE[1] + COARSE[1], RANGE[2]))
     out, msgs = project(wrong, pts, pb, l2i, size)
     _zero_checks_silent(out)
     assert any(m.startswith("points: only") and "point_range_min" in m for m in msgs), msgs
@@ -104,21 +104,21 @@ def test_point_range_min_a_voxel_off_is_named_on_the_first_call():
 def test_coords_in_bxyz_order_with_the_matching_shape_is_named():
     vox, pts, pb, l2i, size = scene()
     # an OpenPCDet-style grid_size (X, Y, Z) used as spatial_shape, and (batch, x, y, z) coords: in range
-    wrong = SparseVoxels(vox.features, vox.coords[:, [0, 3, 2, 1]].contiguous(), SHAPE[::-1], 1, COARSE, RANGE[:3])
+    wrong = SparseVoxels(vox.features, vox.coords[:, [0, 3, 2, 1]].contiguous(), SHAPE[::-1], 1, voxel_size=COARSE, point_range_min=RANGE[:3])
     out, msgs = project(wrong, pts, pb, l2i, size)
     _zero_checks_silent(out)
     assert any("coords order (batch, z, y, x)" in m for m in msgs), msgs
 
 
-def _block(in_stride, downsample_stride=None):
+def _block(downsample_stride=None, grid=None):
     spconv = pytest.importorskip("spconv.pytorch")
-    from mssf_blocks import FusionBlock
-    from mssf_blocks.fusion import SFF
+    from mssf_blocks import FusionBlock, VoxelGrid
+    from mssf_blocks.samplers import SFF
 
     torch.manual_seed(0)
     down = spconv.SparseSequential(spconv.SparseConv3d(4, 8, 3, 2, 1, bias=False))
-    return FusionBlock(SFF([3], 8), downsample=down, voxel_size=COARSE, point_range_min=RANGE[:3],
-                       in_stride=in_stride, downsample_stride=downsample_stride).eval()
+    return FusionBlock(SFF([3], 8), grid=grid or VoxelGrid(COARSE, RANGE), downsample=down,
+                       downsample_stride=downsample_stride).eval()
 
 
 def _run_block(block, x, inputs):
@@ -129,24 +129,28 @@ def _run_block(block, x, inputs):
     return [str(w.message) for w in got if issubclass(w.category, MSSFGeometryWarning)]
 
 
-def test_in_stride_that_is_the_blocks_output_stride_is_named():
+def test_a_block_grid_that_is_not_the_voxels_grid_is_refused_naming_both_shapes():
+    # (The mistake this replaces, a block's output stride given as its in_stride, cannot be made any more: the
+    # stride of an spconv input is read from its spatial_shape against the block's grid.)
     spconv = pytest.importorskip("spconv.pytorch")
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks import VoxelGrid
+    from mssf_blocks.samplers import FusionInputs
 
     vox, pts, pb, l2i, size = scene()
     inputs = FusionInputs([torch.zeros(1, 3, size[0] // 4, size[1] // 4)], l2i, size, pts, pb)
     torch.manual_seed(0)
     x = spconv.SparseConv3d(4, 4, 3, 2, 1)(vox.to_spconv())  # the second block's input, at stride 2
-    assert _run_block(_block((2, 2, 2)), x, inputs) == []
-    msgs = _run_block(_block((4, 4, 4)), x, inputs)  # its output stride given as in_stride
-    assert not any(m.startswith("centroids: none") for m in msgs)  # a few voxels still hold points
-    assert any(m.startswith("points: only") and "in_stride" in m and "stride (8, 8, 8)" in m for m in msgs), msgs
+    assert tuple(x.spatial_shape) == (10, 64, 64)
+    assert _run_block(_block(), x, inputs) == []
+    kitti = VoxelGrid(COARSE, (0.0, -40.0, -3.0, 70.4, 40.0, 1.0))  # another dataset's range: (16, 400, 352) cells
+    with pytest.raises(MSSFError, match=r"x\.spatial_shape: expected .*\(16, 400, 352\) at stride 1.*got \(10, 64, 64\)"):
+        _block(grid=kitti)(x, inputs)
 
 
 def test_downsample_stride_that_contradicts_the_convolution_is_refused():
-    _block((1, 1, 1), downsample_stride=(2, 2, 2))  # agrees: accepted
+    _block(downsample_stride=(2, 2, 2))  # agrees: accepted
     with pytest.raises(MSSFError, match=r"downsample_stride: expected \(2, 2, 2\).*got \(1, 2, 2\)"):
-        _block((1, 1, 1), downsample_stride=(1, 2, 2))
+        _block(downsample_stride=(1, 2, 2))
 
 
 def test_image_size_twice_the_projection_image_is_named_on_a_coarse_grid():
@@ -198,10 +202,10 @@ def test_rotation_in_degrees_is_refused_by_the_builders(rotation):
 
 def test_first_call_checks_are_gated_like_the_coverage_checks():
     """They read data: off with set_geometry_checks(False) (the default on an accelerator) and while tracing."""
-    from mssf_blocks.geometry import set_geometry_checks
+    from mssf_blocks.checks import set_geometry_checks
 
     vox, pts, pb, l2i, size = scene()
-    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, COARSE[::-1], RANGE[:3])
+    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=COARSE[::-1], point_range_min=RANGE[:3])
     assert project(wrong, pts, pb, l2i, size)[1]
     set_geometry_checks(False)
     try:
@@ -210,7 +214,7 @@ def test_first_call_checks_are_gated_like_the_coverage_checks():
         set_geometry_checks(None)
     from unittest import mock
 
-    with mock.patch("mssf_blocks._sanity.is_tracing", return_value=True):
+    with mock.patch("mssf_blocks.checks.geometry.is_tracing", return_value=True):
         assert project(wrong, pts, pb, l2i, size)[1] == []
 
 
@@ -227,11 +231,11 @@ def test_other_grid_mistakes_of_the_class_are_named(mistake):
     """Not only the listed instances: whatever makes the voxels and the points disagree."""
     vox, pts, pb, l2i, size = scene()
     if mistake == "point_range_min_zyx":
-        vox = SparseVoxels(vox.features, vox.coords, SHAPE, 1, COARSE, RANGE[:3][::-1])
+        vox = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=COARSE, point_range_min=RANGE[:3][::-1])
     elif mistake == "points_of_another_frame":
         pts = scene_points(seed=7)[0]
         pb = torch.zeros(len(pts), dtype=torch.long)
     else:  # the base grid's voxel size for voxels of a grid twice as fine (or a pillar size mix-up)
-        vox = SparseVoxels(vox.features, vox.coords, SHAPE, 1, tuple(v / 2 for v in COARSE), RANGE[:3])
+        vox = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=tuple(v / 2 for v in COARSE), point_range_min=RANGE[:3])
     _, msgs = project(vox, pts, pb, l2i, size)
     assert any(m.startswith(("points: only", "centroids: none")) for m in msgs), msgs

@@ -12,10 +12,10 @@ import pytest
 import torch
 from torch import nn
 
-from mssf_blocks import SparseVoxels
+from mssf_blocks import SparseVoxels, VoxelGrid
 from mssf_blocks.blocks import FusionBlock
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit
 from mssf_blocks.geometry import CentroidProjection
 from mssf_blocks.heads import SemanticGuidedHead
 from mssf_blocks.lift import PillarLift
@@ -26,6 +26,8 @@ spconv = pytest.importorskip("spconv.pytorch")
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 GRID = dict(voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
+#: the same grid as one object (a (4, 8, 8) tensor at stride 1), for FusionBlock
+VOXEL_GRID = VoxelGrid.covering(GRID["voxel_size"], GRID["point_range_min"], (4, 8, 8))
 # a pinhole camera looking down z: u = 10 x / z + 4 on an 8 x 8 image
 L2I = torch.tensor([[[10.0, 0, 4, 0], [0, 10, 4, 0], [0, 0, 1, 0]]])
 
@@ -54,7 +56,7 @@ def residual(cin=8, cout=8):
 
 
 def block(fusion, ds=True, **kw):
-    return FusionBlock(fusion, downsample=downsample() if ds else None, in_stride=(1, 1, 1), **GRID, **kw)
+    return FusionBlock(fusion, downsample=downsample() if ds else None, grid=VOXEL_GRID, **kw)
 
 
 def sparse(features, idx=None, batch_size=1):
@@ -63,7 +65,7 @@ def sparse(features, idx=None, batch_size=1):
 
 
 def msdff(embed_dim=8, value_channels=4, **kw):
-    return MSDFF(embed_dim, value_channels, num_heads=2, num_levels=1, num_points=1, **kw)
+    return MSDFF(value_channels, embed_dim, num_heads=2, num_levels=1, num_points=1, **kw)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -100,7 +102,7 @@ def test_spconv_tensor_into_a_fusion_block_gets_our_error(case):
 
 
 def test_spconv_tensor_without_downsample_gets_the_same_checks():
-    blk = FusionBlock(SFF([4], 4), in_stride=(1, 1, 1), **GRID).eval()
+    blk = FusionBlock(SFF([4], 4), grid=VOXEL_GRID).eval()
     with pytest.raises(MSSFError, match=r"^x: expected at least one voxel for spconv, got 0"):
         blk(sparse(torch.randn(0, 4), indices()[:0]), inputs())
     with pytest.raises(MSSFError, match=r"^x\.indices: expected dtype torch\.int32"):
@@ -130,7 +132,7 @@ def test_residual_blocks_of_another_width_are_named(position, pattern):
 def test_a_biased_spconv_convolution_in_eval_mode_on_the_cpu_is_named():
     # spconv adds the bias inside its inference kernel, which asserts on CPU tensors; in training it adds it after
     ds = spconv.SparseSequential(spconv.SparseConv3d(4, 8, 3, stride=2, padding=1), nn.BatchNorm1d(8))
-    blk = FusionBlock(SFF([4], 8, norm_layer=None), downsample=ds, in_stride=(1, 1, 1), **GRID)
+    blk = FusionBlock(SFF([4], 8, norm_layer=None), downsample=ds, grid=VOXEL_GRID)
     with pytest.raises(MSSFError, match=r"^downsample\.0: expected no bias in eval mode on the CPU, got a SparseConv3d "
                                         r"with a bias.*bias=False"):
         blk.eval()(sparse(torch.randn(20, 4)), inputs())
@@ -178,7 +180,7 @@ def test_query_init_of_one_voxel_in_training_is_our_error():
     qi = QueryInit(8, 4, 8, (0, 0, 0, 1, 1, 1)).train()
     with pytest.raises(MSSFError, match=r"^f_vox: exactly one voxel \(N = 1\).*BatchNorm1d.*QueryInit"):
         qi(torch.randn(1, 8), torch.randn(1, 4), torch.rand(1, 3))
-    blk = FusionBlock(msdff(), query_init=qi, **GRID).train()
+    blk = FusionBlock(msdff(), query_init=qi, grid=VOXEL_GRID).train()
     v = SparseVoxels(torch.randn(1, 8), torch.tensor([[0, 0, 2, 2]], dtype=torch.int32), (4, 8, 8), 1, **GRID)
     with pytest.raises(MSSFError, match=r"BatchNorm1d in training mode .*one row"):
         blk(v, inputs())
@@ -261,12 +263,12 @@ def test_msdff_embed_dim_against_the_stage_channels():
 def test_sff_out_channels_against_the_voxels():
     v = SparseVoxels(torch.randn(3, 4), indices(3), (4, 8, 8), 1, **GRID)
     with pytest.raises(MSSFError, match=r"SFF out_channels=6\), got 4 \(x\.features\); build the SFF with out_channels=4"):
-        FusionBlock(SFF([4], 6), **GRID).eval()(v, inputs())
+        FusionBlock(SFF([4], 6), grid=VOXEL_GRID).eval()(v, inputs())
 
 
 @pytest.mark.parametrize("make,pattern", [
     (lambda: SFF([4, 6], 8), r"^image_features\[1\]: .*got shape \(1, 4, 4, 4\): 4 channels, but SFF in_channels\[1\]=6"),
-    (lambda: MSDFF(8, 6, num_heads=2, num_levels=2, num_points=1),
+    (lambda: MSDFF(6, 8, num_heads=2, num_levels=2, num_points=1),
      r"^image_features\[0\]: .*got shape \(1, 4, 8, 8\): 4 channels, but MSDFF value_channels=6; build it with "
      r"value_channels=4"),
 ])

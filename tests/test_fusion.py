@@ -1,4 +1,4 @@
-"""Tests for ``mssf_blocks.fusion``: SFF, QueryInit, FusionInputs, and what SFF and MSDFF share (empty
+"""Tests for ``mssf_blocks.samplers``: SFF, QueryInit, FusionInputs, and what SFF and MSDFF share (empty
 batches, permutation and batch independence, bad input). MSDFF against its references: ``test_msdff.py``.
 
 References (``fusion_references.py``) are written independently of the code under test: per-level
@@ -12,9 +12,9 @@ import pytest
 import torch
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
 from mssf_blocks.geometry import VoxelCentroidProjector
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 from mssf_blocks.testing import assert_close, gradcheck64
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -85,7 +85,7 @@ def test_pixel_hit_through_projector():
     i, j = 5, 2
     pts = torch.tensor([[2 * i + 0.5, 2 * j + 0.5, 0.5]], dtype=D64)
     vox = SparseVoxels(torch.zeros(1, 6, dtype=D64), torch.tensor([[0, 0, 2 * j, 2 * i]], dtype=torch.int32),
-                       (1, img_h, img_w), 1, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+                       (1, img_h, img_w), 1, voxel_size=(1.0, 1.0, 1.0), point_range_min=(0.0, 0.0, 0.0))
     proj = VoxelCentroidProjector()(vox, pts, torch.zeros(1, dtype=torch.long), l2i, (img_h, img_w))
     assert_close(sample_at_projection(level, proj), level[0, :, j, i][None])
 
@@ -109,7 +109,7 @@ def test_behind_camera_via_projector_is_zero():
     # depth = z: the voxel at z < 0 is behind the camera, the other one is in front but off-image.
     l2i = torch.tensor([[[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]], dtype=D64)
     coords = torch.tensor([[0, 0, 1, 1], [0, 3, 1, 50]], dtype=torch.int32)
-    vox = SparseVoxels(torch.zeros(2, 2, dtype=D64), coords, (4, 4, 64), 1, (1.0, 1.0, 1.0), (0.0, 0.0, -2.0))
+    vox = SparseVoxels(torch.zeros(2, 2, dtype=D64), coords, (4, 4, 64), 1, voxel_size=(1.0, 1.0, 1.0), point_range_min=(0.0, 0.0, -2.0))
     proj = VoxelCentroidProjector()(vox, torch.zeros(0, 3, dtype=D64), torch.zeros(0, dtype=torch.long), l2i, (4, 4))
     assert not proj.valid.any()
     level = torch.randn(1, 2, 4, 4, dtype=D64, requires_grad=True)
@@ -127,7 +127,7 @@ def test_empty_and_batch_without_voxels(kind):
     if kind == "sff":
         mod = SFF([4, 4], 8, dtype=D64)
     else:
-        mod = MSDFF(8, 4, value_dim=6, num_heads=2, num_levels=2, num_points=2, dtype=D64)
+        mod = MSDFF(4, 8, value_dim=6, num_heads=2, num_levels=2, num_points=2, dtype=D64)
     mod.train()
 
     def run(n, bidx):
@@ -156,7 +156,7 @@ def test_permutation_and_batch_independence(kind):
     if kind == "sff":
         mod = SFF([4, 4], 6, dtype=D64)
     else:
-        mod = MSDFF(6, 4, value_dim=8, num_heads=2, num_levels=2, num_points=3, dtype=D64)
+        mod = MSDFF(4, 6, value_dim=8, num_heads=2, num_levels=2, num_points=3, dtype=D64)
         randomize_msdff(mod, gen)
     mod.eval()
     query = torch.randn(9, 6, generator=gen, dtype=D64)
@@ -226,20 +226,20 @@ def test_bad_inputs_name_the_argument():
     with pytest.raises(MSSFError, match="in_channels"):
         SFF(4, 8)
 
-    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=1)
+    mod = MSDFF(4, 8, num_heads=2, num_levels=2, num_points=1)
     with pytest.raises(MSSFError, match="query"):
         mod(torch.zeros(3, 7), ok, proj)
     with pytest.raises(MSSFError, match=r"image_features\[0\]"):
         mod(torch.zeros(3, 8), [torch.zeros(2, 5, 6, 8), torch.zeros(2, 5, 3, 4)], proj)
     with pytest.raises(MSSFError, match="value_channels"):
-        MSDFF(8, [4, 8], num_heads=2, num_levels=2)
+        MSDFF([4, 8], 8, num_heads=2, num_levels=2)
     with pytest.raises(MSSFError, match="value_dim.*defaults to value_channels"):
-        MSDFF(8, 6, num_heads=4)  # value_dim = value_channels = 6 heads cannot split into 4
+        MSDFF(6, 8, num_heads=4)  # value_dim = value_channels = 6 heads cannot split into 4
     with pytest.raises(MSSFError, match="value_dim: expected a multiple of num_heads=4.*got 10"):
-        MSDFF(8, 4, value_dim=10, num_heads=4)
+        MSDFF(4, 8, value_dim=10, num_heads=4)
     with pytest.raises(MSSFError, match="value_dim"):
-        MSDFF(8, 4, value_dim=0, num_heads=4)
-    MSDFF(10, 4, num_heads=4)  # embed_dim need not be a multiple of num_heads (the heads split value_dim)
+        MSDFF(4, 8, value_dim=0, num_heads=4)
+    MSDFF(4, 10, num_heads=4)  # embed_dim need not be a multiple of num_heads (the heads split value_dim)
     with pytest.raises(MSSFError, match="method"):
         MSDFF(8, 8, method="cuda")
     with pytest.raises(MSSFError, match="value_projection"):

@@ -16,7 +16,7 @@ def l2i_front(batch=1):
 def test_module_hand_worked_with_empty_voxel():
     # Grid: voxel 1 m, range min (0, -2, -1), shape (D, H, W) = (2, 4, 4).
     coords = torch.tensor([[0, 1, 2, 2], [0, 0, 0, 3]], dtype=torch.int32)
-    vox = SparseVoxels(torch.zeros(2, 3, dtype=torch.float64), coords, (2, 4, 4), 1, (1.0, 1.0, 1.0), (0.0, -2.0, -1.0))
+    vox = SparseVoxels(torch.zeros(2, 3, dtype=torch.float64), coords, (2, 4, 4), 1, voxel_size=(1.0, 1.0, 1.0), point_range_min=(0.0, -2.0, -1.0))
     # Two points in voxel (z=1, y=2, x=2): x in [2, 3), y in [0, 1), z in [0, 1). Their mean: (2.5, 0.25, 0.5).
     pts = torch.tensor([[2.2, 0.1, 0.4], [2.8, 0.4, 0.6]], dtype=torch.float64)
     out = VoxelCentroidProjector()(vox, pts, torch.zeros(2, dtype=torch.long), l2i_front(), (12, 16))
@@ -33,7 +33,7 @@ def test_module_hand_worked_with_empty_voxel():
 
 
 def test_module_batch_mismatch_and_type_errors():
-    vox = SparseVoxels(torch.zeros(1, 3), torch.zeros(1, 4, dtype=torch.int32), (2, 4, 4), 2, (1, 1, 1), (0, 0, 0))
+    vox = SparseVoxels(torch.zeros(1, 3), torch.zeros(1, 4, dtype=torch.int32), (2, 4, 4), 2, voxel_size=(1, 1, 1), point_range_min=(0, 0, 0))
     proj = VoxelCentroidProjector()
     pts, pb = torch.zeros(1, 3), torch.zeros(1, dtype=torch.long)
     with pytest.raises(MSSFError, match=r"lidar2img: expected batch size 2 \(voxels.batch_size\)"):
@@ -56,7 +56,7 @@ def test_module_augmented_equals_unaugmented():
         idx = torch.floor((p - torch.tensor(lo, dtype=torch.float64)) / torch.tensor(voxel, dtype=torch.float64)).long()
         return torch.unique(torch.cat([batch[:, None], idx[:, [2, 1, 0]]], 1), dim=0).int()
 
-    plain_vox = SparseVoxels(torch.zeros(0, 1, dtype=torch.float64).expand(0, 1), torch.zeros(0, 4, dtype=torch.int32), shape, 1, voxel, lo)
+    plain_vox = SparseVoxels(torch.zeros(0, 1, dtype=torch.float64).expand(0, 1), torch.zeros(0, 4, dtype=torch.int32), shape, 1, voxel_size=voxel, point_range_min=lo)
     coords = voxelise(pts)
     plain_vox = plain_vox.replace(coords=coords, features=torch.zeros(len(coords), 1, dtype=torch.float64))
     proj = VoxelCentroidProjector()

@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector
-from mssf_blocks._sanity import set_geometry_checks
+from mssf_blocks.checks.geometry import set_geometry_checks
 from mssf_blocks.errors import MSSFError, MSSFGeometryWarning
-from mssf_blocks.fusion import FusionInputs
+from mssf_blocks.samplers import FusionInputs
 from mssf_blocks.geometry import augmentation_matrix
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -42,7 +42,7 @@ def scene(n=300, seed=0):
     idx = ((pts.double() - torch.tensor(LO, dtype=torch.float64)) / torch.tensor(VOXEL, dtype=torch.float64)).floor().long()
     cells = torch.unique(torch.stack([idx[:, 2], idx[:, 1], idx[:, 0]], 1), dim=0)
     coords = torch.cat([torch.zeros(len(cells), 1, dtype=torch.long), cells], 1).int()
-    vox = SparseVoxels(torch.zeros(len(cells), 4), coords, SHAPE, 1, VOXEL, LO)
+    vox = SparseVoxels(torch.zeros(len(cells), 4), coords, SHAPE, 1, voxel_size=VOXEL, point_range_min=LO)
     k, rt = camera()
     return vox, pts, torch.zeros(n, dtype=torch.long), (k @ rt).float()[None]
 
@@ -107,7 +107,7 @@ def test_forward_augmentation_as_points_to_sensor_warns():
            / torch.tensor(VOXEL, dtype=torch.float64)).floor().long()
     cells = torch.unique(torch.stack([idx[:, 2], idx[:, 1], idx[:, 0]], 1), dim=0)
     coords = torch.cat([torch.zeros(len(cells), 1, dtype=torch.long), cells], 1).int()
-    vox = SparseVoxels(torch.zeros(len(cells), 4), coords, (30, 480, 200), 1, VOXEL, (-50.0, -50.0, -3.0))
+    vox = SparseVoxels(torch.zeros(len(cells), 4), coords, (30, 480, 200), 1, voxel_size=VOXEL, point_range_min=(-50.0, -50.0, -3.0))
     out, msgs = project(vox, pts_aug, pb, l2i, pts2s=torch.linalg.inv(aug)[None])
     assert msgs == [] and out.valid.float().mean() > 0.9
     _, msgs = project(vox, pts_aug, pb, l2i, pts2s=aug[None])
@@ -116,18 +116,18 @@ def test_forward_augmentation_as_points_to_sensor_warns():
 
 def test_voxel_size_in_zyx_order_warns_no_centroid():
     vox, pts, pb, l2i = scene()
-    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, VOXEL[::-1], LO)
+    wrong = SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=VOXEL[::-1], point_range_min=LO)
     _, msgs = project(wrong, pts, pb, l2i)
     assert any("centroids" in m and "voxel_size" in m for m in msgs), msgs
 
 
 def test_wrong_point_range_min_and_stride_warn_no_centroid():
     vox, pts, pb, l2i = scene()
-    for wrong in (SparseVoxels(vox.features, vox.coords, SHAPE, 1, VOXEL, (0.0, 0.0, 0.0)),
+    for wrong in (SparseVoxels(vox.features, vox.coords, SHAPE, 1, voxel_size=VOXEL, point_range_min=(0.0, 0.0, 0.0)),
                   SparseVoxels(vox.features, vox.coords // torch.tensor([1, 8, 8, 8], dtype=torch.int32),
-                               (4, 30, 13), 1, VOXEL, LO)):  # stride-8 coordinates declared as stride 1
+                               (4, 30, 13), 1, voxel_size=VOXEL, point_range_min=LO)):  # stride-8 coordinates declared as stride 1
         _, msgs = project(wrong, pts, pb, l2i)
-        assert any("centroids" in m and "in_stride" in m for m in msgs), msgs
+        assert any("centroids" in m and "the voxels' stride" in m for m in msgs), msgs
 
 
 def test_empty_point_list_warns_centres_are_used():

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 
 pytest.importorskip("spconv")
 

@@ -10,7 +10,7 @@ from torch import nn
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.heads import sigmoid_focal_loss
 from mssf_blocks.heads import SemanticGuidedHead
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 from mssf_blocks.testing import assert_close, gradcheck64
 
 
@@ -20,7 +20,7 @@ def make_voxels(n=6, c=4, dtype=torch.float32, seed=0):
         [torch.randint(0, 2, (n,), generator=g), torch.zeros(n, dtype=torch.long),
          torch.arange(n) % 4, torch.arange(n) // 4], dim=1).int()
     feats = torch.randn(n, c, generator=g, dtype=dtype)
-    return SparseVoxels(feats, coords, (1, 4, 4), 2, (0.5, 0.5, 1.0), (0.0, 0.0, 0.0))
+    return SparseVoxels(feats, coords, (1, 4, 4), 2, voxel_size=(0.5, 0.5, 1.0), point_range_min=(0.0, 0.0, 0.0))
 
 
 def manual_mlp(head, x):
@@ -103,7 +103,7 @@ def test_gradcheck_float64():
     coords = torch.tensor([[0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=torch.int32)
 
     def fn(f):
-        vox = SparseVoxels(f, coords, (1, 2, 2), 1, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+        vox = SparseVoxels(f, coords, (1, 2, 2), 1, voxel_size=(1.0, 1.0, 1.0), point_range_min=(0.0, 0.0, 0.0))
         out, scores = head(vox)
         return out.features, scores
 
@@ -123,7 +123,7 @@ def test_permutation_equivariance_eval():
 def test_empty_and_single_voxel():
     head = SemanticGuidedHead(4, hidden=(8,))
     empty = SparseVoxels(torch.zeros(0, 4), torch.zeros(0, 4, dtype=torch.int32), (1, 2, 2), 1,
-                         (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+                         voxel_size=(1.0, 1.0, 1.0), point_range_min=(0.0, 0.0, 0.0))
     out, scores, logits = head(empty, return_logits=True)
     assert out.features.shape == (0, 4) and scores.shape == (0,)
     head.loss(logits, torch.zeros(0)).backward()

@@ -17,7 +17,7 @@ from mssf_blocks import (
     augmentation_matrix,
     image_augmentation_matrix,
 )
-from mssf_blocks.fusion import sample_at_projection
+from mssf_blocks.samplers import sample_at_projection
 from mssf_blocks.testing import TOLERANCES
 
 _RTOL, _ATOL = TOLERANCES[torch.float64]
@@ -46,7 +46,7 @@ def sample(image, points, lidar2img, image_size, points_to_sensor=None):
     coords = torch.cat([torch.zeros(len(points), 1, dtype=torch.long), idx], 1).int()
     assert len(torch.unique(coords, dim=0)) == len(points)  # test set-up: one point per voxel
     origin = tuple(float(v) for v in lo)
-    vox = SparseVoxels(torch.zeros(len(points), 1, dtype=torch.float64), coords, shape, 1, (vs, vs, vs), origin)
+    vox = SparseVoxels(torch.zeros(len(points), 1, dtype=torch.float64), coords, shape, 1, voxel_size=(vs, vs, vs), point_range_min=origin)
     proj = VoxelCentroidProjector()(vox, points, torch.zeros(len(points), dtype=torch.long), lidar2img, image_size,
                                     points_to_sensor)
     return sample_at_projection(image, proj)

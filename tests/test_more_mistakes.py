@@ -13,12 +13,12 @@ import pytest
 import torch
 from torch import nn
 
-from mssf_blocks import FusionBlock, FusionInputs, MSDFF, QueryInit, SemanticGuidedHead, SparseVoxels
+from mssf_blocks import FusionBlock, FusionInputs, MSDFF, QueryInit, SemanticGuidedHead, SparseVoxels, VoxelGrid
 from mssf_blocks.errors import MSSFError, MSSFGeometryWarning
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.functional.heads import points_in_boxes, voxel_foreground_labels
 from mssf_blocks.functional.lift import voxelize_points
-from mssf_blocks.geometry import set_geometry_checks
+from mssf_blocks.checks import set_geometry_checks
 
 PC_MIN, PC_MAX = (0.0, -25.6, -3.0), (51.2, 25.6, 2.0)
 
@@ -114,7 +114,7 @@ def _head_outputs(n=200):
     torch.manual_seed(0)
     head = SemanticGuidedHead(16)
     coords = torch.stack([torch.zeros(n), torch.zeros(n), torch.arange(n) // 20, torch.arange(n) % 20], 1).int()
-    vox = SparseVoxels(torch.randn(n, 16), coords, (1, 20, 20), 1, (0.2, 0.2, 0.2), (0.0, 0.0, 0.0))
+    vox = SparseVoxels(torch.randn(n, 16), coords, (1, 20, 20), 1, voxel_size=(0.2, 0.2, 0.2), point_range_min=(0.0, 0.0, 0.0))
     _, scores, logits = head(vox, return_logits=True)
     return head, scores, logits, (torch.rand(n) > 0.5).float()
 
@@ -139,7 +139,7 @@ def _block(pcr):
                                    nn.BatchNorm1d(32), nn.ReLU())
     return FusionBlock(MSDFF(embed_dim=32, value_channels=64, num_heads=8, num_levels=2, num_points=2),
                        downsample=down, query_init=QueryInit(32, 64, 32, point_cloud_range=pcr),
-                       voxel_size=(0.05, 0.05, 0.125), point_range_min=PC_MIN, in_stride=(1, 1, 1))
+                       grid=VoxelGrid((0.05, 0.05, 0.125), PC_MIN + (51.2, 25.6, 2.0)))
 
 
 def _stage_inputs(shape):

@@ -1,4 +1,4 @@
-"""Tests for ``mssf_blocks.fusion.MSDFF`` against references written independently of the code under test
+"""Tests for ``mssf_blocks.samplers.MSDFF`` against references written independently of the code under test
 (``fusion_references.py``: every pixel projected with ``value_proj``, then per-level ``F.grid_sample``, naive
 loops over voxels / cameras / heads), gradcheck in float64, Deformable DETR's parameter layout and
 initialisation, hand-worked offsets. Shared SFF / MSDFF behaviour and bad input: ``test_fusion.py``.
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mssf_blocks.fusion import MSDFF
+from mssf_blocks.samplers import MSDFF
 from mssf_blocks.testing import assert_close, gradcheck64
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -39,7 +39,7 @@ def test_msdff_sample_then_project_equals_project_then_sample(method, value_proj
     levels, uv, valid, bidx = scene(gen, chans=(4, 4), sizes=((5, 6), (3, 4)))
     uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside (mass < 1)
     valid[3] = True
-    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method,
+    mod = MSDFF(4, 8, num_heads=2, num_levels=2, num_points=3, method=method,
                 value_projection=value_projection, dtype=D64, **width_kw(width, 8)).eval()
     assert mod.value_proj.weight.shape == ((4, 4) if width == "paper" else (8, 4))
     randomize_msdff(mod, gen)
@@ -58,7 +58,7 @@ def test_msdff_sample_then_project_equals_project_then_sample(method, value_proj
 def test_msdff_default_init_matches_reference(width):
     gen = torch.Generator().manual_seed(8)
     levels, uv, valid, bidx = scene(gen, v=1, chans=(4, 4))
-    mod = MSDFF(8, 4, num_heads=4, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 8)).eval()
+    mod = MSDFF(4, 8, num_heads=4, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 8)).eval()
     randomize_norm(mod.norm, gen)
     query = torch.randn(7, 8, generator=gen, dtype=D64)
     want, _, att = reference_msdff(mod, query, levels, uv, valid, bidx)
@@ -73,7 +73,7 @@ def test_msdff_gradcheck(value_projection, width):
     # weights are randomised so the gradient w.r.t. the query goes through locations and softmax.
     gen = torch.Generator().manual_seed(9)
     levels, uv, valid, bidx = scene(gen, n=4, chans=(2, 2), sizes=((4, 5), (2, 3)))
-    mod = MSDFF(4, 2, num_heads=2, num_levels=2, num_points=2, value_projection=value_projection, dtype=D64,
+    mod = MSDFF(2, 4, num_heads=2, num_levels=2, num_points=2, value_projection=value_projection, dtype=D64,
                 **width_kw(width, 4)).eval()
     randomize_msdff(mod, gen, scale=0.3)
     query = torch.randn(4, 4, generator=gen, dtype=D64)
@@ -88,7 +88,7 @@ def test_msdff_gradcheck(value_projection, width):
 def test_msdff_invalid_voxels_pass_nothing(width):
     gen = torch.Generator().manual_seed(10)
     levels, uv, valid, bidx = scene(gen, chans=(6, 6))
-    mod = MSDFF(4, 6, num_heads=2, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 4)).eval()
+    mod = MSDFF(6, 4, num_heads=2, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 4)).eval()
     randomize_msdff(mod, gen)
     query = torch.randn(7, 4, generator=gen, dtype=D64)
     levels = [l.requires_grad_(True) for l in levels]
@@ -110,7 +110,7 @@ def test_msdff_invalid_voxels_pass_nothing(width):
 @pytest.mark.parametrize("width", WIDTHS)
 def test_msdff_parameters_match_deformable_detr(width):
     e, m, l, p, c = 16, 8, 3, 2, 24
-    mod = MSDFF(e, c, num_heads=m, num_levels=l, num_points=p, **width_kw(width, e))
+    mod = MSDFF(c, e, num_heads=m, num_levels=l, num_points=p, **width_kw(width, e))
     d = c if width == "paper" else e
     shapes = {k: tuple(v.shape) for k, v in mod.state_dict().items()}
     want = {
@@ -148,7 +148,7 @@ def test_msdff_offsets_are_in_level_pixels():
     # One head, one point per level, zero weights: the offset bias (1, 0) moves the sample exactly one
     # pixel right on every level, whatever the level's size.
     levels = [torch.arange(24, dtype=D64).view(1, 1, 1, 4, 6), torch.arange(6, dtype=D64).view(1, 1, 1, 2, 3)]
-    mod = MSDFF(2, 1, value_dim=2, num_heads=1, num_levels=2, num_points=1, dtype=D64).eval()
+    mod = MSDFF(1, 2, value_dim=2, num_heads=1, num_levels=2, num_points=1, dtype=D64).eval()
     with torch.no_grad():
         mod.value_proj.weight.copy_(torch.tensor([[1.0], [0.0]]))
         mod.output_proj.weight.copy_(torch.eye(2))
@@ -176,7 +176,7 @@ def test_msdff_touched_pixels_equals_reference_with_all_gradients(dtype, layout,
     valid[3] = True
     mods = {}
     for method in ("reference", "auto"):
-        mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method,
+        mod = MSDFF(4, 8, num_heads=2, num_levels=2, num_points=3, method=method,
                     value_projection="before_sampling", dtype=D64, **width_kw(width, 8)).eval()
         randomize_msdff(mod, torch.Generator().manual_seed(22))
         mods[method] = mod.to(dtype)
@@ -217,7 +217,7 @@ def test_msdff_one_camera_matches_reference(method, width, unseen):
     if unseen:
         uv[4] = torch.tensor([5.0, -3.0], dtype=D64)  # an unseen voxel's uv is never read
     uv[2] = torch.tensor([0.01, 0.99], dtype=D64)  # partly outside
-    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64,
+    mod = MSDFF(4, 8, num_heads=2, num_levels=2, num_points=3, method=method, dtype=D64,
                 **width_kw(width, 8)).eval()
     randomize_msdff(mod, gen)
     query = torch.randn(9, 8, generator=gen, dtype=D64)
@@ -246,7 +246,7 @@ def test_msdff_one_camera_matches_reference(method, width, unseen):
 def test_compiled_plan_with_gradients_comes_from_the_device_table(monkeypatch):
     # Under torch.compile (faked here: only the plan is asked) MSDFF's sampling is the op, except with
     # gradients on a device whose plan_costs.COMPILED_TRAINING entry is "grid" (the measured CPU choice).
-    from mssf_blocks import msdff as msdff_mod
+    from mssf_blocks.samplers import msdff as msdff_mod
     from mssf_blocks.functional import plan_costs
 
     monkeypatch.setattr(msdff_mod, "_compiling_only", lambda: True)

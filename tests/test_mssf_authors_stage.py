@@ -28,8 +28,9 @@ from torch import nn  # noqa: E402
 
 from authors_sparse_reference import as_sites, basic_block, bn_eval, conv_module  # noqa: E402
 from mssf_blocks.blocks import FusionBlock  # noqa: E402
-from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES, ModuleMap, official_to_ours  # noqa: E402
-from mssf_blocks.fusion import MSDFF  # noqa: E402
+from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES  # noqa: E402
+from mssf_blocks.weights import ModuleMap, official_to_ours
+from mssf_blocks.samplers import MSDFF  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead  # noqa: E402
 from mssf_examples.backbones import SparseBasicBlock  # noqa: E402
@@ -102,7 +103,7 @@ def our_stage(sd, head_position):
         spconv.SparseConv3d(CV, CV, 3, stride=2, padding=1, bias=False, indice_key="spconv2"),
         nn.BatchNorm1d(CV, eps=1e-3, momentum=0.01), nn.ReLU())
     blocks = spconv.SparseSequential(SparseBasicBlock(CV, "res2"), SparseBasicBlock(CV, "res2"))
-    block = FusionBlock(MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P, **sw["msdff"]),
+    block = FusionBlock(MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P, **sw["msdff"]),
                         downsample=down, blocks=blocks, projector=VoxelCentroidProjector(**sw["projector"]),
                         semantic_head=SemanticGuidedHead(CV, hidden=(5, 4)), head_position=head_position)
     block = block.double().eval()

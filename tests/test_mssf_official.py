@@ -1,4 +1,4 @@
-"""``mssf_blocks.compat.mssf_official``: the authors' state-dict layout and forward, reproduced exactly.
+"""``mssf_blocks.weights.authors_checkpoint``: the authors' state-dict layout and forward, reproduced exactly.
 
 The reference below re-creates the forward of the authors' code (``EricLiuhhh/MSSF``) from its
 description, with plain loops and ``F.grid_sample``; the weights are random tensors under *their* key
@@ -22,19 +22,14 @@ import torch
 import torch.nn.functional as F
 
 from mssf_blocks.blocks import FusionBlock
-from mssf_blocks.compat.mssf_official import (
-    OFFICIAL_SWITCHES,
-    ModuleMap,
-    mssf_v_module_maps,
-    official_to_ours,
-    ours_to_official,
-)
+from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES
+from mssf_blocks.weights import ModuleMap, mssf_v_module_maps, official_to_ours, ours_to_official
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit
 from mssf_blocks.geometry import VoxelCentroidProjector
 from mssf_blocks.heads import SemanticGuidedHead
 from mssf_blocks.lift import HeightEmbedding
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 D64 = torch.float64
 ENC = "pts_middle_encoder"
@@ -64,7 +59,7 @@ def scene(seed=0):
                 pb.append(b)
     coords = torch.tensor(coords, dtype=torch.int32)
     n = coords.shape[0]
-    voxels = SparseVoxels(torch.randn(n, CV, generator=g, dtype=D64), coords, (4, 16, 16), 2, VOXEL, LO)
+    voxels = SparseVoxels(torch.randn(n, CV, generator=g, dtype=D64), coords, (4, 16, 16), 2, voxel_size=VOXEL, point_range_min=LO)
     cam = torch.tensor([[20.0, -30, 0, 0], [12, 0, -30, 0], [1, 0, 0, 0]], dtype=D64)
     levels = [torch.randn(2, CI, IMAGE[0] // s, IMAGE[1] // s, generator=g, dtype=D64) for s in (4, 8)]
     inputs = FusionInputs(levels, cam.expand(2, 3, 4).contiguous(), IMAGE, torch.stack(pts),
@@ -157,7 +152,7 @@ def their_msdff(sd, loc, query, levels, ref, batch):
 
 def build_ours(converted, first=True):
     sw = OFFICIAL_SWITCHES
-    msdff = MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P, dtype=D64, **sw["msdff"])
+    msdff = MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P, dtype=D64, **sw["msdff"])
     qi = QueryInit(CV, CI, CV, PCR, dtype=D64, **sw["query_init"]) if first else None
     block = FusionBlock(msdff, query_init=qi, projector=VoxelCentroidProjector(**sw["projector"])).eval()
     return block
@@ -183,7 +178,7 @@ def test_first_msdff_block_with_query_init_equals_their_forward():
     want = f_vox + updated
     assert (got - want).abs().max() <= 1e-10
     # the switches matter: the library's defaults give a different forward
-    plain = FusionBlock(MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P, dtype=D64),
+    plain = FusionBlock(MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P, dtype=D64),
                         query_init=QueryInit(CV, CI, CV, PCR, dtype=D64)).eval()
     plain.load_state_dict(official_to_ours(theirs, maps, ignore), strict=False)
     assert (plain(voxels, inputs).features - want).abs().max() > 1e-3
@@ -252,7 +247,7 @@ def test_round_trip_ours_theirs_ours_is_exact():
     g = torch.Generator().manual_seed(4)
     sw = OFFICIAL_SWITCHES
     ours = torch.nn.ModuleDict({
-        "b1": FusionBlock(MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P, **sw["msdff"]),
+        "b1": FusionBlock(MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P, **sw["msdff"]),
                           query_init=QueryInit(CV, CI, CV, PCR, **sw["query_init"])),
         "b3": FusionBlock(SFF([CI] * L, CV, **sw["sff"])),
         "seg": SemanticGuidedHead(CV, hidden=(5, 4)),
@@ -291,7 +286,7 @@ def test_unmappable_keys_raise_naming_them():
     with pytest.raises(MSSFError, match=r"2 key\(s\).*level_embeds.*pts_backbone\.blocks\.0\.0\.weight.*ignore="):
         official_to_ours(extra, maps, ignore)
     # ours -> theirs: an MSDFF built with our norm has tensors their module does not
-    normed = {f"f.{k}": v for k, v in MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P).state_dict().items()}
+    normed = {f"f.{k}": v for k, v in MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P).state_dict().items()}
     with pytest.raises(MSSFError, match=r"f\.norm\.running_mean"):
         ours_to_official(normed, [ModuleMap("msdff", "x", "f")])
     with pytest.raises(MSSFError, match="voxel_channels"):

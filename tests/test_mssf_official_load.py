@@ -6,9 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES, ModuleMap, load_official, official_to_ours
+from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES
+from mssf_blocks.weights import ModuleMap, load_official, official_to_ours
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import MSDFF, QueryInit
+from mssf_blocks.samplers import MSDFF, QueryInit
 
 ENC = "pts_middle_encoder"
 PCR = (0.0, -4.0, -1.0, 8.0, 4.0, 1.0)
@@ -75,13 +76,13 @@ def test_missing_tensor_is_an_error_unless_ignored():
 
 
 def test_extra_converted_tensor_is_an_error():
-    m = MSDFF(4, 6, num_heads=2, num_levels=1, num_points=1, **OFFICIAL_SWITCHES["msdff"])
+    m = MSDFF(6, 4, num_heads=2, num_levels=1, num_points=1, **OFFICIAL_SWITCHES["msdff"])
     sd = {f"x.img_cross_att.deformable_attention.{k}": v for k, v in m.state_dict().items()}
     # mapped to a prefix the module does not have
     with pytest.raises(MSSFError, match=r"does not have: wrong\.sampling_offsets\.weight"):
         load_official(m, sd, [ModuleMap("msdff", "x", "wrong")])
     # an MSDFF with our norm: their checkpoint has no norm tensors -> missing, named
-    normed = MSDFF(4, 6, num_heads=2, num_levels=1, num_points=1)
+    normed = MSDFF(6, 4, num_heads=2, num_levels=1, num_points=1)
     with pytest.raises(MSSFError, match=r"norm\.weight"):
         load_official(normed, sd, [ModuleMap("msdff", "x", "")])
     load_official(normed, sd, [ModuleMap("msdff", "x", "")], ignore=["norm"])

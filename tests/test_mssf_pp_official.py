@@ -27,14 +27,15 @@ pytest.importorskip("spconv")
 
 from authors_sparse_reference import as_sites, bn_eval, subm_conv  # noqa: E402
 from mssf_blocks.blocks import FusionBlock  # noqa: E402
-from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES, official_to_ours  # noqa: E402
-from mssf_blocks.compat.mssf_pp import mssf_pp_stage_maps  # noqa: E402
+from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES  # noqa: E402
+from mssf_blocks.weights import official_to_ours
+from mssf_blocks.weights.authors_pp_keys import mssf_pp_stage_maps  # noqa: E402
 from mssf_blocks.errors import MSSFError  # noqa: E402
-from mssf_blocks.fusion import MSDFF, QueryInit  # noqa: E402
+from mssf_blocks.samplers import MSDFF, QueryInit  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead  # noqa: E402
 from mssf_blocks.lift import PillarLift  # noqa: E402
-from mssf_blocks.pillar_stage import PillarFusionStage  # noqa: E402
+from mssf_blocks.blocks.pillar_fusion_stage import PillarFusionStage  # noqa: E402
 from test_mssf_official import (  # noqa: E402
     CI, CV, D64, ENC, L, M, P, PCR, grid_at, linear, random_official, scene, their_msdff, their_reference_points,
 )
@@ -86,7 +87,7 @@ def our_stage(sd, stage, merge=None):
     if merge is not None:
         stage_sw["merge"] = merge
     lift = PillarLift(CV, NZ, raw_channels=CR, dtype=D64, **lift_sw)
-    block = FusionBlock(MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P, dtype=D64, **sw["msdff"]),
+    block = FusionBlock(MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P, dtype=D64, **sw["msdff"]),
                         query_init=QueryInit(CV, CI, CV, PCR, dtype=D64, **sw["query_init"]),
                         projector=VoxelCentroidProjector(**sw["projector"]),
                         semantic_head=SemanticGuidedHead(CV, hidden=(5, 4), dtype=D64), **sw["fusion_block"])
@@ -118,7 +119,7 @@ def test_mssf_pp_stage_equals_theirs(stage):
 
 def test_pillar_stage_arguments_are_checked():
     lift = PillarLift(CV, NZ)
-    block = FusionBlock(MSDFF(CV, CI, num_heads=M, num_levels=L, num_points=P))
+    block = FusionBlock(MSDFF(CI, CV, num_heads=M, num_levels=L, num_points=P))
     with pytest.raises(MSSFError, match="merge"):
         PillarFusionStage(lift, block, merge="sum")
     with pytest.raises(MSSFError, match="lift.channels"):

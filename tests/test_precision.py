@@ -11,18 +11,18 @@ image where a location rounded to bfloat16 would read other pixels.
 import pytest
 import torch
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 from mssf_blocks.blocks import FusionBlock
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
+from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
 from mssf_blocks.geometry import CentroidProjection, VoxelCentroidProjector
 from mssf_blocks.heads import SemanticGuidedHead
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 LOW = [torch.bfloat16, torch.float16]
-# float16 CPU autocast needs a newer torch than the library's floor (mssf_blocks._compat); skipped there
+# float16 CPU autocast needs a newer torch than the library's floor (mssf_blocks.torch_versions); skipped there
 _NO_CPU_F16 = _compat.missing("cpu_float16_autocast")
 AMP = [torch.bfloat16, pytest.param(torch.float16, marks=pytest.mark.skipif(_NO_CPU_F16 is not None,
                                                                             reason=str(_NO_CPU_F16)))]
@@ -49,7 +49,7 @@ def setup(seed=0, n=40, c=8, e=16, width=1024, levels=2, value_dim=None):
     feats = [torch.randn(1, c, 8 // 2**i, width // 2**i, generator=g) for i in range(levels)]
     uv = torch.stack([0.85 + 0.1 * torch.rand(n, generator=g), 0.2 + 0.6 * torch.rand(n, generator=g)], 1)
     query = torch.randn(n, e, generator=g)
-    msdff = MSDFF(e, c, value_dim, num_heads=4, num_levels=levels, num_points=2).eval()
+    msdff = MSDFF(c, e, value_dim, num_heads=4, num_levels=levels, num_points=2).eval()
     with torch.no_grad():  # query-dependent offsets and weights, as after training
         msdff.sampling_offsets.weight.normal_(0, 0.5, generator=g)
         msdff.attention_weights.weight.normal_(0, 0.5, generator=g)
@@ -147,13 +147,13 @@ def test_fusion_block_trains_under_autocast():
     coords = torch.unique(coords, dim=0)
     n = coords.shape[0]
     # voxel grid 0.5 m, x forward 2-12 m; camera looking along +x
-    vox = SparseVoxels(torch.randn(n, c, generator=g), coords, (4, 20, 20), 1, (0.5, 0.5, 0.5), (2.0, -5.0, -1.0))
+    vox = SparseVoxels(torch.randn(n, c, generator=g), coords, (4, 20, 20), 1, voxel_size=(0.5, 0.5, 0.5), point_range_min=(2.0, -5.0, -1.0))
     pts = vox.voxel_centers()
     l2i = torch.tensor([[[320.0, -400.0, 0.0, 0.0], [240.0, 0.0, -400.0, 0.0], [1.0, 0.0, 0.0, 0.0]]])
     feats = [torch.randn(1, 32, 480 // s, 640 // s, generator=g) for s in (4, 8)]
     inputs = FusionInputs(image_features=feats, lidar2img=l2i, image_size=(480, 640), points=pts,
                           points_batch=torch.zeros(n, dtype=torch.long))
-    block = FusionBlock(MSDFF(c, 32, num_heads=4, num_levels=2, num_points=2),
+    block = FusionBlock(MSDFF(32, c, num_heads=4, num_levels=2, num_points=2),
                         query_init=QueryInit(c, 32, c, (2.0, -5.0, -1.0, 12.0, 5.0, 1.0)))
     head = SemanticGuidedHead(c, hidden=(16,))
     params = list(block.parameters()) + list(head.parameters())
@@ -184,7 +184,7 @@ def test_projector_computes_half_precision_points_in_float32(low):
     coords = torch.unique(torch.stack([torch.zeros(80), torch.randint(0, 4, (80,), generator=g),
                                        torch.randint(0, 40, (80,), generator=g),
                                        torch.randint(0, 40, (80,), generator=g)], 1).int(), dim=0)
-    vox = SparseVoxels(torch.zeros(coords.shape[0], 2), coords, (4, 40, 40), 1, (0.5, 0.5, 0.5), (20.0, -10.0, -1.0))
+    vox = SparseVoxels(torch.zeros(coords.shape[0], 2), coords, (4, 40, 40), 1, voxel_size=(0.5, 0.5, 0.5), point_range_min=(20.0, -10.0, -1.0))
     # many points per voxel at x = 20-40 m: a bfloat16 sum of 40 m coordinates is off by metres
     pts = vox.voxel_centers()[torch.randint(0, coords.shape[0], (2000,), generator=g)]
     pts = (pts + (torch.rand(2000, 3, generator=g) - 0.5) * 0.5).to(low)

@@ -113,7 +113,7 @@ def test_spconv_round_trip_keeps_index_cache():
 def test_to_spconv_without_source_and_coords_change_drops_cache():
     coords = torch.tensor([[0, 0, 0, 0], [0, 1, 1, 1]], dtype=torch.int32)
     x = spconv.SparseConvTensor(torch.randn(2, 4), coords, [2, 2, 2], 1)
-    v = SparseVoxels.from_spconv(x, (1, 1, 1), (0, 0, 0))
+    v = SparseVoxels.from_spconv(x, voxel_size=(1, 1, 1), point_range_min=(0, 0, 0))
     moved = v.replace(coords=torch.tensor([[0, 1, 0, 0], [0, 1, 1, 1]], dtype=torch.int32))
     assert moved.spconv_source is None
     t = moved.to_spconv()
@@ -122,4 +122,4 @@ def test_to_spconv_without_source_and_coords_change_drops_cache():
 
 def test_from_spconv_rejects_other_objects():
     with pytest.raises(MSSFError, match="tensor: expected an spconv SparseConvTensor"):
-        SparseVoxels.from_spconv(torch.zeros(3), (1, 1, 1), (0, 0, 0))
+        SparseVoxels.from_spconv(torch.zeros(3), voxel_size=(1, 1, 1), point_range_min=(0, 0, 0))

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 
 sp = pytest.importorskip("spconv.pytorch")
-from mssf_blocks.compat.spconv import enable_cpu_backward  # noqa: E402
+from mssf_blocks.integrations.spconv import enable_cpu_backward  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -9,10 +9,10 @@ import sys
 import pytest
 import torch
 
-from mssf_blocks import SparseVoxels
-from mssf_blocks.compat.spconv import check_spconv_input
+from mssf_blocks import SparseVoxels, VoxelGrid
+from mssf_blocks.checks.spconv_inputs import check_spconv_input
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import SFF
+from mssf_blocks.samplers import SFF
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -20,7 +20,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 def voxels(n=3, dtype=torch.float32):
     coords = torch.tensor([[0, 0, 1, 2], [0, 1, 2, 3], [0, 2, 3, 7]], dtype=torch.int32)[:n]
-    return SparseVoxels(torch.ones(n, 4, dtype=dtype), coords, (4, 8, 8), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    return SparseVoxels(torch.ones(n, 4, dtype=dtype), coords, (4, 8, 8), 1, voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
 
 
 def test_integer_features_are_refused_before_spconv():
@@ -44,7 +44,7 @@ def test_permuted_spatial_shape_is_named():
     # SparseVoxels: coordinates that fit only a permutation of the grid say so
     coords = torch.tensor([[0, 1, 2, 12]], dtype=torch.int32)  # x = 12 needs W >= 13
     with pytest.raises(MSSFError, match=r"x index.*fit spatial_shape=\(4, 8, 16\).*\(D, H, W\)"):
-        SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+        SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
     v = voxels()
     with pytest.raises(MSSFError, match=r"expected the network's \(4, 8, 16\), got \(16, 8, 4\).*permuted"):
         check_spconv_input(v.features, v.coords, (16, 8, 4), 1, expected_shape=(4, 8, 16))
@@ -67,29 +67,31 @@ def _block(point_range_max=None):
     from mssf_blocks import VoxelCentroidProjector
     from mssf_blocks.blocks import FusionBlock
 
-    return FusionBlock(SFF([4], 4), voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0), in_stride=(1, 1, 1),
+    grid = (VoxelGrid.covering((0.1, 0.1, 0.2), (0.0, 0.0, 0.0), (4, 8, 8)) if point_range_max is None
+            else VoxelGrid((0.1, 0.1, 0.2), (0.0, 0.0, 0.0) + tuple(point_range_max)))
+    return FusionBlock(SFF([4], 4), grid=grid,
                        projector=VoxelCentroidProjector(point_range_max=point_range_max))
 
 
 def test_spatial_shape_against_the_metric_grid_names_the_order():
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks.samplers import FusionInputs
 
     # range 1.6 x 0.8 x 0.8 m over voxels (0.1, 0.1, 0.2): (D, H, W) = (4, 8, 16)
     block = _block((1.6, 0.8, 0.8))
     inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
                           torch.zeros(0, dtype=torch.long))
     coords = torch.tensor([[0, 1, 2, 3]], dtype=torch.int32)
-    wrong = SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    wrong = SparseVoxels(torch.ones(1, 4), coords, (16, 8, 4), 1, voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
     with pytest.raises(MSSFError, match=r"spatial_shape: expected \(D, H, W\) = \(4.0, 8.0, 16.0\).*got \(16, 8, 4\)"
                                         r".*\(4, 8, 16\) would fit"):
         block(wrong, inputs)
-    right = SparseVoxels(torch.ones(1, 4), coords, (4, 8, 16), 1, (0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    right = SparseVoxels(torch.ones(1, 4), coords, (4, 8, 16), 1, voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
     block.eval()(right, inputs)
 
 
 def test_spconv_indices_outside_a_permuted_spatial_shape_are_named():
     spconv = pytest.importorskip("spconv.pytorch")
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks.samplers import FusionInputs
 
     inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
                           torch.zeros(0, dtype=torch.long))

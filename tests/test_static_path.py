@@ -15,13 +15,13 @@ import pytest
 import torch
 
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector
-from mssf_blocks._checks import check_finite, check_index_range, is_tracing, value_check
-from mssf_blocks._static import static_path, use_static_path
+from mssf_blocks.checks.tensors import check_finite, check_index_range, is_tracing, value_check
+from mssf_blocks.static_path import static_path, use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional import bilinear_sample
 from mssf_blocks.functional.geometry import voxel_centroids
-from mssf_blocks.functional.static import segment_slots
-from mssf_blocks.fusion import MSDFF, SFF
+from mssf_blocks.static_path import segment_slots
+from mssf_blocks.samplers import MSDFF, SFF
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -62,7 +62,7 @@ def test_static_path_equals_eager_forward_backward_and_running_stats(kind, train
                               proj.batch_index)
     feats = _levels(b, v)
     query = torch.randn(n, 16, requires_grad=True, dtype=torch.float64)
-    base = SFF([6, 6], 16) if kind == "sff" else MSDFF(16, 6, num_heads=2, num_levels=2, num_points=3)
+    base = SFF([6, 6], 16) if kind == "sff" else MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3)
     _perturb(base.double()).train(training)
     results = []
     for static in (False, True):
@@ -144,9 +144,9 @@ _TRACE_SCRIPT = textwrap.dedent(
     """
     import io, sys, torch
     from torch import nn
-    from mssf_blocks import _compat
+    from mssf_blocks import torch_versions as _compat
     from mssf_blocks.functional import bilinear_sample
-    from mssf_blocks.fusion import SFF, MSDFF
+    from mssf_blocks.samplers import SFF, MSDFF
     from mssf_blocks.geometry import CentroidProjection
 
     torch.manual_seed(0)
@@ -169,7 +169,7 @@ _TRACE_SCRIPT = textwrap.dedent(
 
     args = (torch.randn(n, 16), torch.randn(1, 4, 8, 8), torch.randn(1, 4, 4, 4), uv,
             torch.rand(n, 1) > 0.2, bi)
-    for fusion in (SFF([4, 4], 16), MSDFF(16, 4, num_heads=2, num_levels=2, num_points=2)):
+    for fusion in (SFF([4, 4], 16), MSDFF(4, 16, num_heads=2, num_levels=2, num_points=2)):
         w = Wrap(fusion).eval()
         t = torch.jit.trace(w, args)
         print(type(fusion).__name__, (t(*args) - w(*args)).abs().max().item())
@@ -202,7 +202,7 @@ def test_projector_static_path_equals_eager():
     pb = torch.randint(0, 2, (200,), generator=g)
     coords = torch.unique(torch.cat([pb[:, None], torch.zeros(200, 1, dtype=torch.long),
                                      (pts[:, [1, 0]] // 1.0).long()], 1), dim=0).int()
-    vox = SparseVoxels(torch.zeros(coords.shape[0], 2), coords, (1, 4, 4), 2, (1.0, 1.0, 4.0), (0.0, 0.0, 0.0))
+    vox = SparseVoxels(torch.zeros(coords.shape[0], 2), coords, (1, 4, 4), 2, voxel_size=(1.0, 1.0, 4.0), point_range_min=(0.0, 0.0, 0.0))
     l2i = torch.tensor([[0.0, -20.0, 0.0, 40.0], [0.0, 0.0, -20.0, 40.0], [1.0, 0.0, 0.0, 1.0]]).expand(2, 3, 4)
     p0 = VoxelCentroidProjector()(vox, pts, pb, l2i, (80, 80))
     with static_path():
@@ -223,7 +223,7 @@ def test_auto_plan_per_device_and_grid_method_equals_cpu_planner():
                               proj.batch_index)
     feats = _levels(2, 2)
     query = torch.randn(50, 16, dtype=torch.float64)
-    auto = _perturb(MSDFF(16, 6, num_heads=2, num_levels=2, num_points=3).double()).eval()
+    auto = _perturb(MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3).double()).eval()
     grid = copy.deepcopy(auto)
     grid.method = "grid"  # the plan CUDA takes eagerly
     torch.testing.assert_close(grid(query, feats, proj), auto(query, feats, proj), atol=1e-10, rtol=1e-10)

@@ -39,7 +39,7 @@ def test_gradcheck64_catches_a_wrong_gradient():
 
 
 def test_errors_name_argument_expected_and_received():
-    from mssf_blocks._checks import check_shape
+    from mssf_blocks.checks.tensors import check_shape
     from mssf_blocks.errors import MSSFError
 
     dims = {}

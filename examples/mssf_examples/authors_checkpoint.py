@@ -11,7 +11,7 @@ Layouts (``layout=``):
   ``voxel_encoder.pfn_layers.0`` -> ``pfn`` (the linear weight's columns folded,
   :func:`fold_legacy_pfn_columns`), both fusion stages (``middle_encoder.*`` ->
   ``scatter_stage``, ``backbone.*`` -> ``backbone_stage``, through
-  :func:`mssf_blocks.compat.mssf_pp.mssf_pp_stage_maps`), ``backbone.blocks`` -> ``blocks``,
+  :func:`mssf_blocks.weights.authors_pp_keys.mssf_pp_stage_maps`), ``backbone.blocks`` -> ``blocks``,
   ``neck.deblocks`` -> ``deblocks``. Ignored into the backbone alone: the image backbone and neck
   (``img_backbone``, ``img_neck``: mmdet's ResNet-50 and FPN) and the detection head (``bbox_head``:
   their ``Anchor3DHead``), which map onto the detector (below); always: the dead
@@ -22,7 +22,7 @@ Layouts (``layout=``):
   fusion locations: ``pts_middle_encoder.conv_input`` / ``conv_out`` / ``shared_conv`` by name,
   ``conv1.<j>`` -> ``stages.0.blocks.<j>``, ``conv<i>.0`` -> ``stages.<i-1>.downsample``,
   ``conv<i>.<j>`` -> ``stages.<i-1>.blocks.<j-1>``, the fusion modules, query initialiser and semantic
-  head through :func:`mssf_blocks.compat.mssf_official.mssf_v_module_maps` (``stage_channels`` = their
+  head through :func:`mssf_blocks.weights.mssf_v_module_maps` (``stage_channels`` = their
   ``base_channels``, 32). Ignored into the backbone alone: ``img_backbone``, ``img_neck``,
   ``pts_bbox_head`` (their ``VoxelNeXtHead``); always: the dead ``voxel_fuse.img_transform``.
 
@@ -54,8 +54,8 @@ from typing import Callable, Dict, List, Mapping, Optional, Tuple
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.compat.mssf_official import mssf_v_module_maps, official_to_ours
-from mssf_blocks.compat.mssf_pp import mssf_pp_stage_maps
+from mssf_blocks.weights import mssf_v_module_maps, official_to_ours
+from mssf_blocks.weights.authors_pp_keys import mssf_pp_stage_maps
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["ConversionReport", "LAYOUTS", "convert_authors", "fold_legacy_pfn_columns", "head_pairs", "unwrap_checkpoint"]

@@ -82,7 +82,7 @@ def restricted_torch_load(extra: Sequence[Any], holds: str, instead: str) -> Ite
     """Within (torch < 2.6 only; later torch refuses by itself): every ``torch.load`` that asks neither for
     ``weights_only`` nor for its own ``pickle_module`` (a framework's ``torch.load(filename, map_location)``)
     unpickles through :func:`allow_list_pickle_module` (``extra``); a refusal raises :func:`refusal`."""
-    from mssf_blocks import _compat
+    from mssf_blocks import torch_versions as _compat
 
     if _compat.TORCH_VERSION >= (2, 6):
         yield

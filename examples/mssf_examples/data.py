@@ -14,7 +14,7 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["RadarCameraBatch"]

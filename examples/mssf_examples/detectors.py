@@ -16,10 +16,10 @@ from typing import Dict, List, Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks._compat import autocast_off
+from mssf_blocks.torch_versions import autocast_off
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.geometry import voxel_centroids
-from mssf_blocks.fusion import FusionInputs
+from mssf_blocks.samplers import FusionInputs
 
 from .backbones import (
     BackboneOutput,
@@ -353,7 +353,7 @@ def _float32(x):
 
 
 def _autocast_disabled(device_type: str):
-    return autocast_off(device_type)  # (torch-version dependent: mssf_blocks._compat)
+    return autocast_off(device_type)  # (torch-version dependent: mssf_blocks.torch_versions)
 
 
 def build_detector(

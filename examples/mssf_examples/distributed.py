@@ -30,7 +30,7 @@ from typing import Dict, List, Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks._compat import require
+from mssf_blocks.torch_versions import require
 from mssf_blocks.errors import MSSFError
 
 __all__ = [
@@ -159,7 +159,7 @@ def resolve_amp(mode: str, device: torch.device, detector: str) -> Optional[torc
                         f"{', '.join(_PURE_TORCH_DETECTORS)} trains under CPU autocast); use --amp off on the CPU "
                         f"or --device cuda")
     if device.type == "cpu" and dtype == torch.float16:
-        require("cpu_float16_autocast", f"--amp {mode}")  # (torch-version dependent: mssf_blocks._compat)
+        require("cpu_float16_autocast", f"--amp {mode}")  # (torch-version dependent: mssf_blocks.torch_versions)
     if device.type == "cuda" and dtype == torch.bfloat16 and not torch.cuda.is_bf16_supported():
         raise MSSFError(f"--amp bf16: {torch.cuda.get_device_name(device)} has no bfloat16 support; use --amp fp16")
     return dtype

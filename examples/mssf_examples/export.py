@@ -31,10 +31,10 @@ from typing import Dict, List, Sequence, Tuple, Union
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks._compat import require
+from mssf_blocks.torch_versions import require
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.fusion import FusionInputs
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.samplers import FusionInputs
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 from .data import RadarCameraBatch
 from .voxelize import Voxelization
@@ -79,7 +79,8 @@ class PointPillarsGraph(nn.Module):
         for i, coords in enumerate(lift_coords):
             s = bb.strides[i]
             lifts.append(SparseVoxels(coords.new_zeros(coords.shape[0], 1, dtype=points.dtype), coords,
-                                      (d, -(-h // s), -(-w // s)), b, g.voxel_size, g.point_range_min, stride=(1, s, s)))
+                                      (d, -(-h // s), -(-w // s)), b, voxel_size=g.voxel_size,
+                                      point_range_min=g.point_range_min, stride=(1, s, s)))
         fusion_inputs = None
         if det.num_fusion_blocks:
             feats = det.image_branch(image_input) if det.image_branch is not None else list(image_input)
@@ -100,7 +101,7 @@ def graph_inputs(detector: nn.Module, batch: RadarCameraBatch) -> Tuple:
 def graph_dynamic_shapes(detector: nn.Module, num_image_inputs: int = 1) -> Tuple:
     """``dynamic_shapes`` for ``torch.export`` / ``torch.onnx.export`` matching :func:`graph_inputs`:
     the point, kept-point, pillar and lift-voxel counts are dynamic; batch, cameras and image sizes static."""
-    require("export_dynamic_shapes", "graph_dynamic_shapes")  # (torch-version dependent: mssf_blocks._compat)
+    require("export_dynamic_shapes", "graph_dynamic_shapes")  # (torch-version dependent: mssf_blocks.torch_versions)
     from torch.export import Dim
 
     p, pk, n_p = Dim("P", min=2), Dim("P_k", min=2), Dim("N_p", min=2)

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["BasicBlock", "Bottleneck", "SubsampledConv1x1", "ResNet", "FPN", "ImageBranch", "RESNET_LAYERS"]

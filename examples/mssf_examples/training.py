@@ -17,7 +17,7 @@
 The loops take a ``make_batch(indices) -> RadarCameraBatch`` callable, so the same code serves the
 synthetic scenes and KITTI-format datasets (and any data loader: pass ``batches`` of your own).
 
-Call :func:`mssf_blocks.compat.spconv.enable_cpu_backward` before training a spconv detector on CPU.
+Call :func:`mssf_blocks.integrations.spconv.enable_cpu_backward` before training a spconv detector on CPU.
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from typing import Callable, Dict, Iterable, List, Optional, Tuple, Union
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks._compat import grad_scaler
+from mssf_blocks.torch_versions import grad_scaler
 from mssf_blocks.errors import MSSFError
 
 from .distributed import autocast, mean_over_processes, unwrap_model
@@ -147,7 +147,7 @@ def train_detector(
     opt = torch.optim.AdamW(params, lr=lr, betas=(0.95, 0.99), weight_decay=weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps, pct_start=0.4, div_factor=10.0,
                                                 base_momentum=0.85, max_momentum=0.95)
-    scaler = grad_scaler(device.type, enabled=amp_dtype == torch.float16)  # (mssf_blocks._compat)
+    scaler = grad_scaler(device.type, enabled=amp_dtype == torch.float16)  # (mssf_blocks.torch_versions)
     if state is not None:
         opt.load_state_dict(state["optimizer"])  # moves the moments onto the parameters' device
         sched.load_state_dict(state["scheduler"])

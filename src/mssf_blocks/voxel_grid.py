@@ -151,6 +151,9 @@ class VoxelGrid:
             else:
                 what = (f"no power-of-two stride of the grid's {base[a]} {axis} cells gives {shape[a]}" if not c
                         else f"the {axis} axis fits strides {c} and the other axes do not decide")
+                perm = self._permutation_that_fits(shape)
+                if perm is not None:
+                    what += f"; {perm} would fit: spatial_shape is (D, H, W) = (z, y, x) cells, given in another order?"
                 raise MSSFError(
                     f"{name}: expected the shape of a sparse tensor on the grid (its (D, H, W) = {base} at stride 1, "
                     f"over a whole power-of-two stride per axis), got {shape}: {what}. Check voxel_size (x, y, z "
@@ -158,6 +161,15 @@ class VoxelGrid:
                     "SparseVoxels(..., grid=grid, stride=(sz, sy, sx)) to state its stride"
                 )
         return (stride[0], stride[1], stride[2])
+
+    def _permutation_that_fits(self, shape: Tuple[int, int, int]) -> Optional[Tuple[int, int, int]]:
+        import itertools
+
+        for perm in itertools.permutations(shape):
+            if perm != shape and all(any(m in _reachable(n, k) for k in range(_MAX_LOG2_STRIDE + 1))
+                                     for n, m in zip(self.spatial_shape, perm)):
+                return perm
+        return None
 
     def voxel_centers(self, coords: Tensor, stride: Sequence[int] = (1, 1, 1),
                       dtype: torch.dtype = torch.float32) -> Tensor:

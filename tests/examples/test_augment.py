@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from mssf_blocks import MSSFError, VoxelCentroidProjector, points_in_boxes
 from mssf_blocks.functional import voxelize_points
-from mssf_blocks.fusion import sample_at_projection
+from mssf_blocks.samplers import sample_at_projection
 from mssf_examples.augment import (
     NO_AUGMENTATION,
     AugmentationConfig,

@@ -218,7 +218,7 @@ def test_their_mssf_v_checkpoint_loads_strictly_into_voxelnext_in_their_layout()
 
 
 def test_voxelnext_in_their_layout_runs_its_regular_conv_out_and_shared_conv():
-    from mssf_blocks.fusion import FusionInputs
+    from mssf_blocks.samplers import FusionInputs
     from mssf_examples.backbones import VoxelNeXtBackbone
     from mssf_examples.voxelize import DynamicVoxelizer
 

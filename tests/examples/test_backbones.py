@@ -6,7 +6,7 @@ pytest.importorskip("spconv")
 import spconv.pytorch as spconv  # noqa: E402
 
 from mssf_blocks.errors import MSSFError  # noqa: E402
-from mssf_blocks.fusion import FusionInputs  # noqa: E402
+from mssf_blocks.samplers import FusionInputs  # noqa: E402
 from mssf_blocks.testing import assert_close  # noqa: E402
 from mssf_examples.backbones import (  # noqa: E402
     CenterPointBackbone,

@@ -43,8 +43,8 @@ def test_swapped_stage_changes_only_seen_voxels():
     assert torch.equal(fused.indices, plain.indices)
     changed = (fused.features != plain.features).any(1)
     assert changed.any() and (~changed).any()  # the camera sees only the front part of the scene
-    from mssf_blocks.sparse import SparseVoxels
+    from mssf_blocks.sparse_voxels import SparseVoxels
 
-    vox = SparseVoxels.from_spconv(plain, ns["VOXEL_SIZE"], ns["POINT_CLOUD_RANGE"][:3], stride=(2, 2, 2))
+    vox = SparseVoxels.from_spconv(plain, voxel_size=ns["VOXEL_SIZE"], point_range_min=ns["POINT_CLOUD_RANGE"][:3], stride=(2, 2, 2))
     proj = block.projector(vox, inputs.points, inputs.points_batch, inputs.lidar2img, inputs.image_size)
     assert torch.equal(changed, proj.valid.any(1))

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.deform import op as sampling_op
 from mssf_blocks.functional.plan_costs import SAMPLING_BACKENDS

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 from mssf_blocks.functional.deform import kept
 from mssf_blocks.functional.deform import op as sampling_op
 from mssf_blocks.functional.deform.op import deform_sample_project

@@ -80,7 +80,7 @@ def test_read_pixels_are_the_in_map_corners_of_every_point(seed):
 def test_msdff_locations_are_a_level_major_view_with_the_reference_values():
     torch.manual_seed(0)
     e, c, m, lv_, p = 12, 16, 4, 3, 2
-    mod = MSDFF(e, c, num_heads=m, num_levels=lv_, num_points=p).double()
+    mod = MSDFF(c, e, num_heads=m, num_levels=lv_, num_points=p).double()
     with torch.no_grad():
         mod.sampling_offsets.weight.normal_(0.0, 0.5)
         mod.attention_weights.weight.normal_(0.0, 0.5)

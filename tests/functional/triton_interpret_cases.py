@@ -166,11 +166,11 @@ def test_op_triton_backend_matches_float64_with_every_gradient():
 def test_msdff_triton_matches_the_float64_module_reference():
     """MSDFF(method="triton") on two cameras with invalid pairs (every pair a query, invalid ones masked)."""
     from fusion_references import randomize_msdff, reference_msdff, scene
-    from mssf_blocks.fusion import MSDFF
+    from mssf_blocks.samplers import MSDFF
 
     gen = torch.Generator().manual_seed(5)
     levels, uv, valid, batch_index = scene(gen, b=2, v=2, n=6, chans=(4, 4))
-    mod = MSDFF(6, 4, value_dim=8, num_heads=2, num_levels=2, num_points=2, method="triton").double()
+    mod = MSDFF(4, 6, value_dim=8, num_heads=2, num_levels=2, num_points=2, method="triton").double()
     randomize_msdff(mod, gen)
     mod.eval()
     query = torch.randn(6, 6, generator=gen, dtype=F64)

@@ -89,7 +89,7 @@ def test_allow_list_on_every_torch(tmp_path, monkeypatch, torch_before_2_6):
     torch, and real in make test-compat's floor environment) a restricted unpickler enforces it. A checkpoint
     of every kind mmengine saves loads equal; a crafted one is refused and its code does not run."""
     pytest.importorskip("mmengine")
-    from mssf_blocks import _compat
+    from mssf_blocks import torch_versions as _compat
     from mssf_blocks.errors import MSSFError
     from mssf_examples.mmdet3d.checkpoints import load_from_local_weights_only
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 from mssf_blocks.errors import MSSFError
 from mssf_examples.checkpoint_allow_list import restricted_torch_load
 from mssf_examples.openpcdet.__main__ import _HOLDS, _INSTEAD, checkpoint_numpy_globals

@@ -12,7 +12,7 @@ from typing import List, Optional, Sequence, Tuple, Union
 from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 __all__ = ["BackboneOutput", "FUSION_TYPES", "FUSION_POSITIONS"]
 
@@ -53,8 +53,8 @@ def _check_fusion_args(num_fusion_blocks: int, max_blocks: int, fusion: str, fus
 def _make_fusion(kind: str, channels: int, image_channels: Sequence[int], msdff_heads: int, msdff_points: int,
                  value_projection: str = "after_sampling", value_dim: Union[int, str, None] = None,
                  authors_switches: bool = False):
-    from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES
-    from mssf_blocks.fusion import MSDFF, SFF
+    from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES
+    from mssf_blocks.samplers import MSDFF, SFF
 
     if kind == "sff":
         return SFF(list(image_channels), channels, **(OFFICIAL_SWITCHES["sff"] if authors_switches else {}))

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.lift import _add_into_pillars
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 from ..voxelize import PillarFeatureNet, VoxelGrid, dynamic_voxelize
 from .fusion_stage import BackboneOutput, _check_fusion_args, _make_fusion
@@ -115,7 +115,7 @@ class PointPillarsBackbone(nn.Module):
                                                nn.BatchNorm2d(num_upsample_filters[i], eps=1e-3, momentum=0.01), nn.ReLU()))
             if i < num_fusion_blocks:
                 from mssf_blocks.blocks import FusionBlock
-                from mssf_blocks.fusion import QueryInit
+                from mssf_blocks.samplers import QueryInit
                 from mssf_blocks.lift import PillarLift
 
                 # the lift voxels are already at the BEV map's x/y resolution (see _coarsen), hence stride 1

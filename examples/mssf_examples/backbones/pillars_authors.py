@@ -1,8 +1,8 @@
 """MSSF-PP in the authors' layout (``EricLiuhhh/MSSF``: ``PointPillarsScatterFuse`` + ``SECONDFuse`` +
 ``SECONDFPN``, config ``pointpillars_hv_secfpn_8xb6-160e_vod-3d-3class_mm_bb_bevfeat_lr0001``).
 
-Two :class:`mssf_blocks.pillar_stage.PillarFusionStage` s with the ``OFFICIAL_SWITCHES`` of
-``mssf_blocks.compat.mssf_official`` (``docs/differences.md`` rows 15-18):
+Two :class:`mssf_blocks.blocks.pillar_fusion_stage.PillarFusionStage` s with the ``OFFICIAL_SWITCHES`` of
+``mssf_blocks.weights.authors_checkpoint`` (``docs/differences.md`` rows 15-18):
 
 * ``scatter_stage``, before any BEV block: the radar points voxelised on the pillar x/y cells and
   ``lift_z_size`` in z, ``conv_input`` of their mean features only (no BEV term), fused, and the summed
@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 from ..voxelize import PillarFeatureNet, VoxelGrid, dynamic_voxelize, pillars_to_bev
 from .fusion_stage import BackboneOutput
@@ -76,12 +76,12 @@ class AuthorsPointPillarsBackbone(nn.Module):
     ) -> None:
         super().__init__()
         from mssf_blocks.blocks import FusionBlock
-        from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES as SW
-        from mssf_blocks.fusion import MSDFF, QueryInit
+        from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES as SW
+        from mssf_blocks.samplers import MSDFF, QueryInit
         from mssf_blocks.geometry import VoxelCentroidProjector
         from mssf_blocks.heads import SemanticGuidedHead
         from mssf_blocks.lift import PillarLift
-        from mssf_blocks.pillar_stage import PillarFusionStage
+        from mssf_blocks.blocks.pillar_fusion_stage import PillarFusionStage
 
         if grid.grid_size[2] != 1:
             raise MSSFError(f"grid: expected a pillar grid (one z cell), got grid_size {grid.grid_size}")
@@ -102,7 +102,7 @@ class AuthorsPointPillarsBackbone(nn.Module):
 
         def stage(raw_lift_kw, stage_kw):
             block = FusionBlock(
-                MSDFF(c, levels, num_heads=msdff_heads, num_levels=len(levels), num_points=msdff_points, **SW["msdff"]),
+                MSDFF(levels, c, num_heads=msdff_heads, num_levels=len(levels), num_points=msdff_points, **SW["msdff"]),
                 query_init=QueryInit(c, levels[0], c, pcr, **SW["query_init"]),
                 projector=VoxelCentroidProjector(**SW["projector"]),
                 semantic_head=SemanticGuidedHead(c, hidden=tuple(seg_hidden)), **SW["fusion_block"])
@@ -133,8 +133,8 @@ class AuthorsPointPillarsBackbone(nn.Module):
         g = self.lift_grids[k]
         vox = dynamic_voxelize(points, points_batch, batch_size, g)
         d, h, w = g.spatial_shape
-        return SparseVoxels(vox.features, vox.coords, (d + self.z_pad, h, w), batch_size, g.voxel_size,
-                            g.point_range_min)
+        return SparseVoxels(vox.features, vox.coords, (d + self.z_pad, h, w), batch_size, voxel_size=g.voxel_size,
+                            point_range_min=g.point_range_min)
 
     def forward(self, points: Tensor, points_batch: Tensor, batch_size: int, fusion_inputs=None,
                 voxelization=None) -> BackboneOutput:

@@ -15,9 +15,9 @@ from torch import nn
 
 import spconv.pytorch as spconv
 
-from mssf_blocks.compat.spconv import check_spconv_input
+from mssf_blocks.checks.spconv_inputs import check_spconv_input
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 from ..spconv_compat import dense, enable_cpu_backward, quiet
 from ..voxelize import VoxelGrid
@@ -100,7 +100,7 @@ class SparseFusionBackbone(nn.Module):
         image_channels: ``C_l`` of every image level (needed when ``num_fusion_blocks > 0``).
         msdff_heads, msdff_points: MSDFF heads and sampling points per level.
         msdff_value_projection: MSDFF's ``value_projection`` (``"after_sampling"`` or
-            ``"before_sampling"``; equal results, different cost, see :class:`mssf_blocks.fusion.MSDFF`).
+            ``"before_sampling"``; equal results, different cost, see :class:`mssf_blocks.samplers.MSDFF`).
         msdff_value_dim: MSDFF's ``value_dim``: ``None`` (default) the image channels (the paper's and
             the authors' width), ``"voxel_channels"`` each block's voxel channels (the narrow layout),
             or an int.
@@ -110,7 +110,7 @@ class SparseFusionBackbone(nn.Module):
             ``SparseEncoderVoxelNeXtFuse``) or ``"after_residual"`` (the block's output); see
             :class:`mssf_blocks.blocks.FusionBlock`.
         authors_switches: build the fusion modules, query initialiser and projector with
-            ``mssf_blocks.compat.mssf_official.OFFICIAL_SWITCHES`` (the authors' forward).
+            ``mssf_blocks.weights.authors_checkpoint.OFFICIAL_SWITCHES`` (the authors' forward).
         z_pad: extra empty z layers on top of the grid (OpenPCDet's ``+1`` so ``41`` z cells downsample
             ``41 -> 21 -> 11 -> 5 -> 2``).
     """
@@ -165,14 +165,14 @@ class SparseFusionBackbone(nn.Module):
                 blocks = spconv.SparseSequential(*[_subm(spec.channels, spec.channels, key) for _ in range(spec.num_blocks)])
             if i < num_fusion_blocks:
                 from mssf_blocks.blocks import FusionBlock
-                from mssf_blocks.fusion import QueryInit
+                from mssf_blocks.samplers import QueryInit
                 from mssf_blocks.heads import SemanticGuidedHead
 
                 head = None
                 if i == num_fusion_blocks - 1 and seg_hidden is not None:
                     # the semantic-guided head runs inside the last fusion block (paper Sec. III-D)
                     head = SemanticGuidedHead(spec.channels, hidden=tuple(seg_hidden))
-                from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES as SW
+                from mssf_blocks.weights.authors_checkpoint import OFFICIAL_SWITCHES as SW
                 from mssf_blocks.geometry import VoxelCentroidProjector
 
                 query_init = None
@@ -206,18 +206,19 @@ class SparseFusionBackbone(nn.Module):
         return self.stages[self.num_fusion_blocks - 1].semantic_head if self.num_fusion_blocks else None
 
     def _wrap(self, t, stride) -> SparseVoxels:
-        return SparseVoxels.from_spconv(t, self.grid.voxel_size, self.grid.point_range_min, stride)
+        return SparseVoxels.from_spconv(t, voxel_size=self.grid.voxel_size, point_range_min=self.grid.point_range_min,
+                                        stride=stride)
 
     def forward_stages(self, voxels: SparseVoxels, fusion_inputs=None) -> BackboneOutput:
         """Run ``conv_input`` and every stage.
 
         Args:
             voxels: input voxels on :attr:`grid` (``(N, in_channels)`` features).
-            fusion_inputs: :class:`mssf_blocks.fusion.FusionInputs` (required when fusing).
+            fusion_inputs: :class:`mssf_blocks.samplers.FusionInputs` (required when fusing).
         """
         if self.num_fusion_blocks and fusion_inputs is None:
             raise MSSFError("fusion_inputs: required when num_fusion_blocks > 0, got None")
-        with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.compat.spconv)
+        with quiet():  # spconv's own torch.fx / indexing messages (see mssf_blocks.integrations.spconv)
             return self._forward_stages(voxels, fusion_inputs)
 
     def _forward_stages(self, voxels: SparseVoxels, fusion_inputs) -> BackboneOutput:

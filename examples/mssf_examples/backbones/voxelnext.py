@@ -13,7 +13,7 @@ from torch import Tensor, nn
 import spconv.pytorch as spconv
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.sparse import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels
 
 from ..spconv_compat import quiet
 from ..voxelize import VoxelGrid

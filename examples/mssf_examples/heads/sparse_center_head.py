@@ -18,7 +18,7 @@ from typing import Callable, Dict, List, Sequence
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks._checks import check_dtype, check_floating, check_shape
+from mssf_blocks.checks.tensors import check_dtype, check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 from ..ops.boxes import decode_center

@@ -31,7 +31,7 @@ from typing import Any, Iterator, List
 
 import torch
 
-from mssf_blocks import _compat
+from mssf_blocks import torch_versions as _compat
 
 from ..checkpoint_allow_list import allow_list_pickle_module, refusal
 

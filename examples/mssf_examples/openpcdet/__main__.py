@@ -54,7 +54,7 @@ def allow_numpy_scalars_in_checkpoints() -> None:
     """torch >= 2.6 loads with ``weights_only=True`` by default and refuses OpenPCDet's numpy scalars in
     ``test.py`` / ``--ckpt``: allow-list exactly :func:`checkpoint_numpy_globals`, nothing else (torch < 2.4
     has no allow-list; before 2.6 :func:`main` restricts OpenPCDet's ``torch.load`` to the same list)."""
-    from mssf_blocks import _compat
+    from mssf_blocks import torch_versions as _compat
 
     _compat.add_safe_globals(checkpoint_numpy_globals())
 

@@ -25,7 +25,7 @@ import math
 import torch
 from torch import Tensor
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 __all__ = [

@@ -30,7 +30,7 @@ from typing import Tuple
 import torch
 from torch import Tensor
 
-from mssf_blocks._checks import check_finite, check_floating, check_shape
+from mssf_blocks.checks.tensors import check_finite, check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 __all__ = [

@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 from .iou import box_iou_bev

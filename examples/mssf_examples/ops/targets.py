@@ -35,7 +35,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from mssf_blocks._checks import check_floating, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
 from mssf_blocks.errors import MSSFError
 
 from .boxes import encode_center, limit_period

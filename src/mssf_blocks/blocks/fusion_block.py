@@ -262,18 +262,7 @@ class FusionBlock(nn.Module):
             raise MSSFError(f"return_logits: expected a bool, got {return_logits!r}")
         if return_logits and self.semantic_head is None:
             raise MSSFError("return_logits: True needs a semantic_head; this FusionBlock was built without one")
-        if isinstance(x, SparseVoxels):
-            grid = self._check_voxels_grid(x)
-            in_stride = x.stride
-        elif _is_spconv_tensor(x):
-            if self.grid is None:
-                raise MSSFError(
-                    "x: an spconv SparseConvTensor carries no metric grid; construct FusionBlock with "
-                    "grid=VoxelGrid(voxel_size, point_cloud_range) (or pass SparseVoxels)"
-                )
-            grid = self.grid
-            in_stride = grid.stride_of(x.spatial_shape, "x.spatial_shape")
-        else:
+        if not isinstance(x, SparseVoxels) and not _is_spconv_tensor(x):
             raise MSSFError(f"x: expected SparseVoxels or an spconv SparseConvTensor, got {type(x).__name__}")
         # Before any spconv code: what SparseVoxels.to_spconv checks, plus what the first spconv module takes.
         first = self.downsample if self.downsample is not None else (
@@ -284,6 +273,17 @@ class FusionBlock(nn.Module):
             check_indices_in_shape(x.indices, x.spatial_shape)
         if isinstance(x.batch_size, int):  # (an spconv tensor may hold a 0-d tensor: not read here)
             check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", x.batch_size))
+        if isinstance(x, SparseVoxels):
+            grid = self._check_voxels_grid(x)
+            in_stride = x.stride
+        else:
+            if self.grid is None:
+                raise MSSFError(
+                    "x: an spconv SparseConvTensor carries no metric grid; construct FusionBlock with "
+                    "grid=VoxelGrid(voxel_size, point_cloud_range) (or pass SparseVoxels)"
+                )
+            grid = self.grid
+            in_stride = grid.stride_of(x.spatial_shape, "x.spatial_shape")
         out_stride = self.output_stride(in_stride)
         check_grid(x.spatial_shape, grid.voxel_size, grid.point_range_min, in_stride, grid.point_range_max)
         if self.query_init is not None and not getattr(self, "_query_range_warned", False) and not is_tracing():

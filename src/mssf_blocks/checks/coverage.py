@@ -45,7 +45,7 @@ _CAUSES = {
     "centroids": (
         "usual causes: points_batch not matching the voxels' batch index (a sample's points labelled as "
         "another's), points of another frame or sweep, point_range_min or voxel_size (x, y, z order) not the "
-        "ones the voxels were built with, a wrong in_stride"
+        "ones the voxels were built with, a wrong voxels' stride (SparseVoxels.stride)"
     ),
 }
 _WHAT = {"projection": ("in-image fraction", "project inside the image"),

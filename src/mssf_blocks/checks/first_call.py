@@ -11,7 +11,7 @@ warm-up:
   stride is one of the sample's voxels. Voxels built from these points (a voxeliser, then submanifold
   convolutions or strided ones of kernel 3, stride 2, padding 1, which keep the voxel ``floor(i / 2)``
   of every input voxel ``i``) hold every such point: the fraction is 1.0 at every stride. A permuted
-  ``voxel_size``, a wrong ``stride`` / ``in_stride``, ``point_range_min`` or coords order puts most points
+  ``voxel_size``, a wrong ``stride``, ``point_range_min`` or coords order puts most points
   beside the voxels even where a few still meet one by chance.
 * **voxels without points**: a sample with voxels and none of the points (``points_batch`` labels them
   all as other samples), while other samples have points.
@@ -104,8 +104,8 @@ def check_points_in_voxels(points: Tensor, points_batch: Tensor, coords: Tensor,
         warnings.warn(MSSFGeometryWarning(
             f"points: only {k} of sample {b}'s {n} raw points on the grid ({k / n:.2f}, expected about 1.0) lie "
             f"in one of its {int(n_vox[b])} voxels at stride {tuple(int(s) for s in stride)}: the voxels and the "
-            "points disagree; check voxel_size (x, y, z order), the voxels' stride / in_stride (the stride of "
-            "the block's input, not its output), point_range_min, the coords order (batch, z, y, x) with "
+            "points disagree; check voxel_size (x, y, z order), the voxels' stride (SparseVoxels.stride: "
+            "the stride of the block's input, not of its output), point_range_min, the coords order (batch, z, y, x) with "
             "spatial_shape (D, H, W), and points_batch"
         ), stacklevel=2)
 

@@ -47,7 +47,7 @@ _CAUSES = (
     "not a projection (a 4x4 lidar-to-camera transform or the intrinsics alone: it must be K @ [R | t]); "
     "points_to_sensor in the wrong direction (it maps augmented points back to the sensor: the inverse of "
     "augmentation_matrix); voxel_size given as (z, y, x) instead of (x, y, z); a wrong point_range_min or "
-    "in_stride"
+    "voxels' stride"
 )
 
 
@@ -225,8 +225,8 @@ def check_centroid_coverage(has_points: Tensor, batch_index: Tensor, points_batc
     for b in ((n_vox > 0) & (n_pts > 0) & (n_hold == 0)).nonzero().flatten().tolist():
         warnings.warn(MSSFGeometryWarning(
             f"centroids: none of sample {b}'s {int(n_vox[b])} voxels holds any of its {int(n_pts[b])} points: "
-            "the voxel grid and the points disagree; check voxel_size (x, y, z order), in_stride / the "
-            "voxels' stride, point_range_min and points_batch"
+            "the voxel grid and the points disagree; check voxel_size (x, y, z order), the voxels' "
+            "stride (SparseVoxels.stride), point_range_min and points_batch"
         ), stacklevel=2)
     if monitor is not None:
         hits, totals, pts = n_hold.tolist(), n_vox.tolist(), n_pts.tolist()
@@ -253,7 +253,7 @@ def check_grid(spatial_shape: Sequence[int], voxel_size: Sequence[float], point_
 
     perm = next((p for p in itertools.permutations(shape) if p != shape and fits(p)), None)
     hint = (f"; {perm} would fit: spatial_shape is (D, H, W) = (z, y, x) cells, given in another order?"
-            if perm is not None else "; check voxel_size (x, y, z order), in_stride / the tensor's stride and "
+            if perm is not None else "; check voxel_size (x, y, z order), the tensor's stride and "
             "the point range")
     raise MSSFError(
         f"{name}.spatial_shape: expected (D, H, W) = ({', '.join(f'{e:.1f}' for e in extent)}) cells within one "

@@ -321,4 +321,4 @@ def voxelize_points(
     z = rest % d
     b = torch.div(rest, d, rounding_mode="floor")
     coords = torch.stack([b, z, y, x], dim=1).int()
-    return SparseVoxels(feats, coords, (d, h, w), batch_size, vs, lo)
+    return SparseVoxels(feats, coords, (d, h, w), batch_size, voxel_size=vs, point_range_min=lo)

@@ -52,7 +52,7 @@ Not reproduced (documented in ``docs/differences.md``): their projection of poin
 Example:
     >>> import torch
     >>> from mssf_blocks.samplers import MSDFF
-    >>> m = MSDFF(16, 32, num_heads=4, num_levels=2, num_points=2, **OFFICIAL_SWITCHES["msdff"])
+    >>> m = MSDFF(32, 16, num_heads=4, num_levels=2, num_points=2, **OFFICIAL_SWITCHES["msdff"])
     >>> maps = [ModuleMap("msdff", "fusion_blocks.x_conv1", "fusion")]
     >>> theirs = ours_to_official({f"fusion.{k}": v for k, v in m.state_dict().items()}, maps)
     >>> sorted(theirs)[0]
