@@ -5,8 +5,8 @@ layout change can show before and after that the way got shorter. The set-up is 
 example (a strided ``SparseConv3d`` + BN + ReLU, one ``SubMConv3d`` residual stage, two samples of 100
 points, four 256-channel image levels of a 320 x 512 image, one camera) in six variants: SFF, MSDFF,
 MSDFF with ``QueryInit``, each fed a :class:`~mssf_blocks.SparseVoxels` (the block built without the
-grid arguments) and a raw spconv ``SparseConvTensor`` (the block built with ``voxel_size``,
-``point_range_min``, ``in_stride``, as in the README). Each variant runs one untraced forward first
+grid) and a raw spconv ``SparseConvTensor`` (the block built with its ``VoxelGrid``, as in the README;
+before issue 43's redesign: with ``voxel_size``, ``point_range_min`` and ``in_stride``). Each variant runs one untraced forward first
 (lazy imports and one-time set-up are not the path), then one traced forward, on the CPU, one thread,
 ``torch.no_grad``, geometry checks at their CPU default (on: they are part of the path).
 
@@ -78,7 +78,8 @@ def voxel_tensors(obj: Any) -> Optional[List[Any]]:
     from mssf_blocks import SparseVoxels
 
     if isinstance(obj, SparseVoxels):
-        return [obj.features, obj.coords]
+        # (``self`` of its own ``__init__`` holds no tensor yet: a holder from the moment it has them)
+        return [t for t in (getattr(obj, "features", None), getattr(obj, "coords", None)) if t is not None]
     if type(obj).__name__ == "SparseConvTensor":
         return [obj.features, obj.indices]
     return None
@@ -186,7 +187,7 @@ def build_variant(name: str, seed: int = 0):
     import spconv.pytorch as spconv
     from torch import nn
 
-    from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels
+    from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, SparseVoxels, VoxelGrid
 
     fusion_kind, input_kind = name.split("-")
     torch.manual_seed(seed)
@@ -198,11 +199,11 @@ def build_variant(name: str, seed: int = 0):
     if fusion_kind == "sff":
         fusion = SFF([256] * 4, 32)
     else:
-        fusion = MSDFF(embed_dim=32, value_channels=256, num_heads=8, num_levels=4, num_points=4)
-    query_init = (QueryInit(32, 256, 32, point_cloud_range=(0, -25.6, -3, 51.2, 25.6, 2))
-                  if fusion_kind == "msdff_qi" else None)
-    grid = dict(GRID, in_stride=(1, 1, 1)) if input_kind == "spconv" else {}
-    block = FusionBlock(fusion, downsample=down, blocks=res, query_init=query_init, **grid).eval()
+        fusion = MSDFF(256, 32, num_heads=8, num_levels=4, num_points=4)
+    grid = VoxelGrid(GRID["voxel_size"], GRID["point_range_min"] + (51.2, 25.6, 2.0))
+    # (the grid is the block's for an spconv input and for its own QueryInit; SparseVoxels carry theirs)
+    block = FusionBlock(fusion, grid if input_kind == "spconv" or fusion_kind == "msdff_qi" else None,
+                        downsample=down, blocks=res, query_init=fusion_kind == "msdff_qi").eval()
 
     B, H, W = 2, 320, 512
     xyz = torch.rand(B * 100, 3) * torch.tensor([25.0, 10.0, 3.0]) + torch.tensor([5.0, -5.0, -2.5])
@@ -213,7 +214,7 @@ def build_variant(name: str, seed: int = 0):
     if input_kind == "spconv":
         x = spconv.SparseConvTensor(features, coords, [40, 1024, 1024], B)
     else:
-        x = SparseVoxels(features, coords, (40, 1024, 1024), B, **GRID)
+        x = SparseVoxels(features, coords, grid.spatial_shape, B, grid=grid)
     fpn = [torch.randn(B, 256, H // s, W // s) for s in (4, 8, 16, 32)]
     k = torch.tensor([[200.0, 0, W / 2], [0, 200, H / 2], [0, 0, 1]])
     lidar2img = (k @ torch.tensor([[0.0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0]])).expand(B, 1, 3, 4)

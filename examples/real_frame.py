@@ -130,7 +130,7 @@ def sample_features(pyramid: List[Tensor], projections: Dict[int, object], voxel
     sff = SFF(chans, embed).eval()
     # The pyramid here is RGB (3 channels), which 2 heads cannot split: project the values to the voxel
     # width first (value_dim=embed), the narrow layout, instead of the paper's value_dim = value_channels.
-    msdff = MSDFF(embed, chans[0], value_dim=embed, num_heads=2, num_levels=len(pyramid), num_points=4).eval()
+    msdff = MSDFF(chans[0], embed, value_dim=embed, num_heads=2, num_levels=len(pyramid), num_points=4).eval()
     lift = torch.nn.Linear(VOD_RADAR.num_channels, embed)  # fixed random query from the voxel features
     with torch.no_grad():
         for s, proj in projections.items():

@@ -137,20 +137,20 @@ def _():
     from mssf_blocks.samplers import FusionInputs
 
     # a 1.6 x 0.8 x 0.8 m range over voxels (0.1, 0.1, 0.2): (D, H, W) = (4, 8, 16); (16, 8, 4) given
-    grid = ((0.1, 0.1, 0.2), (0.0, 0.0, 0.0))
+    grid = dict(voxel_size=(0.1, 0.1, 0.2), point_range_min=(0.0, 0.0, 0.0))
     inputs = FusionInputs([torch.zeros(1, 4, 8, 8)], torch.eye(3, 4)[None], (8, 8), torch.zeros(0, 3),
                           torch.zeros(0, dtype=torch.long))
     idx = torch.tensor([[0, 1, 2, 12], [0, 3, 7, 15]], dtype=torch.int32)  # x up to 15
     small = torch.tensor([[0, 1, 2, 3]], dtype=torch.int32)  # inside both shapes: only the metric extent tells
-    return outcome(lambda: SparseVoxels(torch.ones(2, 4), idx, (16, 8, 4), 1, *grid),
+    return outcome(lambda: SparseVoxels(torch.ones(2, 4), idx, (16, 8, 4), 1, **grid),
                    lambda: si._block()(spconv.SparseConvTensor(torch.ones(2, 4), idx, [16, 8, 4], 1), inputs),
-                   lambda: si._block((1.6, 0.8, 0.8))(SparseVoxels(torch.ones(1, 4), small, (16, 8, 4), 1, *grid),
+                   lambda: si._block((1.6, 0.8, 0.8))(SparseVoxels(torch.ones(1, 4), small, (16, 8, 4), 1, **grid),
                                                       inputs))
 
 
 @case("`downsample_stride` that contradicts")
 def _():
-    return outcome(lambda: fc._block((1, 1, 1), downsample_stride=(1, 2, 2)))
+    return outcome(lambda: fc._block(downsample_stride=(1, 2, 2)))
 
 
 @case("a rotation in degrees")

@@ -26,7 +26,12 @@ from mssf_blocks.errors import MSSFError
 from mssf_blocks.voxel_grid import VoxelGrid
 from mssf_blocks.static_path import register_pytree
 
-__all__ = ["SparseVoxels"]
+__all__ = ["SparseVoxels", "is_spconv_tensor"]
+
+
+def is_spconv_tensor(x: Any) -> bool:
+    """Whether ``x`` is an spconv ``SparseConvTensor`` (by its attributes: spconv need not be imported)."""
+    return all(hasattr(x, a) for a in ("features", "indices", "spatial_shape", "batch_size", "replace_feature"))
 
 
 def _permutation_hint(coords: Tensor, spatial_shape: Tuple[int, int, int]) -> str:
@@ -128,20 +133,13 @@ class SparseVoxels:
         set_(self, "spatial_shape", spatial_shape)
         set_(self, "batch_size", check_positive_int(batch_size, "batch_size"))
         set_(self, "grid", grid)
+        # (plain attributes, not properties: read on every block's path, and the grid is immutable)
+        set_(self, "voxel_size", grid.voxel_size)  # (x, y, z) metres of one voxel at stride 1
+        set_(self, "point_range_min", grid.point_range_min)  # (x, y, z) lower corner
         set_(self, "stride", stride)
         set_(self, "spconv_source", spconv_source)
         self._check_coords(self.coords)
         self._check_features(self.features, self.coords.shape[0])
-
-    @property
-    def voxel_size(self) -> Tuple[float, float, float]:
-        """``(x, y, z)`` metres of one voxel of the base grid (stride 1): ``grid.voxel_size``."""
-        return self.grid.voxel_size
-
-    @property
-    def point_range_min(self) -> Tuple[float, float, float]:
-        """``(x, y, z)`` lower corner of the grid: ``grid.point_range_min``."""
-        return self.grid.point_range_min
 
     # -- validation -------------------------------------------------------------------------------
     def _check_coords(self, coords: Tensor) -> None:
@@ -219,8 +217,8 @@ class SparseVoxels:
             )
         if set(changes) <= {"features"} and not loose:
             new = object.__new__(type(self))
-            for name in self.__dataclass_fields__:
-                object.__setattr__(new, name, changes.get(name, getattr(self, name)))
+            new.__dict__.update(self.__dict__)
+            object.__setattr__(new, "features", changes.get("features", self.features))
             self._check_features(new.features, self.num_voxels)
             return new
         kwargs = {name: getattr(self, name) for name in self.__dataclass_fields__}
@@ -238,8 +236,7 @@ class SparseVoxels:
         features = self.features.to(*args, **kwargs)
         coords = self.coords.to(device=features.device)
         new = object.__new__(type(self))
-        for name in self.__dataclass_fields__:
-            object.__setattr__(new, name, getattr(self, name))
+        new.__dict__.update(self.__dict__)
         object.__setattr__(new, "features", features)
         object.__setattr__(new, "coords", coords)
         if coords.device != self.coords.device:

@@ -62,7 +62,7 @@ def _make_fusion(kind: str, channels: int, image_channels: Sequence[int], msdff_
         value_dim = channels
     elif value_dim is not None and (isinstance(value_dim, bool) or not isinstance(value_dim, int)):
         raise MSSFError(f"msdff_value_dim: expected None, an int or 'voxel_channels', got {value_dim!r}")
-    return MSDFF(channels, list(image_channels), value_dim, num_heads=msdff_heads, num_levels=len(image_channels),
+    return MSDFF(list(image_channels), channels, value_dim, num_heads=msdff_heads, num_levels=len(image_channels),
                  num_points=msdff_points, value_projection=value_projection,
                  **(OFFICIAL_SWITCHES["msdff"] if authors_switches else {}))
 

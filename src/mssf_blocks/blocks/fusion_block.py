@@ -28,17 +28,18 @@ from typing import Any, Optional, Sequence, Tuple, Union
 import torch
 from torch import nn
 
-from mssf_blocks.blocks._stage import _camera_batch, _check_spconv, _is_spconv_tensor, infer_downsample_stride
+from mssf_blocks.blocks._downsample_stride import infer_downsample_stride
 from mssf_blocks.blocks.fusion_block_output import FusionBlockOutput
-from mssf_blocks.checks.agreement import check_agreement, query_range_mismatch
+from mssf_blocks.checks.agreement import camera_batch_entries, check_agreement, query_range_mismatch
 from mssf_blocks.checks.geometry import check_grid, check_indices_in_shape
 from mssf_blocks.checks.image_features import check_image_features
+from mssf_blocks.checks.spconv_inputs import check_sparse_tensor
 from mssf_blocks.checks.tensors import check_triple, is_tracing, to_module_dtype
 from mssf_blocks.errors import MSSFError, MSSFGeometryWarning
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection, VoxelCentroidProjector
 from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
-from mssf_blocks.sparse_voxels import SparseVoxels
+from mssf_blocks.sparse_voxels import SparseVoxels, is_spconv_tensor
 from mssf_blocks.voxel_grid import VoxelGrid
 
 __all__ = ["FusionBlock", "FusionBlockOutput", "infer_downsample_stride"]
@@ -262,17 +263,17 @@ class FusionBlock(nn.Module):
             raise MSSFError(f"return_logits: expected a bool, got {return_logits!r}")
         if return_logits and self.semantic_head is None:
             raise MSSFError("return_logits: True needs a semantic_head; this FusionBlock was built without one")
-        if not isinstance(x, SparseVoxels) and not _is_spconv_tensor(x):
+        if not isinstance(x, SparseVoxels) and not is_spconv_tensor(x):
             raise MSSFError(f"x: expected SparseVoxels or an spconv SparseConvTensor, got {type(x).__name__}")
         # Before any spconv code: what SparseVoxels.to_spconv checks, plus what the first spconv module takes.
         first = self.downsample if self.downsample is not None else (
             self.blocks if self.position == "after_residual" else None)
         if first is not None or not isinstance(x, SparseVoxels):
-            _check_spconv(x, "x", first, "downsample" if self.downsample is not None else "blocks")
+            check_sparse_tensor(x, "x", first, "downsample" if self.downsample is not None else "blocks")
         if not isinstance(x, SparseVoxels):
             check_indices_in_shape(x.indices, x.spatial_shape)
         if isinstance(x.batch_size, int):  # (an spconv tensor may hold a 0-d tensor: not read here)
-            check_agreement(_camera_batch(inputs), "batch size", ("x.batch_size", x.batch_size))
+            check_agreement(camera_batch_entries(inputs), "batch size", ("x.batch_size", x.batch_size))
         if isinstance(x, SparseVoxels):
             grid = self._check_voxels_grid(x)
             in_stride = x.stride
@@ -325,14 +326,14 @@ class FusionBlock(nn.Module):
             if self.head_position == "after_fusion":
                 cur = head(cur)
             if self.blocks is not None:
-                _check_spconv(cur, "f_fuse", self.blocks, "blocks")
+                check_sparse_tensor(cur, "f_fuse", self.blocks, "blocks")
                 cur = self.blocks(as_spconv(cur))
             if self.head_position == "after_residual":
                 cur = head(cur)
         else:
             if self.blocks is not None:
                 if self.downsample is not None:
-                    _check_spconv(cur, "downsample(x)", self.blocks, "blocks")
+                    check_sparse_tensor(cur, "downsample(x)", self.blocks, "blocks")
                 cur = self.blocks(as_spconv(cur))
             cur = head(fuse(cur))
         out = as_voxels(cur) if isinstance(x, SparseVoxels) else as_spconv(cur)

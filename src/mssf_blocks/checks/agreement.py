@@ -160,3 +160,13 @@ def query_range_mismatch(point_cloud_range: Sequence[float], spatial_shape: Sequ
                 "are normalised by another range; build QueryInit with the point-cloud range of the voxels' grid"
             )
     return None
+
+
+def camera_batch_entries(inputs: Any) -> list:
+    """Batch sizes of a :class:`~mssf_blocks.FusionInputs`' camera inputs (agreeing: FusionInputs checked
+    them), as :func:`check_agreement` entries, for a voxel tensor's batch size to be checked against."""
+    entries = level_batch_entries(inputs.image_features) + [
+        ("lidar2img", inputs.lidar2img.shape[0], tuple(inputs.lidar2img.shape))]
+    if inputs.points_to_sensor is not None and inputs.points_to_sensor.dim() == 3:  # (else the projector's shape error)
+        entries.append(("points_to_sensor", inputs.points_to_sensor.shape[0], tuple(inputs.points_to_sensor.shape)))
+    return entries

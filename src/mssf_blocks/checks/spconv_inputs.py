@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-__all__ = ["check_spconv_input", "check_module_input", "first_conv"]
+__all__ = ["check_spconv_input", "check_module_input", "check_sparse_tensor", "first_conv"]
 
 #: feature dtypes spconv's kernels handle (no integer path; float64 runs on the CPU with one torch thread,
 #: checked against a dense conv3d in tests/test_spconv_dense_reference.py and the float64 parity tests of the
@@ -145,3 +145,14 @@ def check_module_input(features: Tensor, module: Any, name: str = "voxels", modu
                 "inference kernel, which asserts \"cpu don't support act and bias\"); build it with bias=False (a "
                 "BatchNorm after it makes the bias redundant), or run on CUDA"
             )
+
+
+def check_sparse_tensor(t: Any, name: str, module: Any, module_name: str) -> None:
+    """:func:`check_spconv_input` on ``t`` (a ``SparseVoxels``, with ``coords``, or an spconv tensor, with
+    ``indices``) and what ``module``'s first convolution takes (shapes and dtypes only)."""
+    if hasattr(t, "coords"):
+        check_spconv_input(t.features, t.coords, t.spatial_shape, t.batch_size, name, module=module,
+                           module_name=module_name)
+    else:
+        check_spconv_input(t.features, t.indices, t.spatial_shape, t.batch_size, name, coords_name="indices",
+                           module=module, module_name=module_name)

@@ -63,7 +63,7 @@ class SemanticGuidedHead(nn.Module):
         >>> head = SemanticGuidedHead(4, hidden=(8,)).eval()
         >>> vox = SparseVoxels(torch.randn(3, 4), torch.zeros(3, 4, dtype=torch.int32) + torch.tensor(
         ...     [[0, 0, 0, 0], [0, 0, 0, 1], [0, 0, 1, 0]], dtype=torch.int32), (1, 2, 2), 1,
-        ...     (0.1, 0.1, 0.1), (0.0, 0.0, 0.0))
+        ...     voxel_size=(0.1, 0.1, 0.1), point_range_min=(0.0, 0.0, 0.0))
         >>> out, scores, logits = head(vox, return_logits=True)
         >>> out.features.shape, scores.shape
         (torch.Size([3, 4]), torch.Size([3]))
