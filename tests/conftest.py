@@ -53,7 +53,7 @@ def one_thread():
 
     Test modules opt in with ``pytestmark = pytest.mark.usefixtures("one_thread")`` and say why
     (tiny tensors where OpenMP spinning dominates on a loaded machine; spconv's threaded CPU kernels
-    are not bit-deterministic in float32 and wrong in float64: tests/test_spconv_inputs.py).
+    are not bit-deterministic in float32 and wrong in float64: tests/checks/test_spconv_inputs.py).
     """
     n = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -4,7 +4,7 @@ The scenes are :mod:`test_geometry_sanity`'s (a VoD-like camera ``K @ [R | t]``,
 the voxels holding them): correct frames first (the projector's running values), then a frame with a
 mistake that cuts the in-image or the centroid fraction without zeroing it. Each mistake is shown to
 pass the per-sample zero checks; since issue 42 the first-call consistency checks (``_first_call``,
-tests/test_first_call_checks.py) name it on a fresh projector too, and the running value still warns
+tests/checks/test_first_call.py) name it on a fresh projector too, and the running value still warns
 beside them (both messages are asserted).
 """
 

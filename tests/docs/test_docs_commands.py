@@ -34,7 +34,7 @@ from doc_commands import ALL_COMMANDS, Command, make_clone, run_command, shell_c
 
 pytest.importorskip("spconv", reason="the documented commands run the example detectors (the examples extra)")
 
-_REGISTRY = "installs from the package registry (network; changes the environment); tests/test_packaging.py " \
+_REGISTRY = "installs from the package registry (network; changes the environment); tests/project/test_packaging.py " \
             "builds the wheel with the same PEP 517 hooks and installs it, with its `mssf` script"
 _NOT_PUBLISHED = "from the registry once a release is published (not there yet, as the doc says)"
 _SUITE = "runs these test files, which are part of `make test` itself"
@@ -53,7 +53,7 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
     ("README.md", 'pip install -e ".[examples]"'): _REGISTRY + "; the Makefile runs the same install",
     ("README.md", "pip install build"): _REGISTRY,
     ("README.md", "python -m build --wheel"):
-        "`build` makes an isolated environment from the registry; tests/test_packaging.py calls the same "
+        "`build` makes an isolated environment from the registry; tests/project/test_packaging.py calls the same "
         "setuptools hooks offline",
     ("README.md", 'pip install --find-links dist "mssf-blocks[examples]"'): _REGISTRY,
     ("README.md", "pip install mssf-blocks"): _NOT_PUBLISHED,
@@ -80,7 +80,7 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
         "a full demo run (minutes)",
     ("docs/demo.md", "python examples/train_demo.py --load-checkpoint outputs/demo/ckpt.pt"):
         "needs the checkpoint of a full demo run; tests/examples/test_train_demo.py runs --quick --load-checkpoint",
-    ("docs/fusion.md", "pytest tests/test_fusion.py tests/test_msdff.py tests/test_blocks.py "
+    ("docs/fusion.md", "pytest tests/samplers/test_sff.py tests/samplers/test_msdff.py tests/blocks/test_fusion_block.py "
                        "tests/examples/test_swap_example.py -q"): _SUITE,
     ("docs/real-data.md", "python -m pytest tests/examples/test_kitti_io.py tests/examples/test_kitti_boxes.py "
                           "tests/examples/test_kitti_layouts.py tests/examples/test_real_frame.py -q"): _SUITE,
@@ -95,11 +95,11 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
                      "--rdzv-endpoint node0:29500 --rdzv-id vod_cp_16gpu -m mssf_examples train --dataset vod "
                      "--data-root /data/view_of_delft --detector centerpoint --device cuda --amp bf16 --batch-size 64 "
                      "--sync-bn --image-weights resnet50_fpn.pt --out /shared/outputs/vod_cp_16gpu"): "two nodes of 8 GPUs; " + _GPU,
-    ("docs/gpus.md", "make gpu-check"): "the device check for a GPU machine; tests/test_gpu_check.py runs its "
+    ("docs/gpus.md", "make gpu-check"): "the device check for a GPU machine; tests/project/test_gpu_check.py runs its "
                                         "--smoke --device cpu mode",
     ("docs/gpus.md", "python benchmarks/gpu_check.py --skip-install --mmcv-src mmcv-2.1.0.tar.gz --out "
                      "outputs/gpu_check"): "the device check with mmcv's op built from its source archive: a GPU "
-                                           "machine; tests/test_mmcv_build.py checks the sources it takes and the binding",
+                                           "machine; tests/project/test_mmcv_build.py checks the sources it takes and the binding",
     ("docs/differences.md", "python -m mssf_examples convert-authors mssf_pp_vod.pth --out converted/mssf_pp.pt "
                             "--layout mssf_pp"): _AUTHORS,
     ("docs/differences.md", "python -m mssf_examples eval --checkpoint converted/mssf_pp.pt --data-root "
@@ -185,7 +185,7 @@ def test_every_shell_command_is_classified():
     kinds = classify(ALL_COMMANDS)
     unclassified = [f"{c.where}: {c.text}" for c in ALL_COMMANDS if kinds[c.key] == "unclassified"]
     assert not unclassified, (
-        "shell commands in README.md / docs/*.md that tests/test_docs_commands.py does not know: add each to RUN "
+        "shell commands in README.md / docs/*.md that tests/docs/test_docs_commands.py does not know: add each to RUN "
         "(it runs as printed), SHORTENED or NOT_RUN with the reason, or mark its block "
         "`<!-- commands: not run: REASON -->`:\n  " + "\n  ".join(unclassified))
     lists = [set(RUN), set(NOT_RUN), set(SHORTENED)]

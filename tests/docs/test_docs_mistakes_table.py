@@ -1,15 +1,15 @@
 """docs/conventions.md, "Common mistakes": every row of the table is proved, and each proof is run or found.
 
 Each row's "Mistake" cell is matched by exactly one key (a part of that cell) of one of two registries
-(tests/mistakes_registry.py):
+(tests/helpers/mistakes_registry.py):
 
-* a **case** (tests/mistakes_geometry.py, mistakes_library.py, mistakes_cli.py, mistakes_more.py) makes
+* a **case** (tests/helpers/mistakes_geometry.py, mistakes_library.py, mistakes_cli.py, mistakes_more.py) makes
   the mistake and returns what the library did: the ``MSSFError`` (or the CLI's one line with exit status 2), the
   ``MSSFGeometryWarning`` s, or nothing. The row's "What you see now" cell decides: one that starts with
   "error" (or "our error") needs an error from every mistake the case runs, "warning" a warning and no
   error, "accepted" / "no warning" neither (what then works is the case's own assertion); and every
   double-quoted phrase in it (pieces split at ``...``) must appear in one of the messages.
-* a **proof** (tests/mistakes_frameworks.py) names the framework tests that prove the row (they need
+* a **proof** (tests/helpers/mistakes_frameworks.py) names the framework tests that prove the row (they need
   OpenPCDet / mmdetection3d and take seconds to minutes): each must exist, as a test function of its file.
 
 A row without either fails, and so does a key that matches no row. Adding a case is one function::
@@ -87,4 +87,4 @@ def test_a_proof_naming_a_missing_test_is_a_problem():
     assert proof_problems(real) is None
     assert proof_problems(real + "_renamed")
     assert proof_problems(real.replace("data_checks", "data_check"))
-    assert proof_problems("tests/mistakes_registry.py::proof_problems")  # defined, but not a test
+    assert proof_problems("tests/helpers/mistakes_registry.py::proof_problems")  # defined, but not a test

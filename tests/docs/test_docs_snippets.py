@@ -370,7 +370,7 @@ def test_every_python_block_is_classified():
     assert not both, f"classified as runnable and as fragment: {sorted(both)}"
     unclassified = [b.id + f" (line {b.line})" for b in ALL_BLOCKS if b.key not in SNIPPETS and b.key not in FRAGMENTS]
     assert not unclassified, (
-        "python blocks in README.md / docs/*.md that tests/test_docs_snippets.py does not know: run them with "
+        "python blocks in README.md / docs/*.md that tests/docs/test_docs_snippets.py does not know: run them with "
         "@snippet(...) or list them in FRAGMENTS with the reason:\n  " + "\n  ".join(unclassified))
     stale = sorted((set(SNIPPETS) | set(FRAGMENTS)) - set(keys))
     assert not stale, f"classified blocks no longer in the docs (first line changed or block removed): {stale}"

@@ -1,4 +1,4 @@
-"""Cases of the "Common mistakes" table (tests/test_docs_mistakes_table.py): the CLI and the point reader.
+"""Cases of the "Common mistakes" table (tests/docs/test_docs_mistakes_table.py): the CLI and the point reader.
 
 ``python -m mssf_examples`` runs in this process (:func:`mistakes_registry.cli`) on copies of the generated
 VoD tree (tests/examples/generated_tree.py), each broken one way, as tests/examples/test_misuse_eval_cli.py,

@@ -1,4 +1,4 @@
-"""Rows of the "Common mistakes" table (tests/test_docs_mistakes_table.py) proved by framework tests.
+"""Rows of the "Common mistakes" table (tests/docs/test_docs_mistakes_table.py) proved by framework tests.
 
 These need the real OpenPCDet / mmdetection3d and fixtures that take seconds to minutes (a built detector,
 a training step, a clone of OpenPCDet), so the table's test does not rerun them: it checks that each

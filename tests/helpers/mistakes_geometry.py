@@ -1,4 +1,4 @@
-"""Cases of the "Common mistakes" table (tests/test_docs_mistakes_table.py): geometry and grid mistakes.
+"""Cases of the "Common mistakes" table (tests/docs/test_docs_mistakes_table.py): geometry and grid mistakes.
 
 Scenes: test_first_call_checks' coarse-grid generated scene (``fc``), test_geometry_sanity's cone of points
 in front of a VoD-like camera (``gs``).

@@ -1,4 +1,4 @@
-"""Cases of the "Common mistakes" table (tests/test_docs_mistakes_table.py): spconv inputs, BatchNorm,
+"""Cases of the "Common mistakes" table (tests/docs/test_docs_mistakes_table.py): spconv inputs, BatchNorm,
 batch sizes and widths (test_foreign_errors' helpers), the converter, ``testing.assert_close``,
 ``evaluate`` and the triton version (test_triton_version's stand-in for an old triton on a GPU).
 

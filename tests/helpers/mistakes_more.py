@@ -1,5 +1,5 @@
-"""Cases for the Common-mistakes rows of the independent pass (tests/test_more_mistakes.py): each makes the
-mistake with that file's scenes and returns what the library did (tests/mistakes_registry.py)."""
+"""Cases for the Common-mistakes rows of the independent pass (tests/checks/test_more_mistakes.py): each makes the
+mistake with that file's scenes and returns what the library did (tests/helpers/mistakes_registry.py)."""
 
 from __future__ import annotations
 

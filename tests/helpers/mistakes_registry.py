@@ -1,4 +1,4 @@
-"""The registry behind tests/test_docs_mistakes_table.py: what ties a row of docs/conventions.md's "Common
+"""The registry behind tests/docs/test_docs_mistakes_table.py: what ties a row of docs/conventions.md's "Common
 mistakes" table to its proof, and how a case's outcome is judged against the row.
 
 A row is proved in one of two ways, each keyed by a part of its "Mistake" cell:

@@ -1,7 +1,7 @@
 """``benchmarks/gpu_bundle.py`` (the bundle built here) and ``benchmarks/_bundle.py`` (installed offline on the
 GPU machine): the 64 MiB limit with the tracked files, the choice by value, the pinned hashes, the cache,
 the manifest, the refusal of an altered bundle, the offline install. A stand-in bundle of two tiny
-generated packages (``tests/gpu_bundle_stand_in.py``) stands for the real one (spconv, 45 MB)."""
+generated packages (``tests/helpers/gpu_bundle_stand_in.py``) stands for the real one (spconv, 45 MB)."""
 
 import os
 import shutil

@@ -1,6 +1,6 @@
 """``benchmarks/gpu_check.py``, the command the GPU machine runs (docs/gpus.md, "The device check"), dry-run
 here: from a copy of what a device call sends (the tracked files and the untracked ones git does not
-ignore: a fresh checkout) plus a stand-in bundle (``tests/gpu_bundle_stand_in.py``: two tiny packages, one
+ignore: a fresh checkout) plus a stand-in bundle (``tests/helpers/gpu_bundle_stand_in.py``: two tiny packages, one
 as a wheel, one repacked as ``tar.xz``), installed offline (pip without an index, proxies pointing at
 nothing), every stage at toy sizes on the CPU (``--smoke --device cpu``). The JSON / Markdown report holds
 what the GPU run will fill in, so the command is known to work before a GPU machine runs it."""

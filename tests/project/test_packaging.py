@@ -154,7 +154,7 @@ def test_wheel_installs_the_mssf_console_script(built, tmp_path):
 
 def test_readme_train_and_eval_run_from_the_installed_wheel(built, tmp_path):
     """The README's "On your own data" commands, as printed (``/data/view_of_delft`` -> a generated VoD
-    tree; the training run shortened as tests/test_docs_commands.py shortens it), with the wheel's ``mssf``
+    tree; the training run shortened as tests/docs/test_docs_commands.py shortens it), with the wheel's ``mssf``
     script and packages only (installed with ``--target``, run outside the repository)."""
     pytest.importorskip("spconv")
     sys.path.insert(0, str(REPO / "tests"))
