@@ -21,7 +21,7 @@ CORE_TESTS=(tests/functional tests/integrations tests/checks/test_audit_inputs.p
             tests/integrations/test_spconv.py tests/test_torch_versions.py tests/test_compile.py tests/diagnostics/test_diagnostics.py
             tests/test_export.py
             tests/samplers/test_sff.py tests/geometry/test_voxel_centroid_projector.py tests/heads/test_semantic_guided_head.py tests/lift/test_pillar_lift.py tests/samplers/test_msdff.py
-            tests/weights/test_authors_checkpoint.py tests/samplers/test_precision.py tests/test_sparse_voxels.py tests/test_static_path.py
+            tests/weights/test_authors_forward.py tests/samplers/test_precision.py tests/test_sparse_voxels.py tests/test_static_path.py
             tests/test_testing.py)
 # per Python version: import + forward / backward / gradcheck of the core blocks
 PY_TESTS=(tests/test_torch_versions.py tests/samplers/test_sff.py tests/samplers/test_msdff.py tests/lift/test_pillar_lift.py tests/heads/test_semantic_guided_head.py

@@ -64,7 +64,7 @@ def test_row_is_proved_by_tests_that_exist(mistake):
 # -- the walker itself can fail ---------------------------------------------------------------------
 def test_a_case_sees_a_correct_call_as_quiet():
     """Correct inputs give kind "none" (so a "warning" verdict means something)."""
-    import test_first_call_checks as fc
+    import test_first_call as fc
     from mistakes_registry import outcome
 
     vox, pts, pb, l2i, size = fc.scene()

@@ -15,7 +15,7 @@ import torch
 
 from mssf_blocks.functional.geometry import project_points
 
-PAGE = Path(__file__).resolve().parent.parent / "docs" / "conventions.md"
+PAGE = Path(__file__).resolve().parents[2] / "docs" / "conventions.md"
 
 
 def _number(pattern: str, text: str) -> str:

@@ -17,7 +17,7 @@ from typing import Dict, List, Optional, Tuple
 
 import torch
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 DOC_FILES = [REPO / "README.md"] + sorted((REPO / "docs").glob("*.md"))
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 DOC_FILES = [REPO / "README.md"] + sorted((REPO / "docs").glob("*.md"))
 SHELL_LANGS = ("bash", "sh", "shell", "console", "shell-session")
 _FENCE = re.compile(r"^(\s*)(```+)\s*([\w+-]*)")

@@ -1,17 +1,23 @@
 """Cases of the "Common mistakes" table (tests/docs/test_docs_mistakes_table.py): geometry and grid mistakes.
 
-Scenes: test_first_call_checks' coarse-grid generated scene (``fc``), test_geometry_sanity's cone of points
+Scenes: test_first_call's coarse-grid generated scene (``fc``), test_geometry_sanity's cone of points
 in front of a VoD-like camera (``gs``).
 """
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
-import test_first_call_checks as fc
-import test_geometry_sanity as gs
-from mistakes_registry import case, outcome
+# the scenes are those of the test modules in tests/checks
+if str(Path(__file__).resolve().parents[1] / "checks") not in sys.path:
+    sys.path.append(str(Path(__file__).resolve().parents[1] / "checks"))
+import test_first_call as fc  # noqa: E402
+import test_geometry_sanity as gs  # noqa: E402
+from mistakes_registry import case, outcome  # noqa: E402
 
 
 def _coarse():

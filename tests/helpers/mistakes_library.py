@@ -17,7 +17,7 @@ import torch
 
 from mistakes_registry import Outcome, case, outcome
 
-TESTS = Path(__file__).resolve().parent
+TESTS = Path(__file__).resolve().parents[1]
 
 
 def _helpers(name: str, folder: str = ""):
@@ -30,7 +30,7 @@ def _helpers(name: str, folder: str = ""):
 
 def _foreign():
     pytest.importorskip("spconv.pytorch")
-    return _helpers("test_foreign_errors")
+    return _helpers("test_foreign_errors", "checks")
 
 
 @case("integer features, int64 indices or zero voxels into spconv")
@@ -146,7 +146,7 @@ def _():
 
 @case("converter: a missing tensor")
 def _():
-    ol = _helpers("test_mssf_official_load")
+    ol = _helpers("test_load_authors_checkpoint", "weights")
     from mssf_blocks.compat.mssf_official import ModuleMap, load_official, official_to_ours
     from mssf_blocks.fusion import QueryInit
 

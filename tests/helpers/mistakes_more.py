@@ -11,7 +11,7 @@ import torch
 
 from mistakes_registry import case, outcome
 
-TESTS = Path(__file__).resolve().parent
+TESTS = Path(__file__).resolve().parents[1] / "checks"
 
 
 def _more():

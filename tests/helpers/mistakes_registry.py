@@ -25,7 +25,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 from mssf_blocks.errors import MSSFError, MSSFGeometryWarning
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DOC = REPO / "docs" / "conventions.md"
 
 #: the leading words of a "What you see now" cell and the kind of outcome they promise ("none": the call

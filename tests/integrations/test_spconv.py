@@ -18,7 +18,7 @@ spconv = pytest.importorskip("spconv.pytorch")
 from mssf_blocks import _compat  # noqa: E402
 from mssf_blocks.compat.spconv import dense, enable_cpu_backward, quiet  # noqa: E402
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 FX_MESSAGE = "is_fx_tracing will return true"
 INDEXING_MESSAGE = "non-tuple sequence for multidimensional indexing"
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 # every CPU benchmark script (gpu_check.py is the GPU machine's device check: `make gpu-check`; gpu_bundle.py
 # builds what that machine carries: `make gpu-bundle`)
 BENCHMARKS = sorted(p.stem for p in (REPO / "benchmarks").glob("*.py")

@@ -19,7 +19,7 @@ from mssf_blocks import _compat
 
 pytest.importorskip("spconv")
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gpu_bundle_stand_in import PROBES, build_stand_in  # noqa: E402
 from test_gpu_bundle import OFFLINE  # noqa: E402

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 _IGNORE = shutil.ignore_patterns(".git", ".venv", "__pycache__", "*.egg-info", ".pytest_cache", ".hypothesis",
                                  "build", "dist", "outputs", "*.pt", "*.pyc", "site", "results", ".carry")
 # import name -> distribution name, for the examples' third-party imports
@@ -157,7 +157,7 @@ def test_readme_train_and_eval_run_from_the_installed_wheel(built, tmp_path):
     tree; the training run shortened as tests/docs/test_docs_commands.py shortens it), with the wheel's ``mssf``
     script and packages only (installed with ``--target``, run outside the repository)."""
     pytest.importorskip("spconv")
-    sys.path.insert(0, str(REPO / "tests"))
+    sys.path.insert(0, str(REPO / "tests" / "docs"))
     from doc_commands import ALL_COMMANDS, run_command, write_vod_and_tj4d_trees
     from test_docs_commands import SHORTENED
 

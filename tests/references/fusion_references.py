@@ -1,4 +1,4 @@
-"""References and random inputs of the fusion tests (``test_fusion.py``, ``test_msdff.py``), written
+"""References and random inputs of the fusion tests (``tests/samplers/test_sff.py``, ``test_msdff.py``), written
 independently of the code under test: per-level ``F.grid_sample`` on images projected pixel by pixel,
 naive loops over voxels / cameras / heads, eval-mode BatchNorm as its affine formula.
 """

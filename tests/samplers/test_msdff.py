@@ -1,7 +1,7 @@
 """Tests for ``mssf_blocks.fusion.MSDFF`` against references written independently of the code under test
 (``fusion_references.py``: every pixel projected with ``value_proj``, then per-level ``F.grid_sample``, naive
 loops over voxels / cameras / heads), gradcheck in float64, Deformable DETR's parameter layout and
-initialisation, hand-worked offsets. Shared SFF / MSDFF behaviour and bad input: ``test_fusion.py``.
+initialisation, hand-worked offsets. Shared SFF / MSDFF behaviour and bad input: ``test_sff.py``.
 """
 
 import copy

@@ -12,7 +12,7 @@ Their forward of one stage, as we read it (``fuse_bev=True`` in ``SECONDFuse``, 
    the stage started from.
 
 The reference is written from that reading with loops (``authors_sparse_reference.py`` for the
-convolution, ``test_mssf_official.py`` for the MSDFF); weights are random tensors under their keys,
+convolution, ``test_authors_forward.py`` for the MSDFF); weights are random tensors under their keys,
 loaded through the converter only.
 """
 
@@ -35,7 +35,7 @@ from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead  # noqa: E402
 from mssf_blocks.lift import PillarLift  # noqa: E402
 from mssf_blocks.pillar_stage import PillarFusionStage  # noqa: E402
-from test_mssf_official import (  # noqa: E402
+from test_authors_forward import (  # noqa: E402
     CI, CV, D64, ENC, L, M, P, PCR, grid_at, linear, random_official, scene, their_msdff, their_reference_points,
 )
 

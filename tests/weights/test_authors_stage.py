@@ -11,7 +11,7 @@ False, ``query_voxel_fuse_method='add'``, ``apply_seg_scores_method='mul'``):
 4. ``conv2[1]``, ``conv2[2]``: two ``SparseBasicBlock`` s.
 
 The reference is the naive re-implementation (``authors_sparse_reference.py``, the MSDFF and head of
-``test_mssf_official.py``); our side is a :class:`FusionBlock` with spconv layers, loaded through the
+``test_authors_forward.py``); our side is a :class:`FusionBlock` with spconv layers, loaded through the
 converter (fusion, head) and by their layer names (convs).
 """
 
@@ -33,7 +33,7 @@ from mssf_blocks.fusion import MSDFF  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead  # noqa: E402
 from mssf_examples.backbones import SparseBasicBlock  # noqa: E402
-from test_mssf_official import (  # noqa: E402
+from test_authors_forward import (  # noqa: E402
     CI, CV, D64, ENC, IMAGE, LO, VOXEL, L, M, P, linear, random_official, scene, their_msdff,
 )
 
