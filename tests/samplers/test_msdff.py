@@ -17,7 +17,7 @@ from mssf_blocks.testing import assert_close, gradcheck64
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fusion_references import (  # noqa: E402
-    D64, WIDTHS, make_projection, randomize_msdff, randomize_norm, reference_msdff, scene, width_kw)
+    D64, WIDTHS, make_projection, randomize_msdff, reference_msdff, scene, width_kw)
 
 
 # Tiny tensors: with 2 OpenMP threads on a loaded 2-core machine, each train-mode batch_norm call
@@ -28,60 +28,9 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 # ---------------------------------------------------------------------------------------------------
 # MSDFF
 # ---------------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("width", WIDTHS)
-@pytest.mark.parametrize(
-    "method,value_projection",
-    [("auto", "after_sampling"), ("reference", "after_sampling"), ("fast", "after_sampling"),
-     ("fast", "before_sampling"), ("reference", "before_sampling")],
-)
-def test_msdff_sample_then_project_equals_project_then_sample(method, value_projection, width, device):
-    gen = torch.Generator().manual_seed(7)
-    levels, uv, valid, bidx = scene(gen, chans=(4, 4), sizes=((5, 6), (3, 4)))
-    uv[3] = torch.tensor([0.02, 0.97], dtype=D64)  # near the border: samples partly outside (mass < 1)
-    valid[3] = True
-    mod = MSDFF(8, 4, num_heads=2, num_levels=2, num_points=3, method=method,
-                value_projection=value_projection, dtype=D64, **width_kw(width, 8)).eval()
-    assert mod.value_proj.weight.shape == ((4, 4) if width == "paper" else (8, 4))
-    randomize_msdff(mod, gen)
-    query = torch.randn(7, 8, generator=gen, dtype=D64)
-    want, off, _ = reference_msdff(mod, query, levels, uv, valid, bidx)
-    # Make sure the bias-times-mass term matters: some sampling location reads outside the image.
-    sizes = torch.tensor([[6.0, 5.0], [4.0, 3.0]], dtype=D64)
-    loc = uv[3, 0] + off[3] / sizes[None, :, None, :]
-    pix = loc * sizes[None, :, None, :] - 0.5
-    assert ((pix < 0) | (pix > sizes[None, :, None, :] - 1)).any()
-    out = mod.to(device)(query.to(device), [l.to(device) for l in levels], make_projection(uv, valid, bidx, device))
-    assert_close(out.detach().cpu(), want)
-
-
-@pytest.mark.parametrize("width", WIDTHS)
-def test_msdff_default_init_matches_reference(width):
-    gen = torch.Generator().manual_seed(8)
-    levels, uv, valid, bidx = scene(gen, v=1, chans=(4, 4))
-    mod = MSDFF(8, 4, num_heads=4, num_levels=2, num_points=2, dtype=D64, **width_kw(width, 8)).eval()
-    randomize_norm(mod.norm, gen)
-    query = torch.randn(7, 8, generator=gen, dtype=D64)
-    want, _, att = reference_msdff(mod, query, levels, uv, valid, bidx)
-    assert torch.allclose(att, torch.full_like(att, 0.25))  # zero-initialised attention: uniform
-    assert_close(mod(query, levels, make_projection(uv, valid, bidx)), want)
-
-
-@pytest.mark.parametrize("width", WIDTHS)
-@pytest.mark.parametrize("value_projection", ["after_sampling", "before_sampling"])
-def test_msdff_gradcheck(value_projection, width):
-    # Eval-mode BN (a fixed affine map) with random running statistics; sampling offsets and attention
-    # weights are randomised so the gradient w.r.t. the query goes through locations and softmax.
-    gen = torch.Generator().manual_seed(9)
-    levels, uv, valid, bidx = scene(gen, n=4, chans=(2, 2), sizes=((4, 5), (2, 3)))
-    mod = MSDFF(4, 2, num_heads=2, num_levels=2, num_points=2, value_projection=value_projection, dtype=D64,
-                **width_kw(width, 4)).eval()
-    randomize_msdff(mod, gen, scale=0.3)
-    query = torch.randn(4, 4, generator=gen, dtype=D64)
-
-    def fn(q, l0, l1, uv_):
-        return mod(q, [l0, l1], make_projection(uv_, valid, bidx))
-
-    assert gradcheck64(fn, (query, levels[0], levels[1], uv))
+# MSDFF against reference_msdff for every method and value projection on every device, its default
+# initialisation, float64 gradcheck, state-dict round trip and compile smoke: the shared block checks,
+# test_msdff_tester.py.
 
 
 @pytest.mark.parametrize("width", WIDTHS)

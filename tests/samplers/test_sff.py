@@ -19,7 +19,7 @@ from mssf_blocks.testing import assert_close, gradcheck64
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fusion_references import (  # noqa: E402
-    D64, make_projection, randomize_msdff, randomize_norm, ref_bn_eval, reference_sff_sample, scene)
+    D64, make_projection, randomize_msdff, ref_bn_eval, scene)
 
 
 # Tiny tensors: with 2 OpenMP threads on a loaded 2-core machine, each train-mode batch_norm call
@@ -30,32 +30,8 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 # ---------------------------------------------------------------------------------------------------
 # SFF
 # ---------------------------------------------------------------------------------------------------
-def test_sff_matches_reference(device):
-    gen = torch.Generator().manual_seed(0)
-    levels, uv, valid, bidx = scene(gen)
-    sff = SFF([3, 2], 4, dtype=D64).eval()
-    randomize_norm(sff.norm, gen)
-    sampled = reference_sff_sample(levels, uv, valid, bidx)
-    y = ref_bn_eval(sampled @ sff.linear.weight.T + sff.linear.bias, sff.norm)
-    y[~valid.any(1)] = 0.0
-    sff, proj, levels = sff.to(device), make_projection(uv, valid, bidx, device), [l.to(device) for l in levels]
-    assert_close(sff.sample(levels, proj).cpu(), sampled)
-    assert_close(sff(levels, proj).detach().cpu(), y)
-
-
-def test_sff_gradcheck_train_mode():
-    # Train-mode BN normalises with the statistics of the visible voxels of this very batch: a smooth,
-    # deterministic function of the inputs (5 visible voxels), so gradcheck is valid; running-stat
-    # updates between calls do not affect train-mode outputs.
-    gen = torch.Generator().manual_seed(1)
-    levels, uv, valid, bidx = scene(gen, n=6, chans=(2, 1), sizes=((3, 4), (2, 3)))
-    sff = SFF([2, 1], 3, dtype=D64).train()
-    assert int(valid.any(1).sum()) >= 3
-
-    def fn(l0, l1, uv_):
-        return sff([l0, l1], make_projection(uv_, valid, bidx))
-
-    assert gradcheck64(fn, (levels[0], levels[1], uv))
+# SFF against its references on every device, its float64 gradcheck, state-dict round trip and compile
+# smoke: the shared block checks, test_sff_tester.py.
 
 
 def test_sff_pixel_hit_every_level():
