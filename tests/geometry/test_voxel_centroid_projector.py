@@ -13,23 +13,8 @@ def l2i_front(batch=1):
     return m.expand(batch, 3, 4).clone()
 
 
-def test_module_hand_worked_with_empty_voxel():
-    # Grid: voxel 1 m, range min (0, -2, -1), shape (D, H, W) = (2, 4, 4).
-    coords = torch.tensor([[0, 1, 2, 2], [0, 0, 0, 3]], dtype=torch.int32)
-    vox = SparseVoxels(torch.zeros(2, 3, dtype=torch.float64), coords, (2, 4, 4), 1, (1.0, 1.0, 1.0), (0.0, -2.0, -1.0))
-    # Two points in voxel (z=1, y=2, x=2): x in [2, 3), y in [0, 1), z in [0, 1). Their mean: (2.5, 0.25, 0.5).
-    pts = torch.tensor([[2.2, 0.1, 0.4], [2.8, 0.4, 0.6]], dtype=torch.float64)
-    out = VoxelCentroidProjector()(vox, pts, torch.zeros(2, dtype=torch.long), l2i_front(), (12, 16))
-    assert isinstance(out, CentroidProjection)
-    torch.testing.assert_close(out.centroid[0], torch.tensor([2.5, 0.25, 0.5], dtype=torch.float64))
-    # Empty voxel (z=0, y=0, x=3) uses its centre (3.5, -1.5, -0.5).
-    torch.testing.assert_close(out.centroid[1], torch.tensor([3.5, -1.5, -0.5], dtype=torch.float64))
-    assert out.has_points.tolist() == [True, False]
-    # Centroid (2.5, 0.25, 0.5): u = 8 - 10 * 0.25 / 2.5 = 7, v = 6 - 10 * 0.5 / 2.5 = 4.
-    torch.testing.assert_close(out.uv[0, 0], torch.tensor([7.5 / 16, 4.5 / 12], dtype=torch.float64))
-    torch.testing.assert_close(out.depth[0, 0], torch.tensor(2.5, dtype=torch.float64))
-    assert out.uv.shape == (2, 1, 2) and out.valid.shape == (2, 1) and out.num_cameras == 1
-    assert out.batch_index.tolist() == [0, 0]
+# the hand-worked projection on every device and project_points' float64 gradcheck: the shared block
+# checks, test_voxel_centroid_projector_tester.py.
 
 
 def test_module_batch_mismatch_and_type_errors():
@@ -75,16 +60,3 @@ def test_module_augmented_equals_unaugmented():
     order = [key_ref[tuple(round(v, 9) for v in c)] for c in back.tolist()]
     torch.testing.assert_close(out.uv, ref.uv[order], rtol=1e-10, atol=1e-10)
     assert torch.equal(out.valid, ref.valid[order])
-
-
-def test_project_points_gradcheck():
-    from mssf_blocks.functional.geometry import project_points
-
-    pts = torch.tensor([[3.0, 0.5, 0.2], [4.0, -0.3, -0.1], [-2.0, 0.0, 0.0]], dtype=torch.float64)
-    batch = torch.zeros(3, dtype=torch.long)
-
-    def fn(p, m):
-        o = project_points(p, batch, m, (12, 16))
-        return o.uv, o.depth
-
-    assert gradcheck64(fn, [pts, l2i_front()])

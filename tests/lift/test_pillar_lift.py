@@ -73,14 +73,15 @@ def test_zero_height_embedding_is_plain_copy_and_no_embedding_option():
     assert PillarLift(3, 3, use_height_embedding=False).height_embedding is None
 
 
-def test_gradcheck_module():
+# float64 gradcheck of the module and the state-dict round trip: the shared block checks,
+# test_pillar_lift_tester.py.
+def test_height_embedding_gradient_counts():
     vox = scene()
     lift = PillarLift(2, 3, stride=2).double()
     with torch.no_grad():
         lift.height_embedding.weight.normal_()
 
     bev = torch.randn(2, 2, 2, 3, dtype=torch.float64)
-    assert gradcheck64(lambda b: lift.to_bev(lift(b, vox)), [bev])
     # Gradient of the embedding: each voxel adds its z row once per channel.
     lift.zero_grad()
     lift(bev, vox).features.sum().backward()
