@@ -17,15 +17,15 @@ export OMP_NUM_THREADS=1 PYTHONPATH="$ROOT/src" PYTHONDONTWRITEBYTECODE=1
 FLOOR_TORCH="torch==2.1.2"   # the newest torch with mmcv 2.1.0 wheels (mmdetection3d 1.4): pyproject's floor
 NEWEST_TORCH="torch"         # whatever is newest on the registry (CUDA builds: they run on the CPU)
 # the core and framework-integration tests (everything but the example detectors, docs and packaging)
-CORE_TESTS=(tests/functional tests/integrations tests/test_audit_inputs.py tests/test_blocks.py
-            tests/test_compat_spconv.py tests/test_compat_torch.py tests/test_compile.py tests/test_diagnostics.py
+CORE_TESTS=(tests/functional tests/integrations tests/checks/test_audit_inputs.py tests/blocks/test_fusion_block.py
+            tests/integrations/test_spconv.py tests/test_torch_versions.py tests/test_compile.py tests/diagnostics/test_diagnostics.py
             tests/test_export.py
-            tests/test_fusion.py tests/test_geometry.py tests/test_heads.py tests/test_lift.py tests/test_msdff.py
-            tests/test_mssf_official.py tests/test_precision.py tests/test_sparse.py tests/test_static_path.py
+            tests/samplers/test_sff.py tests/geometry/test_voxel_centroid_projector.py tests/heads/test_semantic_guided_head.py tests/lift/test_pillar_lift.py tests/samplers/test_msdff.py
+            tests/weights/test_authors_forward.py tests/samplers/test_precision.py tests/test_sparse_voxels.py tests/test_static_path.py
             tests/test_testing.py)
 # per Python version: import + forward / backward / gradcheck of the core blocks
-PY_TESTS=(tests/test_compat_torch.py tests/test_fusion.py tests/test_msdff.py tests/test_lift.py tests/test_heads.py
-          tests/test_geometry.py)
+PY_TESTS=(tests/test_torch_versions.py tests/samplers/test_sff.py tests/samplers/test_msdff.py tests/lift/test_pillar_lift.py tests/heads/test_semantic_guided_head.py
+          tests/geometry/test_voxel_centroid_projector.py)
 TEST_DEPS=(einops pytest hypothesis)
 FRAMEWORK_DEPS=(shapely pyyaml easydict "spconv>=2.3" tqdm pillow addict yapf termcolor rich)
 # what OpenPCDet's code (tests/integrations, the archive in ../shared) imports at module level, as the Makefile

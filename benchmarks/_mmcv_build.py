@@ -15,7 +15,7 @@ attention_weights (B, Q, M, L, P), im2col_step) -> (B, Q, M * d)``; the location
 the value's dtype as mmcv does.
 
 Checked on a machine without a GPU (2026-12-03): mmcv 2.1.0's file compiles for sm_90 with nvcc 13.0
-against torch 2.13.0's headers (``tests/test_gpu_check.py`` compiles the binding written here).
+against torch 2.13.0's headers (``tests/project/test_gpu_check.py`` compiles the binding written here).
 """
 
 from __future__ import annotations

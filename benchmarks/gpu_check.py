@@ -17,7 +17,8 @@ The stages, in the order of what a GPU user depends on most, each bounded by its
 first minutes answer the most; a watchdog ends the run 25 s after the deadline:
 
 a. ``pytest`` on the CUDA-parametrised tests (``tests/test_devices.py``, the fast-vs-reference tests of
-   ``tests/test_fusion.py``, ``tests/test_msdff.py``, ``tests/functional/test_sampling.py``, the sampling
+   ``tests/samplers/test_sff.py``, ``tests/samplers/test_msdff.py`` and their shared block checks
+   (``tests/samplers/test_sff_tester.py``, ``test_msdff_tester.py``), ``tests/functional/test_sampling.py``, the sampling
    op's Triton-vs-grid-vs-float64 checks in ``tests/functional/test_sampling_op.py``, the distributed
    options: ``-k "cuda or sync or pin or runtime or env"``), its log written to ``<out>/tests.log`` as it
    runs; meanwhile, with an mmcv source archive (the bundle's, or ``--mmcv-src``), nvcc builds mmcv's
@@ -35,7 +36,7 @@ e. the shipped mmdetection3d config, 20 iterations, where mmdet3d with mmcv's CU
 Every row is written to ``<out>/gpu_check.json`` and ``gpu_check.md`` as soon as it is measured
 (``_gpu_report.py``), so a run stopped at its limit still returns what it measured. ``--smoke`` runs every
 stage at toy sizes on ``--device cpu``; the test suite runs it from a copy of the tracked files with a
-stand-in bundle and no network (``tests/test_gpu_check.py``), so the command is known to work before a
+stand-in bundle and no network (``tests/project/test_gpu_check.py``), so the command is known to work before a
 GPU runs it.
 """
 
@@ -163,7 +164,10 @@ def environment(device) -> Dict[str, object]:
 def run_tests(smoke: bool, log: Path, timeout_s: float) -> Dict[str, object]:
     """The device-parametrised tests in a subprocess (``-k cuda`` on a GPU; the CPU ones in smoke mode),
     their output written to ``log`` as they run (a run stopped at its limit keeps what passed)."""
-    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/test_fusion.py", "tests/test_msdff.py",
+    files = ["tests/test_devices.py"] + ([] if smoke else ["tests/samplers/test_sff.py", "tests/samplers/test_msdff.py",
+                                                           # the fast-vs-reference checks of the shared block tester
+                                                           "tests/samplers/test_sff_tester.py",
+                                                           "tests/samplers/test_msdff_tester.py",
                                                            "tests/functional/test_sampling.py",
                                                            "tests/functional/test_sampling_op.py",
                                                            "tests/examples/test_distributed.py"])

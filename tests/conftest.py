@@ -1,6 +1,7 @@
 """Shared test set-up.
 
-* Puts ``examples/`` on ``sys.path`` so tests can import the ``mssf_examples`` package.
+* Puts ``examples/`` on ``sys.path`` so tests can import the ``mssf_examples`` package, and
+  ``tests/helpers`` and ``tests/references`` so every test folder imports the shared modules by name.
 * ``realdata_root`` fixture: the folder of real sensor frames (``<repo>/../shared/realdata``, or the
   ``MSSF_REALDATA`` environment variable). The data's licences forbid shipping it, so tests that need it
   skip with a message when it is absent.
@@ -17,6 +18,13 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 _EXAMPLES = str(REPO_ROOT / "examples")
 if _EXAMPLES not in sys.path:
     sys.path.insert(0, _EXAMPLES)
+# The shared helpers (tests/helpers: doc readers, the mistakes registry and its cases, the block tester)
+# and the independent references (tests/references) are imported by module name from every test folder
+# (``from fusion_references import ...``): one name per module, so the mistakes registry is one object.
+for _shared in ("helpers", "references"):
+    _path = str(REPO_ROOT / "tests" / _shared)
+    if _path not in sys.path:
+        sys.path.insert(0, _path)
 
 from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
 
@@ -53,7 +61,7 @@ def one_thread():
 
     Test modules opt in with ``pytestmark = pytest.mark.usefixtures("one_thread")`` and say why
     (tiny tensors where OpenMP spinning dominates on a loaded machine; spconv's threaded CPU kernels
-    are not bit-deterministic in float32 and wrong in float64: tests/test_spconv_inputs.py).
+    are not bit-deterministic in float32 and wrong in float64: tests/checks/test_spconv_inputs.py).
     """
     n = torch.get_num_threads()
     torch.set_num_threads(1)

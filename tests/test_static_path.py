@@ -1,7 +1,7 @@
 """The static-shape path of the blocks (taken under graph capture, forced by ``static_path``) and the
 compile-aware value checks.
 
-References: the eager paths (independently tested against loops and float64 in test_fusion.py, test_msdff.py etc.),
+References: the eager paths (independently tested against loops and float64 in tests/samplers/test_sff.py, test_msdff.py etc.),
 and hand-built bad inputs whose eager errors are known.
 """
 

@@ -34,7 +34,7 @@ if importlib.util.find_spec("triton") is None:
 def _env(**extra):
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     env.setdefault("OMP_NUM_THREADS", "1")
-    env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(HERE.parent), env.get("PYTHONPATH", "")])
+    env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(HERE.parent / "references"), env.get("PYTHONPATH", "")])
     env.update(extra)
     return env
 

@@ -59,7 +59,7 @@ def triton_on_cpu(monkeypatch):
 def triton_on_a_device(monkeypatch):
     """The CPU as a device whose table entry is "triton" (as CUDA's is), triton installed, no earlier
     failure, and a kernel launch that fails as triton 2.1's compile does if it is ever reached (also the
-    docs' Common-mistakes table's stand-in: tests/mistakes_library.py)."""
+    docs' Common-mistakes table's stand-in: tests/helpers/mistakes_library.py)."""
     monkeypatch.delenv(sampling_op.ENV_VAR, raising=False)
     monkeypatch.setenv("TRITON_INTERPRET", "1")  # (CPU tensors: the kernels' own condition)
     monkeypatch.setattr(sampling_op, "SAMPLING_BACKENDS", {"cpu": "triton"})

@@ -1,6 +1,6 @@
 """The commands of docs/frameworks.md ("mmdetection3d"), run in order, and its install lines against the Makefile.
 
-Classified as tests/test_docs_commands.py classifies the other pages' commands (that test leaves
+Classified as tests/docs/test_docs_commands.py classifies the other pages' commands (that test leaves
 docs/frameworks.md to the framework tests): each ``python -m mssf_examples.mmdet3d`` line of the section's
 ``bash`` blocks is in ``RUN`` (runs verbatim), ``SHORTENED`` (the texts given are replaced, each must
 still be in the line, everything else as printed, with the reason) or ``NOT_RUN`` (with the reason); a

@@ -12,7 +12,7 @@ from torch import Tensor
 __all__ = ["check_spconv_input", "check_module_input", "check_sparse_tensor", "first_conv"]
 
 #: feature dtypes spconv's kernels handle (no integer path; float64 runs on the CPU with one torch thread,
-#: checked against a dense conv3d in tests/test_spconv_dense_reference.py and the float64 parity tests of the
+#: checked against a dense conv3d in tests/integrations/test_spconv_dense_reference.py and the float64 parity tests of the
 #: authors' stages; with two threads its CPU float64 results are wrong, so check_spconv_input refuses that)
 _SPCONV_FEATURE_DTYPES = (torch.float32, torch.float64, torch.float16, torch.bfloat16)
 

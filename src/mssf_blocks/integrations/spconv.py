@@ -8,7 +8,7 @@ uses the stream). On a torch build without CUDA that lookup raises "Torch not co
 enabled", so no spconv network can train on a CPU-only torch. :func:`enable_cpu_backward` replaces
 the lookup with one that returns the null stream when CUDA is unavailable; on CUDA builds it changes
 nothing. (With it, spconv 2.3.8's CPU ``SubMConv3d`` / ``SparseConv3d`` equal a dense ``conv3d`` in float32
-and float64, with or without bias, forward and backward: ``tests/test_spconv_dense_reference.py``.)
+and float64, with or without bias, forward and backward: ``tests/integrations/test_spconv_dense_reference.py``.)
 
 **Quiet calls.** Two messages come from spconv's own code, not from the caller's: torch.fx logs
 "is_fx_tracing will return true ..." (once per process) when spconv's ``SparseConvTensor`` metaclass
@@ -17,7 +17,7 @@ indexes with a list, which torch >= 2.x warns about ("Using a non-tuple sequence
 indexing"). :func:`quiet` drops exactly these two inside a ``with`` block (nothing else, nothing
 outside it); :func:`dense` is ``SparseConvTensor.dense()`` written with tuple indexing.
 
-Checked by ``tests/test_compat_spconv.py`` (gradients equal a dense ``conv3d`` reference; the two
+Checked by ``tests/integrations/test_spconv.py`` (gradients equal a dense ``conv3d`` reference; the two
 messages appear without :func:`quiet` and not with it).
 """
 
