@@ -43,6 +43,7 @@ def documented_signatures(code: str):
     column-0 name the modules lack) is a method of the last class listed above it.
     """
     import importlib
+    import inspect
 
     modules = [importlib.import_module(m) for m in _SIGNATURE_MODULES]
     code = re.sub(r"#[^\n]*", "", code)
@@ -57,7 +58,9 @@ def documented_signatures(code: str):
         for arg in _top_level_split(code[m.end():j - 1]):
             head, _, default = arg.partition("=")
             params.append((re.match(r"\w+", head).group(0), default.strip() or None))
-        top = next((getattr(mod, name) for mod in modules if hasattr(mod, name)), None)
+        # (a submodule named like a function, mssf_blocks.lift.pillar_lift beside functional.lift.pillar_lift, is not it)
+        top = next((getattr(mod, name) for mod in modules
+                    if hasattr(mod, name) and not inspect.ismodule(getattr(mod, name))), None)
         if not indent and not dot and top is not None:
             obj, cls = top, (top if isinstance(top, type) else None)
         else:

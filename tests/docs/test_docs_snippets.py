@@ -266,42 +266,32 @@ def fusion_swap_openpcdet(run, tmp_path):
         assert backbone.conv3(out).features.shape[1] == 64  # feeds conv3 as before
 
 
-@snippet("docs/heads.md", "head = SemanticGuidedHead(128)")
+@snippet("docs/heads.md", "import torch")
 def heads_typical_use(run, tmp_path):
-    from mssf_blocks import SemanticGuidedHead, voxel_foreground_labels
+    """Runs as printed; the labels come from the block's own centroids (FusionBlockOutput), which are the
+    projector's centroids of the voxels the head read."""
+    from mssf_blocks import FusionBlockOutput, SparseVoxels, VoxelCentroidProjector, points_in_boxes
 
-    ns = camera_scene(channels=128, stride=2)
-    ns.update(SemanticGuidedHead=SemanticGuidedHead, voxel_foreground_labels=voxel_foreground_labels,
-              x=ns.pop("voxels"), loss_det=torch.tensor(1.5))
-    torch.manual_seed(0)
-    ns = run(ns)
-    proj, labels, loss = ns["proj"], ns["labels"], ns["loss"]
-    # points 0 and 3 share a stride-2 voxel (1 m) inside the car; their mean is the centroid
-    inside = [abs(c[0] - 10.3) < 1e-5 for c in proj.centroid.tolist()]
-    assert labels.tolist() == [1.0 if i else 0.0 for i in inside] and sum(inside) == 1
-    assert not ns["ignore"].any()
+    ns = run({})
+    out, labels, ignore, loss = ns["out"], ns["labels"], ns["ignore"], ns["loss"]
+    assert isinstance(out, FusionBlockOutput) and isinstance(ns["x"], SparseVoxels)
+    inputs = ns["inputs"]
+    proj = VoxelCentroidProjector()(out.head_voxels, inputs.points, inputs.points_batch, inputs.lidar2img,
+                                    inputs.image_size)
+    torch.testing.assert_close(out.centroids, proj.centroid)  # no second projection needed: the same centroids
+    # points 0 and 3 lie inside the car box (each in its own 0.5 m voxel), points 1 and 2 outside
+    inside = points_in_boxes(out.centroids, ns["gt_boxes"][0])[:, 0]
+    assert labels.tolist() == inside.float().tolist() and int(labels.sum()) == 2 and not ignore.any()
     assert loss.dim() == 0 and torch.isfinite(loss) and loss > 1.5
-    assert ns["scores"].shape == labels.shape and ns["x"].features.shape == (labels.shape[0], 128)
+    assert ns["logits"].shape == labels.shape and ns["x"].features.shape == (labels.shape[0], 128)
 
 
-@snippet("docs/pillar.md", "vox = voxelize_points(points, points_batch, B, (0.16 * s, 0.16 * s, 0.5), pc_min, pc_max)")
+@snippet("docs/pillar.md", "import torch")
 def pillar_lift_fuse(run, tmp_path):
-    from mssf_blocks import SFF, PillarLift, VoxelCentroidProjector
-    from mssf_blocks.functional.lift import voxelize_points
-
-    B, s, C = 2, 2, 8
-    pc_min, pc_max = (0.0, -12.8, -3.0), (25.6, 12.8, 2.0)
-    pts = radar_points(B, per_sample=40, seed=5)
-    pts = pts[pts[:, 1] < 25.0]
-    image_size = (64, 96)
-    hb, wb = round(25.6 / (0.16 * s)), round(25.6 / (0.16 * s))
-    bev = torch.randn(B, C, hb, wb)
-    ns = run({"voxelize_points": voxelize_points, "PillarLift": PillarLift, "points": pts[:, 1:], "points_batch": pts[:, 0].long(),
-              "B": B, "s": s, "pc_min": pc_min, "pc_max": pc_max, "C": C, "bev": bev, "projector": VoxelCentroidProjector(),
-              "lidar2img": pinhole(B, image_size, 40.0), "image_size": image_size, "sff": SFF([4, 4], C).eval(),
-              "image_features": fpn(B, image_size, channels=4, strides=(4, 8))})
-    out, v = ns["bev"], ns["v"]
-    assert out.shape == bev.shape
+    ns = run({})  # runs as printed
+    out, v, B = ns["bev"], ns["v"], ns["B"]
+    hb, wb = out.shape[-2:]
+    assert out.shape == (B, ns["C"], 80, 80)
     occupied = torch.zeros(B, hb, wb, dtype=torch.bool)
     occupied[v.coords[:, 0].long(), v.coords[:, 2].long(), v.coords[:, 3].long()] = True
     assert (out.permute(0, 2, 3, 1)[~occupied] == 0).all() and occupied.any()

@@ -22,7 +22,7 @@ from __future__ import annotations
 from typing import List, Tuple
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.weights import ModuleMap
+from mssf_blocks.weights.authors_checkpoint import ModuleMap
 
 __all__ = ["mssf_pp_stage_maps"]
 

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.weights import ModuleMap, official_to_ours
+from mssf_blocks.weights.authors_checkpoint import ModuleMap, official_to_ours
 
 __all__ = ["load_official"]
 
