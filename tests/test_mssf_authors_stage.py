@@ -32,7 +32,7 @@ from mssf_blocks.compat.mssf_official import OFFICIAL_SWITCHES, ModuleMap, offic
 from mssf_blocks.fusion import MSDFF  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead  # noqa: E402
-from mssf_examples.backbones import SparseBasicBlock  # noqa: E402
+from mssf_examples.models.backbones import SparseBasicBlock  # noqa: E402
 from test_mssf_official import (  # noqa: E402
     CI, CV, D64, ENC, IMAGE, LO, VOXEL, L, M, P, linear, random_official, scene, their_msdff,
 )
