@@ -13,12 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, Optional, Tuple
 
-from ..training import distributed
 from ..data.augment import add_augmentation_arguments
-from ..models.detectors import DETECTOR_NAMES
-from ..evaluation.metrics import TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS
 from ..data.kitti_io import TJ4D_RADAR, VOD_RADAR, PointFormat
+from ..evaluation.metrics import TJ4D_IOU_THRESHOLDS, VOD_IOU_THRESHOLDS
+from ..models.detectors import DETECTOR_NAMES
 from ..models.presets import TJ4D, TJ4D_RECIPE, VOD, VOD_RECIPE, DetectorPreset, TrainingRecipe
+from ..training import distributed
 from ..training.threads import DEFAULT_THREADS
 
 __all__ = ["PROG", "DatasetSpec", "DATASETS", "RECIPES", "build_parser"]

@@ -36,18 +36,18 @@ import torch
 
 from mssf_blocks.errors import MSSFError
 
-from ..training import distributed
 from ..data.augment import augment_batches, augmentation_from_args
+from ..data.kitti_export import kitti_lines, write_kitti_file
+from ..data.kitti_io import Frame, KittiFormatDataset, parse_labels
+from ..evaluation.metrics import evaluate, format_table
+from ..models.detectors import build_detector
+from ..models.presets import DetectorPreset, authors_preset, tiny_preset
+from ..training import distributed
+from ..training.loop import batch_order, load_checkpoint, load_resume_state, predict, save_checkpoint, train_detector
 from .args import DATASETS, PROG, RECIPES, DatasetSpec, build_parser  # noqa: F401 - part of this module's interface
 from .loading import (  # noqa: F401 - scale_batch, _Collate: part of this module's interface
     _Collate, _CollateWithFrames, _Frames, _jsonable, _loader, _open_dataset, _preset_from_json, _preset_to_json,
     scale_batch)
-from ..models.detectors import build_detector
-from ..evaluation.metrics import evaluate, format_table
-from ..data.kitti_export import kitti_lines, write_kitti_file
-from ..data.kitti_io import Frame, KittiFormatDataset, parse_labels
-from ..models.presets import DetectorPreset, authors_preset, tiny_preset
-from ..training.loop import batch_order, load_checkpoint, load_resume_state, predict, save_checkpoint, train_detector
 
 __all__ = ["DatasetSpec", "DATASETS", "cli_tiny_preset", "build_parser", "main"]
 

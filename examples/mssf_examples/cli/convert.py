@@ -20,9 +20,9 @@ import torch
 from mssf_blocks.errors import MSSFError
 
 from ..models.authors_checkpoint import LAYOUTS, convert_authors, unwrap_checkpoint
-from .loading import _jsonable, _preset_to_json
-from .args import PROG
 from ..training.loop import CHECKPOINT_FORMAT
+from .args import PROG
+from .loading import _jsonable, _preset_to_json
 
 __all__ = ["add_parser", "authors_detector", "authors_detector_preset", "run"]
 

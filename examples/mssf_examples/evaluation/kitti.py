@@ -27,10 +27,10 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
-from .exact import check_box_dict
 from ..data.kitti_export import kitti_objects
 from ..data.kitti_io import Calibration, KittiObjects
 from ..models.ops.iou import box_iou_bev_3d
+from .exact import check_box_dict
 
 __all__ = ["Objects", "as_objects", "camera_box_ious", "kit_thresholds", "threshold_pass", "count_pass",
            "kit_precision", "evaluate_kit"]

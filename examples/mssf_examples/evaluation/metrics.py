@@ -24,6 +24,9 @@ import torch
 
 from mssf_blocks.errors import MSSFError
 
+from ..data.kitti_boxes import camera_boxes_to_sensor
+from ..data.kitti_calib import Calibration
+from ..data.kitti_labels import KittiObjects
 from .exact import (
     DEFAULT_REGIONS,
     RECALL_POINTS,
@@ -37,9 +40,6 @@ from .exact import (
     range_region,
 )
 from .kitti import as_objects
-from ..data.kitti_boxes import camera_boxes_to_sensor
-from ..data.kitti_calib import Calibration
-from ..data.kitti_labels import KittiObjects
 from .tj4d import TJ4D_LOOSE_IOU_THRESHOLDS, TJ4D_REGIONS, TJ4D_STRICT_IOU_THRESHOLDS, evaluate_tj4d
 from .vod import VOD_REGIONS, evaluate_vod
 

@@ -29,8 +29,8 @@ from mmengine.logging import MMLogger
 
 from mssf_blocks.errors import MSSFError
 
-from ..evaluation.metrics import evaluate, format_table
 from ..data.kitti_io import TJ4D_CLASSES, VOD_CLASSES, parse_calibration, parse_labels
+from ..evaluation.metrics import evaluate, format_table
 
 __all__ = ["VoDMetric", "TJ4DMetric", "predictions_from_mmdet3d"]
 

@@ -21,6 +21,7 @@ from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.fusion import FusionInputs
 
+from ..data.batch import RadarCameraBatch
 from .backbones import (
     BackboneOutput,
     CenterPointBackbone,
@@ -28,7 +29,6 @@ from .backbones import (
     SECONDBackbone,
     VoxelNeXtBackbone,
 )
-from ..data.batch import RadarCameraBatch
 from .heads import AnchorHead, BEVGrid, CenterHead, SparseCenterHead
 from .image_branch import ImageBranch
 from .presets import DetectorPreset

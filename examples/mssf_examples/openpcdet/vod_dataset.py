@@ -30,8 +30,8 @@ from pcdet.datasets.kitti.kitti_dataset import KittiDataset
 
 from mssf_blocks.errors import MSSFError
 
-from ..evaluation.metrics import VOD_IOU_THRESHOLDS
 from ..evaluation.kitti import Objects
+from ..evaluation.metrics import VOD_IOU_THRESHOLDS
 from ..evaluation.vod import VOD_REGIONS, evaluate_vod
 
 __all__ = ["VoDDataset", "VOD_POINT_FEATURES", "create_vod_infos", "annos_to_objects", "check_dataset_cfg",
