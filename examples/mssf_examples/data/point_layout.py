@@ -19,7 +19,7 @@ rows. Columns without a test are not checked; a layout without a tested column i
 itself (:attr:`Reading.evidence` is empty) and decides nothing.
 
 :func:`read_layouts` reads one file every way; :func:`plausible_layouts` keeps the readings that pass.
-Used by the CLI (``python -m mssf_examples``: ``cli_data.py``) to tell ``--dataset vod`` from ``tj4d``, and
+Used by the CLI (``python -m mssf_examples``: ``cli/loading.py``) to tell ``--dataset vod`` from ``tj4d``, and
 by :func:`~mssf_examples.data.kitti_points.read_points` when a file fits another known format by size.
 """
 

@@ -26,7 +26,7 @@ pytest.importorskip("spconv")
 pytest.importorskip("PIL")
 
 from mssf_blocks.errors import MSSFError  # noqa: E402
-from mssf_examples.cli import commands as cli
+from mssf_examples.cli import commands as cli  # noqa: E402
 from mssf_examples.training import distributed  # noqa: E402
 from mssf_examples.models.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
 from mssf_examples.data.kitti_export import write_vod_tree  # noqa: E402

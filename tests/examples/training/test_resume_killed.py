@@ -17,7 +17,7 @@ import torch
 pytest.importorskip("spconv")
 pytest.importorskip("PIL")
 
-from mssf_examples.cli import commands as cli
+from mssf_examples.cli import commands as cli  # noqa: E402
 from mssf_examples.training import loop as training  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "helpers"))
