@@ -35,7 +35,7 @@ def fusion_block_benchmark(device, smoke: bool, repeats: int, deadline: Optional
 
         _spconv_or_stand_in()  # (the examples' detector module imports spconv; PointPillars does not use it)
         from mssf_blocks.blocks import FusionBlock
-        from mssf_examples.detectors import build_detector
+        from mssf_examples.models.detectors import build_detector
 
         batch, preset = vod_batch(device, smoke)
         torch.manual_seed(0)

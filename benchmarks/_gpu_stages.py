@@ -155,8 +155,8 @@ def vod_batch(device, smoke: bool):
     1216 x 1936 camera, one ground-truth car; and the preset."""
     import torch
 
-    from mssf_examples.data import RadarCameraBatch
-    from mssf_examples.presets import TINY, VOD
+    from mssf_examples.data.batch import RadarCameraBatch
+    from mssf_examples.models.presets import TINY, VOD
 
     preset = TINY if smoke else VOD
     h, w = (32, 64) if smoke else (1216, 1936)
@@ -216,8 +216,8 @@ def detector_steps(device, smoke: bool, repeats: int, deadline: Optional[float] 
 
     spconv_missing = _spconv_or_stand_in()
     from mssf_blocks import torch_versions as _compat
-    from mssf_examples.detectors import DETECTOR_NAMES, build_detector
-    from mssf_examples.spconv_compat import enable_cpu_backward
+    from mssf_examples.models.detectors import DETECTOR_NAMES, build_detector
+    from mssf_examples.models.spconv_helpers import enable_cpu_backward
 
     if spconv_missing is None:
         enable_cpu_backward()

@@ -25,9 +25,9 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples"))
 
 from mssf_blocks.checks import coverage as rc  # noqa: E402
-from mssf_examples import cli  # noqa: E402
-from mssf_examples.kitti_export import write_vod_tree  # noqa: E402
-from mssf_examples.scenes import SceneConfig, SyntheticDataset  # noqa: E402
+from mssf_examples.cli import commands as cli  # noqa: E402
+from mssf_examples.data.kitti_export import write_vod_tree  # noqa: E402
+from mssf_examples.scenes.synthetic import SceneConfig, SyntheticDataset  # noqa: E402
 
 
 def main() -> None:

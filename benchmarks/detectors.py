@@ -42,9 +42,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from _common import measure, print_table, round_spread, write_json  # noqa: E402
-from mssf_examples.data import RadarCameraBatch  # noqa: E402
-from mssf_examples.detectors import build_detector  # noqa: E402
-from mssf_examples.presets import VOD  # noqa: E402
+from mssf_examples.data.batch import RadarCameraBatch  # noqa: E402
+from mssf_examples.models.detectors import build_detector  # noqa: E402
+from mssf_examples.models.presets import VOD  # noqa: E402
 
 IMAGE_H, IMAGE_W = VOD.image_size
 FOCAL = 1260.0  # roughly VoD's camera

@@ -130,7 +130,7 @@ def voxelize(points, voxel_size, point_range):
 
 
 def real_frames(rec_name="real VoD frames") -> None:
-    from mssf_examples.kitti_io import VOD_CLASSES, VOD_RADAR, KittiFormatDataset
+    from mssf_examples.data.kitti_io import VOD_CLASSES, VOD_RADAR, KittiFormatDataset
 
     root = ROOT.parent / "shared" / "realdata" / "vod"
     if not root.exists():
@@ -158,9 +158,9 @@ def real_frames(rec_name="real VoD frames") -> None:
 
 
 def cli_training(detector: str, scenes: int, steps: int) -> None:
-    from mssf_examples import cli
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.scenes import SceneConfig, SyntheticDataset
+    from mssf_examples.cli import commands as cli
+    from mssf_examples.data.kitti_export import write_vod_tree
+    from mssf_examples.scenes.synthetic import SceneConfig, SyntheticDataset
 
     with tempfile.TemporaryDirectory() as tmp, Recorder() as rec, warnings.catch_warnings():
         warnings.simplefilter("error", MSSFGeometryWarning)
@@ -177,8 +177,8 @@ def cli_training(detector: str, scenes: int, steps: int) -> None:
 def demo_detectors() -> None:
     sys.path.insert(0, str(ROOT / "tests" / "examples"))
     from test_detectors import make_batch
-    from mssf_examples.detectors import build_detector
-    from mssf_examples.presets import TINY
+    from mssf_examples.models.detectors import build_detector
+    from mssf_examples.models.presets import TINY
 
     with Recorder() as rec, warnings.catch_warnings():
         warnings.simplefilter("error", MSSFGeometryWarning)
@@ -187,7 +187,7 @@ def demo_detectors() -> None:
             model = build_detector(name, TINY, num_fusion_blocks=2, score_threshold=0.0, max_detections=20)
             for seed in range(3):
                 model(make_batch(seed))
-    rec.report("demo detectors (tests/examples/test_detectors.py's batch), TINY, 4 detectors x 3 batches")
+    rec.report("demo detectors (tests/examples/models/test_detectors.py's batch), TINY, 4 detectors x 3 batches")
 
 
 def main() -> None:

@@ -35,8 +35,8 @@ from detectors import vod_frame  # noqa: E402  (this folder)
 from mssf_blocks import blocks as _blocks  # noqa: E402
 from mssf_blocks import samplers as _fusion  # noqa: E402
 from mssf_blocks import geometry as _geometry  # noqa: E402
-from mssf_examples.detectors import build_detector  # noqa: E402
-from mssf_examples.presets import VOD  # noqa: E402
+from mssf_examples.models.detectors import build_detector  # noqa: E402
+from mssf_examples.models.presets import VOD  # noqa: E402
 
 CHECKS = ("check_projection_coverage", "check_centroid_coverage", "check_level_sizes", "check_grid",
           "check_indices_in_shape", "project_raw", "check_points_in_voxels", "check_points_to_sensor",

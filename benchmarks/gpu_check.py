@@ -170,7 +170,7 @@ def run_tests(smoke: bool, log: Path, timeout_s: float) -> Dict[str, object]:
                                                            "tests/samplers/test_msdff_tester.py",
                                                            "tests/functional/test_sampling.py",
                                                            "tests/functional/test_sampling_op.py",
-                                                           "tests/examples/test_distributed.py"])
+                                                           "tests/examples/training/test_distributed.py"])
     select = "cpu and query_init" if smoke else "cuda or sync or pin or runtime or env"
     # (-v: one line per test, so a log cut at the time limit still says which passed and which failed)
     cmd = [sys.executable, "-m", "pytest", *files, "-v", "-p", "no:cacheprovider", "-k", select, "-rfEs"]

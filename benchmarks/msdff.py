@@ -27,7 +27,7 @@ Two spatial distributions of the voxels' projections: "uniform" (spread uniforml
 image: the worst case, most pixels of P2 are near some sampling point at N >= 2,500) and "radar band"
 (uniform over ``u`` in [0.06, 0.85], ``v`` in [0.49, 0.89] of the image: the 5 %-95 % quantiles of the
 projections of the radar points of the two View-of-Delft frames under ``../shared/realdata/vod``
-(00549, 01047), measured with ``mssf_examples.kitti_io``; real radar points concentrate there, below
+(00549, 01047), measured with ``mssf_examples.data.kitti_io``; real radar points concentrate there, below
 the horizon; 32 % of the image area). The targets are judged on "uniform".
 
 The script checks every path agrees with the reference (max abs output difference and max relative

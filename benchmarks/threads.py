@@ -1,6 +1,6 @@
 """Benchmark: demo training steps vs intra-op threads and OpenMP wait policy, idle and under load.
 
-Measures what ``examples/mssf_examples/threads.py`` (the single home of the thread defaults of the
+Measures what ``examples/mssf_examples/training/threads.py`` (the single home of the thread defaults of the
 demo, the CLI and the tests) chose. For each combination of
 
 * ``--threads`` (torch intra-op threads: 1 and 2),
@@ -37,9 +37,9 @@ import json, statistics, sys, time
 sys.path.insert(0, {examples!r})
 import torch
 torch.set_num_threads({threads})
-from mssf_examples.image_branch import ImageBranch
-from mssf_examples.image_pretrain import pretrain_image_branch
-from mssf_examples.scenes import SceneConfig, SyntheticDataset
+from mssf_examples.models.image_branch import ImageBranch
+from mssf_examples.training.image_pretrain import pretrain_image_branch
+from mssf_examples.scenes.synthetic import SceneConfig, SyntheticDataset
 ds = SyntheticDataset("train", 8, SceneConfig(), seed=0)
 scenes = [ds[i] for i in range(len(ds))]
 torch.manual_seed(0)

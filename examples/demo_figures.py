@@ -14,8 +14,8 @@ from typing import Dict, List
 import torch
 
 from mssf_blocks.diagnostics import plot_blur_curves
-from mssf_examples.image_pretrain import semantic_map
-from mssf_examples.scenes import CLASS_NAMES
+from mssf_examples.training.image_pretrain import semantic_map
+from mssf_examples.scenes.synthetic import CLASS_NAMES
 
 __all__ = ["plot_bev", "plot_image_semantics", "plot_losses", "plot_semantic_blur_curves"]
 

@@ -14,14 +14,14 @@ import torch
 
 from mssf_blocks.diagnostics import classify_projection
 from mssf_blocks.geometry import VoxelCentroidProjector
-from mssf_examples.augment import augment_batches
-from mssf_examples.evaluation import evaluate
-from mssf_examples.image_pretrain import collate_with_features
-from mssf_examples.kitti_io import Calibration
-from mssf_examples.presets import VOD, VOD_RECIPE, DetectorPreset, tiny_preset
-from mssf_examples.scenes import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig
-from mssf_examples.training import batch_order, train_detector
-from mssf_examples.training import predict as predict_detections
+from mssf_examples.data.augment import augment_batches
+from mssf_examples.evaluation.metrics import evaluate
+from mssf_examples.training.image_pretrain import collate_with_features
+from mssf_examples.data.kitti_io import Calibration
+from mssf_examples.models.presets import VOD, VOD_RECIPE, DetectorPreset, tiny_preset
+from mssf_examples.scenes.synthetic import CLASS_NAMES, LIGHTING_CONDITIONS, Scene, SceneConfig
+from mssf_examples.training.loop import batch_order, train_detector
+from mssf_examples.training.loop import predict as predict_detections
 
 __all__ = ["demo_preset", "ground_truths", "scene_collate", "train", "predict", "semantic_scores",
            "lighting_report"]
@@ -66,9 +66,9 @@ def scene_collate(scenes: List[Scene], features=None):
 def train(model, scenes: List[Scene], steps: int, batch_size: int, lr: float, seed: int, desc: str,
           collate=None, augmentation=None, amp_dtype=None) -> Dict:
     """Train ``model`` in place (on its device) on a seeded data order; ``collate(indices)`` builds a batch
-    (default: ``Scene.collate``); ``augmentation`` (an :class:`~mssf_examples.augment.AugmentationConfig`)
+    (default: ``Scene.collate``); ``augmentation`` (an :class:`~mssf_examples.data.augment.AugmentationConfig`)
     augments every sample, drawn from ``seed``; ``amp_dtype`` the autocast dtype (``None``: float32).
-    The loop is :func:`mssf_examples.training.train_detector`."""
+    The loop is :func:`mssf_examples.training.loop.train_detector`."""
     collate = collate or scene_collate(scenes)
     order = batch_order(len(scenes), batch_size, steps, seed)
     batches = (collate(idx) for idx in order)

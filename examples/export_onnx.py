@@ -4,7 +4,7 @@
         [--preset tiny|vod] [--opset 18]
 
 Builds the detector (random weights, eval mode), voxelises three generated scenes with different point,
-pillar and voxel counts, exports :class:`mssf_examples.export.PointPillarsGraph` with
+pillar and voxel counts, exports :class:`mssf_examples.models.export.PointPillarsGraph` with
 ``torch.onnx.export(dynamo=True)`` (those counts as dynamic axes), runs the ONNX model in onnxruntime on
 all three and prints the largest absolute difference to the eager PyTorch detector's head outputs
 (``MSSFDetector.extract``, the default CPU plans). Exits non-zero above ``--tolerance`` (1e-4).
@@ -24,10 +24,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mssf_blocks.torch_versions import require  # noqa: E402
-from mssf_examples.data import RadarCameraBatch  # noqa: E402
-from mssf_examples.detectors import build_detector  # noqa: E402
-from mssf_examples.export import PointPillarsGraph, graph_dynamic_shapes, graph_inputs, input_names  # noqa: E402
-from mssf_examples.presets import TINY, VOD  # noqa: E402
+from mssf_examples.data.batch import RadarCameraBatch  # noqa: E402
+from mssf_examples.models.detectors import build_detector  # noqa: E402
+from mssf_examples.models.export import PointPillarsGraph, graph_dynamic_shapes, graph_inputs, input_names  # noqa: E402
+from mssf_examples.models.presets import TINY, VOD  # noqa: E402
 
 
 def generated_scene(preset, seed: int, num_points: int) -> RadarCameraBatch:

@@ -3,9 +3,9 @@
 docs/differences.md row 27. Trains the radar-only (``n = 0``) PointPillars and VoxelNeXt example detectors
 of the demo (``examples/demo_steps.py``: generated VoD-like scenes, the demo's CPU-sized preset) for
 ``--steps`` steps each, then decodes the val scenes' head outputs with the authors' settings
-(:data:`~mssf_examples.heads.authors.AUTHORS_DECODE`; MSSF-PP's ``nms_pre`` 100) twice: with the
+(:data:`~mssf_examples.models.heads.authors.AUTHORS_DECODE`; MSSF-PP's ``nms_pre`` 100) twice: with the
 examples' decoding and with their switches
-(:func:`~mssf_examples.heads.authors.authors_decode_options`: ``multi_class`` for the anchor head;
+(:func:`~mssf_examples.models.heads.authors.authors_decode_options`: ``multi_class`` for the anchor head;
 ``class_agnostic_nms`` and ``center_range`` for VoxelNeXt, also each alone). Reported per variant: boxes
 in all, boxes only in one of the two outputs (compared as exact (label, score, box) rows), and the VoD
 protocol's 3D AP (R40, entire area) with its change.
@@ -28,11 +28,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from demo_steps import demo_preset, ground_truths, predict, scene_collate, train  # noqa: E402
-from mssf_examples.detectors import build_detector  # noqa: E402
-from mssf_examples.evaluation import evaluate  # noqa: E402
-from mssf_examples.heads.authors import AUTHORS_DECODE, authors_decode_options  # noqa: E402
-from mssf_examples.scenes import CLASS_NAMES, SceneConfig, SyntheticDataset  # noqa: E402
-from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
+from mssf_examples.models.detectors import build_detector  # noqa: E402
+from mssf_examples.evaluation.metrics import evaluate  # noqa: E402
+from mssf_examples.models.heads.authors import AUTHORS_DECODE, authors_decode_options  # noqa: E402
+from mssf_examples.scenes.synthetic import CLASS_NAMES, SceneConfig, SyntheticDataset  # noqa: E402
+from mssf_examples.models.spconv_helpers import enable_cpu_backward  # noqa: E402
 
 
 def _rows(det) -> set:

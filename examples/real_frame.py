@@ -1,6 +1,6 @@
 """One real View-of-Delft frame through the library's projection and image samplers (no training).
 
-Reads a KITTI-format radar frame (``mssf_examples.kitti_io``), voxelises the radar points on the VoD grid
+Reads a KITTI-format radar frame (``mssf_examples.data.kitti_io``), voxelises the radar points on the VoD grid
 of the paper (voxel 0.05 x 0.05 x 0.125 m; x 0..51.2, y -25.6..25.6, z -3..2 m), projects the voxel
 centroids at strides 1, 2 and 4 with :class:`~mssf_blocks.VoxelCentroidProjector`, samples a small image
 pyramid (average-pooled RGB at strides 4, 8, 16; no learned weights) with ``SFF`` and ``MSDFF`` from
@@ -30,7 +30,7 @@ from torch import Tensor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mssf_blocks import SparseVoxels, VoxelCentroidProjector  # noqa: E402
-from mssf_examples.kitti_io import (  # noqa: E402
+from mssf_examples.data.kitti_io import (  # noqa: E402
     VOD_CLASSES,
     VOD_RADAR,
     Frame,

@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from mssf_examples.scenes import CLASS_NAMES, CLUTTER_KINDS, SceneConfig, box_corners, generate_scene  # noqa: E402
+from mssf_examples.scenes.synthetic import CLASS_NAMES, CLUTTER_KINDS, SceneConfig, box_corners, generate_scene  # noqa: E402
 
 _CLASS_COLOURS = ("tab:red", "tab:green", "tab:orange")
 

@@ -3,16 +3,16 @@
 The project's main demo (``make demo``). On CPU, with the same code, seed and data order for both:
 
 1. generate ``--train-scenes`` / ``--val-scenes`` synthetic VoD-like radar + camera scenes
-   (:class:`mssf_examples.scenes.SyntheticDataset`; static clutter mimics objects on radar, the camera
+   (:class:`mssf_examples.scenes.synthetic.SyntheticDataset`; static clutter mimics objects on radar, the camera
    tells them apart, ghosts and leaked points give 3D-blurred points);
 2. pre-train the image branch (ResNet-18 + FPN) on the train scenes' per-pixel 2D semantics with a
-   linear read-out, freeze it and cache its features (:mod:`mssf_examples.image_pretrain`; the paper
+   linear read-out, freeze it and cache its features (:mod:`mssf_examples.training.image_pretrain`; the paper
    freezes a pre-trained image branch, and nothing can be downloaded here);
 3. train ``--detector`` (default PointPillars, the cheapest) twice: with ``n = 1`` MSDFF fusion block
    plus the semantic-guided head, and with ``n = 0`` (radar only); AdamW with a one-cycle learning
    rate, as in the paper (OpenPCDet's ``adam_onecycle``: 40 % warm-up, ``div_factor`` 10);
 4. evaluate both on the val split (the official VoD protocol, ``protocol="vod"``: entire annotated area
-   and driving corridor, :func:`mssf_examples.evaluation.evaluate`) and print the paper-style table;
+   and driving corridor, :func:`mssf_examples.evaluation.metrics.evaluate`) and print the paper-style table;
 5. write ``metrics.json`` (metrics, configuration, timings) and PNG figures to ``--out``: BEV views with
    radar points, GT and predicted boxes for both models, the fusion model's semantic scores per lifted
    voxel (paper Fig. 5), the blur-ratio / foreground-recall curves (paper Fig. 7) and the image
@@ -20,7 +20,7 @@ The project's main demo (``make demo``). On CPU, with the same code, seed and da
 
 Run: ``python examples/train_demo.py [--steps 2000] [--seed 0] [--lighting] [--out outputs/demo]``;
 ``--quick`` is a tiny run for tests. ``--augmentation on`` trains both models with the VoD recipe's
-augmentation (:mod:`mssf_examples.augment`: flip with the image, rotation +-pi/4, scaling 0.95-1.05);
+augmentation (:mod:`mssf_examples.data.augment`: flip with the image, rotation +-pi/4, scaling 0.95-1.05);
 ``--augmentation compare`` keeps the two models un-augmented and trains a third, the fusion model with
 augmentation at the same budget (steps, batch, seed), to show the effect. A rerun with the same arguments gives identical metrics.
 Synthetic scenes say nothing about View-of-Delft numbers; see ``docs/demo.md``.
@@ -51,16 +51,16 @@ from demo_steps import (  # noqa: E402
     demo_preset, ground_truths, lighting_report, predict, scene_collate, semantic_scores, train)
 from mssf_blocks.diagnostics import blur_curves  # noqa: E402
 from mssf_blocks.errors import MSSFError  # noqa: E402
-from mssf_examples.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
-from mssf_examples.distributed import AMP_MODES, resolve_amp, resolve_device  # noqa: E402
-from mssf_examples.evaluation import evaluate, format_table  # noqa: E402
-from mssf_examples.image_branch import ImageBranch  # noqa: E402
-from mssf_examples.image_pretrain import (  # noqa: E402
+from mssf_examples.models.detectors import DETECTOR_NAMES, build_detector  # noqa: E402
+from mssf_examples.training.distributed import AMP_MODES, resolve_amp, resolve_device  # noqa: E402
+from mssf_examples.evaluation.metrics import evaluate, format_table  # noqa: E402
+from mssf_examples.models.image_branch import ImageBranch  # noqa: E402
+from mssf_examples.training.image_pretrain import (  # noqa: E402
     SemanticReadout, precompute_features, pretrain_image_branch, segmentation_metrics)
-from mssf_examples.presets import VOD_RECIPE  # noqa: E402
-from mssf_examples.scenes import CLASS_NAMES, SceneConfig, SyntheticDataset  # noqa: E402
-from mssf_examples.spconv_compat import enable_cpu_backward  # noqa: E402
-from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
+from mssf_examples.models.presets import VOD_RECIPE  # noqa: E402
+from mssf_examples.scenes.synthetic import CLASS_NAMES, SceneConfig, SyntheticDataset  # noqa: E402
+from mssf_examples.models.spconv_helpers import enable_cpu_backward  # noqa: E402
+from mssf_examples.training.threads import DEFAULT_THREADS  # noqa: E402
 
 try:
     from tqdm import tqdm
@@ -109,7 +109,7 @@ def parse_args(argv=None):
     ap.add_argument("--load-checkpoint", type=Path, default=None, help="skip training, evaluate these weights")
     ap.add_argument("--figure-scenes", type=int, default=3)
     ap.add_argument("--threads", type=int, default=DEFAULT_THREADS,
-                    help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/threads.py)")
+                    help=f"torch CPU threads (default {DEFAULT_THREADS}: see mssf_examples/training/threads.py)")
     ap.add_argument("--device", default="auto", help="auto (CUDA when available), cpu, cuda or cuda:N: where the "
                     "detectors train and predict (the image branch pre-training stays on the CPU)")
     ap.add_argument("--amp", choices=tuple(AMP_MODES), default="off",

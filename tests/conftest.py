@@ -26,9 +26,9 @@ for _shared in ("helpers", "references"):
     if _path not in sys.path:
         sys.path.insert(0, _path)
 
-from mssf_examples.threads import DEFAULT_THREADS  # noqa: E402
+from mssf_examples.training.threads import DEFAULT_THREADS  # noqa: E402
 
-# The suite's thread count (one place for it: mssf_examples/threads.py, which says why); an explicit
+# The suite's thread count (one place for it: mssf_examples/training/threads.py, which says why); an explicit
 # OMP_NUM_THREADS wins.
 if "OMP_NUM_THREADS" not in os.environ:
     torch.set_num_threads(DEFAULT_THREADS)

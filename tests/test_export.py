@@ -1,7 +1,7 @@
 """``torch.export`` of the fusion modules (voxel count a dynamic dimension) and ONNX of a fusion block,
 checked on three voxel counts against the eager modules (the default CPU plans: an independent path).
 
-The whole MSSF-PointPillars detector goes through ONNX in tests/examples/test_export_onnx.py.
+The whole MSSF-PointPillars detector goes through ONNX in tests/examples/models/test_export_onnx.py.
 """
 
 import pytest

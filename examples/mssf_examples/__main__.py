@@ -15,7 +15,7 @@ from torch.distributed.elastic.multiprocessing.errors import record
 def entry() -> None:
     """Run the CLI and exit with its status (the ``mssf`` console script and ``python -m mssf_examples``)."""
     try:
-        from .cli import main
+        from .cli.commands import main
     except ImportError as exc:  # an examples dependency is missing: say which extra brings it
         if exc.name and exc.name.split(".")[0] in ("spconv", "cumm", "tqdm", "PIL"):
             sys.exit(f"mssf_examples needs {exc.name.split('.')[0]}: pip install \"mssf-blocks[examples]\" "

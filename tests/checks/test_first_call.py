@@ -1,6 +1,6 @@
 """Issue 42: block-level geometry mistakes on a coarse grid, named on the first call (no warm-up).
 
-A generated VoD-like scene (``mssf_examples.scenes``: VoD's camera, 5 accumulated scans, three times the
+A generated VoD-like scene (``mssf_examples.scenes.synthetic``: VoD's camera, 5 accumulated scans, three times the
 default point count: ~550 points, more than a real VoD frame's ~340) voxelised on a coarse grid
 (0.2 / 0.2 / 0.25 m), where a wrong grid still leaves some voxels holding points by chance, so the zero
 checks of ``_sanity`` say nothing and a fresh projector has no running value. Each mistake below must be
@@ -28,7 +28,7 @@ SHAPE = (20, 128, 128)  # (D, H, W)
 
 def scene_points(seed: int = 0):
     """``(points (P, 3), lidar2img (1, 3, 4), image_size)`` of a generated scene."""
-    from mssf_examples.scenes import SceneConfig, generate_scene
+    from mssf_examples.scenes.synthetic import SceneConfig, generate_scene
 
     s = generate_scene(seed, SceneConfig(point_cloud_range=RANGE, points_scale=3.0))
     return s.points[:, :3].contiguous(), s.lidar2img.float()[None], s.image_size
@@ -194,7 +194,7 @@ def test_rotation_in_degrees_is_refused_by_the_builders(rotation):
         augmentation_matrix(rotation=rotation)
     augmentation_matrix(rotation=math.radians(rotation))
     augmentation_matrix(rotation=2 * math.pi)  # a full turn is still radians
-    from mssf_examples.augment import AugmentationConfig
+    from mssf_examples.data.augment import AugmentationConfig
 
     with pytest.raises(MSSFError, match=r"rotation_range: .*degrees\? pass radians"):
         AugmentationConfig(rotation_range=(-abs(rotation), abs(rotation)))

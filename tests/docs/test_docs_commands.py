@@ -39,9 +39,9 @@ _REGISTRY = "installs from the package registry (network; changes the environmen
 _NOT_PUBLISHED = "from the registry once a release is published (not there yet, as the doc says)"
 _SUITE = "runs these test files, which are part of `make test` itself"
 _GPU = "needs a CUDA GPU (CI has none); the same CLI code runs on the CPU in real-data.md's commands, and " \
-       "tests/examples/test_distributed.py covers --device / --amp / --workers / torchrun on the CPU"
+       "tests/examples/training/test_distributed.py covers --device / --amp / --workers / torchrun on the CPU"
 
-_AUTHORS = "needs the authors' released checkpoint (not available offline); tests/examples/test_authors_cli.py " \
+_AUTHORS = "needs the authors' released checkpoint (not available offline); tests/examples/cli/test_authors_cli.py " \
            "runs the same two commands on a fabricated checkpoint of their key list and a generated VoD tree"
 
 NOT_RUN_FILES: Dict[str, str] = {
@@ -63,11 +63,11 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
     ("docs/index.md", "pip install mssf-blocks"): _NOT_PUBLISHED,
     ("docs/index.md", 'pip install "mssf-blocks[examples]"'): _NOT_PUBLISHED,
     ("docs/index.md", 'pip install "mssf-blocks[plot]"'): _NOT_PUBLISHED,
-    ("README.md", "make demo"): "6-10 minutes; tests/examples/test_train_demo.py runs the demo script with --quick "
+    ("README.md", "make demo"): "6-10 minutes; tests/examples/training/test_train_demo.py runs the demo script with --quick "
                                 "(and docs/demo.md's --quick line runs here)",
     ("docs/real-data.md", 'pip install "vod-tudelft==1.0.3" numba'):
         "installs from the package registry (network; changes the environment); `make test` installs vod-tudelft --no-deps and numba, and "
-        "tests/examples/test_evaluation_vod_kit.py loads the kit's evaluation modules by path (no k3d)",
+        "tests/examples/evaluation/test_evaluation_vod_kit.py loads the kit's evaluation modules by path (no k3d)",
     ("docs/index.md", "make demo"): "as README.md's `make demo`",
     ("README.md", "make test"): "the suite this test is part of",
     ("docs/index.md", "make test"): "the suite this test is part of",
@@ -75,15 +75,15 @@ NOT_RUN: Dict[Tuple[str, str], str] = {
     ("docs/compatibility.md", "COMPAT_DIR=/tmp/envs bash .ci/compat_envs.sh"): "the same script as `make test-compat`, run by CI; a second copy of its environments here would take minutes and GBs",
     ("docs/demo.md", "python examples/train_demo.py"): "`make demo` itself (6-10 minutes); its --quick line runs",
     ("docs/demo.md", "python examples/train_demo.py --lighting --save-checkpoint outputs/demo/ckpt.pt"):
-        "a full demo run; tests/examples/test_train_demo.py runs --quick --lighting --save-checkpoint",
+        "a full demo run; tests/examples/training/test_train_demo.py runs --quick --lighting --save-checkpoint",
     ("docs/demo.md", "python examples/train_demo.py --steps 800 --seed 1 --out outputs/demo_s1"):
         "a full demo run (minutes)",
     ("docs/demo.md", "python examples/train_demo.py --load-checkpoint outputs/demo/ckpt.pt"):
-        "needs the checkpoint of a full demo run; tests/examples/test_train_demo.py runs --quick --load-checkpoint",
+        "needs the checkpoint of a full demo run; tests/examples/training/test_train_demo.py runs --quick --load-checkpoint",
     ("docs/fusion.md", "pytest tests/samplers/test_sff.py tests/samplers/test_msdff.py tests/blocks/test_fusion_block.py "
-                       "tests/examples/test_swap_example.py -q"): _SUITE,
-    ("docs/real-data.md", "python -m pytest tests/examples/test_kitti_io.py tests/examples/test_kitti_boxes.py "
-                          "tests/examples/test_kitti_layouts.py tests/examples/test_real_frame.py -q"): _SUITE,
+                       "tests/examples/models/test_swap_example.py -q"): _SUITE,
+    ("docs/real-data.md", "python -m pytest tests/examples/data/test_kitti_io.py tests/examples/data/test_kitti_boxes.py "
+                          "tests/examples/data/test_kitti_layouts.py tests/examples/data/test_real_frame.py -q"): _SUITE,
     ("docs/real-data.md", "MSSF_REALDATA=/path/to/realdata python -m pytest -m realdata -q"):
         _SUITE + " (with ../shared/realdata, as in CI)",
     ("docs/gpus.md", "mssf train --dataset vod --data-root /data/view_of_delft --detector pointpillars --device cuda "

@@ -51,9 +51,9 @@ FRAGMENTS: Dict[Tuple[str, str], str] = {
         "tests/integrations/test_mmdet3d_adapter.py builds such batches and calls it",
     ("docs/diagnostics.md", "classify_feature_blurring(centroids (N, 3+), batch_index (N,), uv (N, V, 2) | (N, 2),"):
         _SIGNATURES,
-    ("docs/evaluation.md", "from mssf_examples.evaluation import evaluate, format_table"):
+    ("docs/evaluation.md", "from mssf_examples.evaluation.metrics import evaluate, format_table"):
         "data-format sketch: `label_dir` / `frame_ids` stand for a dataset, `(K, 7)` for tensors, `baseline_results` "
-        "for a second run (tests/examples/test_evaluation_*.py cover evaluate / format_table per protocol)",
+        "for a second run (tests/examples/evaluation/test_evaluation_*.py cover evaluate / format_table per protocol)",
     ("docs/fusion.md", "FusionInputs(image_features, lidar2img, image_size, points, points_batch, points_to_sensor=None)"):
         _SIGNATURES,
     ("docs/heads.md", "SemanticGuidedHead(in_channels: int, hidden: Sequence[int] = (256, 256), use_loss: bool = True,"):
@@ -141,9 +141,9 @@ def conventions_image_flip(run, tmp_path):
     assert ns["__shown_tensors_checked__"] == 1 and ns["size"] == (4, 6)
 
 
-@snippet("docs/training.md", "from mssf_examples.augment import augment_batches")
+@snippet("docs/training.md", "from mssf_examples.data.augment import augment_batches")
 def training_augment_batches(run, tmp_path):
-    from mssf_examples.scenes import Scene, SceneConfig, generate_scene
+    from mssf_examples.scenes.synthetic import Scene, SceneConfig, generate_scene
 
     scenes = [generate_scene(s, SceneConfig(image_size=(32, 48))) for s in (1, 2)]
     loader = [Scene.collate(scenes), Scene.collate(scenes[::-1])]
@@ -171,7 +171,7 @@ def conventions_authors_augmentation(run, tmp_path):
     assert float(after[1] / after[2]) == pytest.approx(float(before[1] / before[2]), abs=1e-9)
 
 
-@snippet("docs/detectors.md", "from mssf_examples.detectors import build_detector")
+@snippet("docs/detectors.md", "from mssf_examples.models.detectors import build_detector")
 def detectors_build(run, tmp_path):
     pytest.importorskip("spconv")
     torch.manual_seed(0)
@@ -298,7 +298,7 @@ def pillar_lift_fuse(run, tmp_path):
 
 
 REAL_DATA_FIRST_LINE = (
-    "from mssf_examples.kitti_io import KittiFormatDataset, VOD_RADAR, TJ4D_RADAR, TJ4D_CLASSES, frames_to_batch"
+    "from mssf_examples.data.kitti_io import KittiFormatDataset, VOD_RADAR, TJ4D_RADAR, TJ4D_CLASSES, frames_to_batch"
 )
 
 
@@ -308,7 +308,7 @@ def real_data_api(run, tmp_path, realdata_root=None):
 
     The TJ4DRadSet tree holds the same VoD files: the block only constructs that dataset (reads no frame).
     """
-    from mssf_examples.data import RadarCameraBatch
+    from mssf_examples.data.batch import RadarCameraBatch
 
     vod_src = realdata_root / "vod"
     ids = sorted(p.stem for p in (vod_src / "radar" / "velodyne").glob("*.bin"))
@@ -336,7 +336,7 @@ real_data_api.needs_realdata = True
 
 @snippet("docs/scenes.md", "import torch")
 def scenes_usage(run, tmp_path):
-    from mssf_examples.data import RadarCameraBatch
+    from mssf_examples.data.batch import RadarCameraBatch
 
     ns = run({})  # runs as is
     scene, batch = ns["scene"], ns["batch"]

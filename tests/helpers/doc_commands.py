@@ -137,8 +137,8 @@ def write_vod_and_tj4d_trees(data: Path) -> Dict[str, List[str]]:
     scenes in TJ4DRadSet's layout and 8-channel point files), all from generated scenes."""
     import numpy as np
 
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.scenes import SceneConfig, SyntheticDataset
+    from mssf_examples.data.kitti_export import write_vod_tree
+    from mssf_examples.scenes.synthetic import SceneConfig, SyntheticDataset
 
     cfg = SceneConfig(image_size=(64, 104))
     splits = {"train": [SyntheticDataset("train", 4, cfg, seed=3)[i] for i in range(4)],

@@ -60,7 +60,7 @@ def spconv_input(points: torch.Tensor, channels: int, spatial_shape, batch_size:
 
 def vod_batch(batch_size: int = 2):
     """A RadarCameraBatch for the VOD preset: 7-feature points, boxes, 4 precomputed FPN levels."""
-    from mssf_examples.data import RadarCameraBatch
+    from mssf_examples.data.batch import RadarCameraBatch
 
     image_size = (1216, 1936)
     pts = radar_points(batch_size, per_sample=80, seed=3)

@@ -1,7 +1,7 @@
 """Cases of the "Common mistakes" table (tests/docs/test_docs_mistakes_table.py): the CLI and the point reader.
 
 ``python -m mssf_examples`` runs in this process (:func:`mistakes_registry.cli`) on copies of the generated
-VoD tree (tests/examples/generated_tree.py), each broken one way, as tests/examples/test_misuse_eval_cli.py,
+VoD tree (tests/examples/helpers/generated_tree.py), each broken one way, as tests/examples/cli/test_misuse_eval_cli.py,
 test_point_layout.py and test_cli_image_branch.py do; every run stops at its check, before any training.
 """
 
@@ -29,7 +29,7 @@ def _tree() -> Path:
         tmp = Path(tempfile.mkdtemp(prefix="mssf-mistakes-"))
         atexit.register(shutil.rmtree, tmp, True)
         _SCRATCH.append(tmp)
-        _helpers("generated_tree", "examples").write_generated_tree(tmp / "vod")
+        _helpers("generated_tree", "examples/helpers").write_generated_tree(tmp / "vod")
     return _SCRATCH[0] / "vod"
 
 
@@ -55,7 +55,7 @@ def _points(root: Path) -> Path:
 @case("CLI: `--out` an existing file")
 def _():
     root = _tree()
-    pl = _helpers("test_point_layout", "examples")
+    pl = _helpers("test_point_layout", "examples/data")
 
     def out_a_file():
         f = _SCRATCH[0] / "a_file"
@@ -94,8 +94,8 @@ def _():
 @case("a point file whose size fits both datasets")
 def _():
     root = _tree()
-    pl = _helpers("test_point_layout", "examples")
-    from mssf_examples.kitti_io import TJ4D_RADAR, read_points
+    pl = _helpers("test_point_layout", "examples/data")
+    from mssf_examples.data.kitti_io import TJ4D_RADAR, read_points
 
     def rewritten(name, make, dataset="vod"):
         vod = _copy(name)
@@ -130,7 +130,7 @@ def _():
         raise Built()
 
     def run():
-        from mssf_examples import cli as entry
+        from mssf_examples.cli import commands as entry
 
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(entry, "train_detector", stop)

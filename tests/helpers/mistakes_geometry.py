@@ -161,7 +161,7 @@ def _():
 
 @case("a rotation in degrees")
 def _():
-    from mssf_examples.augment import AugmentationConfig
+    from mssf_examples.data.augment import AugmentationConfig
 
     return outcome(lambda: fc.augmentation_matrix(rotation=45.0),
                    lambda: AugmentationConfig(rotation_range=(-45.0, 45.0)))

@@ -193,7 +193,7 @@ def _():
 
 @case("1-based prediction labels")
 def _():
-    from mssf_examples.evaluation import evaluate
+    from mssf_examples.evaluation.metrics import evaluate
 
     boxes = torch.tensor([[10.0, 0, 0, 4, 2, 1.5, 0], [5.0, 2, 0, 1, 1, 1.7, 0]], dtype=torch.float64)
     gt = {"boxes": boxes, "labels": torch.tensor([0, 1])}
@@ -203,7 +203,7 @@ def _():
 
 @case("`KittiObjects` into `evaluate")
 def _():
-    me = _helpers("test_misuse_eval_cli", "examples")
+    me = _helpers("test_misuse_eval_cli", "examples/cli")
 
     def run():
         res = me.evaluate([me.parse_labels(me.LABELS)], [me.parse_labels(me.LABELS)], ["Car", "Pedestrian"],

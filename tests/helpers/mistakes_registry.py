@@ -87,7 +87,7 @@ def cli(argv: Sequence[str]) -> None:
     """``python -m mssf_examples ARGV`` in this process: returns when it runs through, raises
     :class:`Refused` with the last stderr line when it exits with status 2 and no traceback; anything else
     (another status, a traceback) fails the test."""
-    from mssf_examples import cli as entry
+    from mssf_examples.cli import commands as entry
 
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):

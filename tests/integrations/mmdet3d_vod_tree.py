@@ -41,9 +41,9 @@ def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 4
 
     import numpy as np
 
-    from mssf_examples.kitti_export import write_vod_tree
+    from mssf_examples.data.kitti_export import write_vod_tree
     from mssf_examples.mmdet3d.infos import create_tj4d_infos
-    from mssf_examples.scenes import SceneConfig, SyntheticDataset
+    from mssf_examples.scenes.synthetic import SceneConfig, SyntheticDataset
 
     cfg = SceneConfig(image_size=image_size, point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
     scenes = {"train": [SyntheticDataset("train", train, cfg, seed=seed)[i] for i in range(train)],

@@ -2,7 +2,7 @@
 
 Their ``bbox_head`` dict (``pointpillars_hv_secfpn_vod_mm_backbone``, EricLiuhhh/MSSF @ 8341012) builds
 mmdet3d's head; random tensors in their key layout load into it and, through
-``mssf_examples.authors_checkpoint.head_pairs``, into the examples' ``AnchorHead`` built as theirs. Their
+``mssf_examples.models.authors_checkpoint.head_pairs``, into the examples' ``AnchorHead`` built as theirs. Their
 ``_predict_by_feat_single`` runs as released with ``box3d_multiclass_nms`` replaced by a pass-through of
 every (anchor, class) pair, so everything but the NMS is theirs: flattening, anchor generator, box coder,
 direction fix. (mmdet3d generates its anchors in float32: the boxes agree to float32 rounding.)
@@ -52,10 +52,10 @@ def _mmdet3d():
 
 
 def test_converted_anchor_head_equals_mmdet3d_anchor3d_head(monkeypatch):
-    from mssf_examples.authors_checkpoint import head_pairs
-    from mssf_examples.heads import AnchorHead, BEVGrid
-    from mssf_examples.heads.authors import authors_anchor_head_kwargs, authors_anchor_z_centers
-    from mssf_examples.presets import VOD
+    from mssf_examples.models.authors_checkpoint import head_pairs
+    from mssf_examples.models.heads import AnchorHead, BEVGrid
+    from mssf_examples.models.heads.authors import authors_anchor_head_kwargs, authors_anchor_z_centers
+    from mssf_examples.models.presets import VOD
 
     models, boxes_cls, base = _mmdet3d()
     theirs_head = models.build(dict(HEAD_CFG)).double().eval()

@@ -89,7 +89,7 @@ def test_real_calibrations_against_resized_images(frame, realdata_root):
 
     from mssf_blocks.errors import MSSFGeometryWarning
     from mssf_blocks.integrations.mmdet3d import camera_from_meta
-    from mssf_examples.kitti_calib import read_calibration
+    from mssf_examples.data.kitti_calib import read_calibration
 
     calib = realdata_root / frame
     image = next((calib.parents[2 if frame.startswith("vod") else 1] / "image_2").glob(calib.stem + ".*"))

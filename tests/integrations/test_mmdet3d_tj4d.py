@@ -110,8 +110,8 @@ def test_fusion_removed_is_the_radar_only_twin(data_root, tmp_path):
 def _reference(data_root):
     """The project's TJ4D evaluation of the label files' own lines given back with scores (no info file, no
     mmdet3d box conversion)."""
-    from mssf_examples.evaluation import evaluate
-    from mssf_examples.kitti_io import read_labels
+    from mssf_examples.evaluation.metrics import evaluate
+    from mssf_examples.data.kitti_io import read_labels
 
     preds, gts = [], []
     for fid in (data_root / "ImageSets" / "val.txt").read_text().split():

@@ -38,8 +38,8 @@ def _reference(data_root, split="val"):
     label_2 files directly (no mmdet3d box conversion, no info file)."""
     import dataclasses
 
-    from mssf_examples.evaluation import evaluate
-    from mssf_examples.kitti_io import VOD_CLASSES, read_labels
+    from mssf_examples.evaluation.metrics import evaluate
+    from mssf_examples.data.kitti_io import VOD_CLASSES, read_labels
 
     ids = (data_root / "ImageSets" / f"{split}.txt").read_text().split()
     preds, gts = [], []

@@ -1,4 +1,4 @@
-"""``mssf_examples.checkpoint_allow_list``: on torch < 2.6 (forced here on a newer torch; real in make
+"""``mssf_examples.training.checkpoint_allow_list``: on torch < 2.6 (forced here on a newer torch; real in make
 test-compat's floor environment, torch 2.1.2) the framework entries' ``torch.load`` unpickles through an
 allow-list. A checkpoint shaped like OpenPCDet's (weights, an optimizer state with numpy scalars) loads equal;
 a crafted one is refused with an error naming the file and its code does not run; ``torch.load`` is torch's
@@ -15,7 +15,7 @@ import torch
 
 from mssf_blocks import torch_versions as _compat
 from mssf_blocks.errors import MSSFError
-from mssf_examples.checkpoint_allow_list import restricted_torch_load
+from mssf_examples.training.checkpoint_allow_list import restricted_torch_load
 from mssf_examples.openpcdet.__main__ import _HOLDS, _INSTEAD, checkpoint_numpy_globals
 
 

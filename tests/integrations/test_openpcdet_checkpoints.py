@@ -29,7 +29,7 @@ CFG = ["--cfg_file", "cfgs/vod_models/mssf_second.yaml"]
 def test_test_py_on_a_trained_checkpoint_needs_no_image_branch_file(tools, monkeypatch):
     from easydict import EasyDict
 
-    from mssf_examples.image_branch import ImageBranch
+    from mssf_examples.models.image_branch import ImageBranch
     from mssf_examples.openpcdet.__main__ import main
 
     monkeypatch.setattr("time.sleep", lambda seconds: None)

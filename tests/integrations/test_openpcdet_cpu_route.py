@@ -62,9 +62,9 @@ def test_the_documented_cpu_route_runs_on_an_unbuilt_clone(openpcdet, tmp_path):
     sys.path.insert(0, str(REPO / "examples"))
     import torch
 
-    from mssf_examples.image_branch import ImageBranch
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.scenes import generate_scene, scene_seed
+    from mssf_examples.models.image_branch import ImageBranch
+    from mssf_examples.data.kitti_export import write_vod_tree
+    from mssf_examples.scenes.synthetic import generate_scene, scene_seed
 
     splits = {s: [generate_scene(scene_seed(0, s, i)) for i in range(n)] for s, n in (("train", 4), ("val", 2))}
     write_vod_tree(root / "data" / "view_of_delft", splits, sensor="radar_5frames", image_format="jpg")  # step 4

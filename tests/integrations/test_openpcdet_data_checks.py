@@ -30,8 +30,8 @@ BASE = "../data/vod_checks"  # from tools/
 
 @pytest.fixture(scope="module")
 def tools(openpcdet):
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.scenes import generate_scene, scene_seed
+    from mssf_examples.data.kitti_export import write_vod_tree
+    from mssf_examples.scenes.synthetic import generate_scene, scene_seed
 
     tools = openpcdet / "tools"
     shutil.copytree(CONFIGS / "dataset_configs", tools / "cfgs" / "dataset_configs", dirs_exist_ok=True)

@@ -35,9 +35,9 @@ DATA = "../data/vod_sparse/radar_5frames"  # beside test_openpcdet_vod's tree, f
 @pytest.fixture(scope="module")
 def tools(openpcdet, tmp_path_factory):
     """tools/ as cwd, a tree whose first train and first val frames have no point; classes registered."""
-    from mssf_examples.image_branch import ImageBranch
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.scenes import generate_scene, scene_seed
+    from mssf_examples.models.image_branch import ImageBranch
+    from mssf_examples.data.kitti_export import write_vod_tree
+    from mssf_examples.scenes.synthetic import generate_scene, scene_seed
 
     tools = openpcdet / "tools"
     shutil.copytree(CONFIGS / "dataset_configs", tools / "cfgs" / "dataset_configs", dirs_exist_ok=True)

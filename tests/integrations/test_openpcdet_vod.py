@@ -35,8 +35,8 @@ MODELS = ("mssf_second", "second_radar", "mssf_voxelnext", "voxelnext_radar")
 @pytest.fixture(scope="module")
 def tools(openpcdet, tmp_path_factory):
     """OpenPCDet's tools/ as cwd, with our configs, a generated VoD tree and its infos; classes registered."""
-    from mssf_examples.kitti_export import write_vod_tree
-    from mssf_examples.scenes import generate_scene, scene_seed
+    from mssf_examples.data.kitti_export import write_vod_tree
+    from mssf_examples.scenes.synthetic import generate_scene, scene_seed
 
     tools = openpcdet / "tools"
     shutil.copytree(CONFIGS / "dataset_configs", tools / "cfgs" / "dataset_configs", dirs_exist_ok=True)
@@ -53,7 +53,7 @@ def tools(openpcdet, tmp_path_factory):
         register(pure_torch_box_ops=True)
         main(["create_vod_infos", "cfgs/dataset_configs/vod_radar5_dataset.yaml"])  # the documented command
         ckpt = tmp_path_factory.mktemp("ckpt") / "image_branch.pth"
-        from mssf_examples.image_branch import ImageBranch
+        from mssf_examples.models.image_branch import ImageBranch
 
         torch.manual_seed(0)
         branch = ImageBranch(depth=18, base_channels=8, fpn_channels=16, num_outs=4)
@@ -222,10 +222,10 @@ def test_eval_one_epoch_and_vod_evaluation(tools, tmp_path):
 
 
 def _kit_oracle():
-    """tests/examples/test_evaluation_vod_kit.py (the official VoD kit, loaded without its extras)."""
+    """tests/examples/evaluation/test_evaluation_vod_kit.py (the official VoD kit, loaded without its extras)."""
     import importlib.util
 
-    path = Path(__file__).resolve().parents[1] / "examples" / "test_evaluation_vod_kit.py"
+    path = Path(__file__).resolve().parents[1] / "examples" / "evaluation" / "test_evaluation_vod_kit.py"
     spec = importlib.util.spec_from_file_location("_vod_kit_oracle", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -323,7 +323,7 @@ def test_documented_train_command_runs_openpcdet_train_py(tools, monkeypatch):
     """docs/frameworks.md's ``python -m mssf_examples.openpcdet train.py --cfg_file ...``, from tools/, with
     CPU sizes given through train.py's own options (``--epochs``, ``--workers``, ``--set``): OpenPCDet's
     train.py trains, saves a checkpoint and evaluates it (test.py's repeat_eval_ckpt) with evaluation()."""
-    from mssf_examples.image_branch import ImageBranch
+    from mssf_examples.models.image_branch import ImageBranch
     from mssf_examples.openpcdet.__main__ import main
 
     monkeypatch.setattr("time.sleep", lambda seconds: None)  # repeat_eval_ckpt waits 30 s for new checkpoints

@@ -54,7 +54,7 @@ def test_spconv_gradients_equal_dense_reference(kind):
 
 
 def test_examples_module_re_exports_the_library_remedy():
-    from mssf_examples import spconv_compat
+    from mssf_examples.models import spconv_helpers as spconv_compat
 
     assert spconv_compat.enable_cpu_backward is enable_cpu_backward
 
@@ -141,8 +141,8 @@ _DETECTOR_RUN = """
 import sys, torch
 sys.path.insert(0, {tests!r})
 from test_detectors import make_batch
-from mssf_examples.detectors import build_detector
-from mssf_examples.presets import TINY
+from mssf_examples.models.detectors import build_detector
+from mssf_examples.models.presets import TINY
 batch = make_batch()
 for name in ("second", "centerpoint", "voxelnext"):
     torch.manual_seed(0)
@@ -156,7 +156,7 @@ print("trained and evaluated")
 
 def test_a_voxel_detector_run_prints_neither_message():
     """Forward, backward and eval of the three spconv detectors in a fresh process (fails before the fix)."""
-    text = _run(_DETECTOR_RUN.format(tests=str(REPO / "tests" / "examples")))
+    text = _run(_DETECTOR_RUN.format(tests=str(REPO / "tests" / "examples" / "models")))
     assert "trained and evaluated" in text
     assert FX_MESSAGE not in text, text
     assert INDEXING_MESSAGE not in text, text

@@ -180,7 +180,7 @@ def test_readme_train_and_eval_run_from_the_installed_wheel(built, tmp_path):
     assert sorted(p.stem for p in (val / "predictions").iterdir()) == ["00104", "00105"]  # the val frames
     # and it was the wheel's code that ran, not the repository's editable install
     env = dict(os.environ, PYTHONPATH=str(target))
-    r = subprocess.run([sys.executable, "-c", "import mssf_examples.cli as c; print(c.__file__)"], cwd=work, env=env,
+    r = subprocess.run([sys.executable, "-c", "import mssf_examples.cli.commands as c; print(c.__file__)"], cwd=work, env=env,
                        capture_output=True, text=True)
     assert Path(r.stdout.strip()).resolve().is_relative_to(target.resolve()), r.stdout + r.stderr
 
@@ -191,7 +191,7 @@ def test_sdist_is_the_whole_source_tree(built):
         top = t.getnames()[0].split("/")[0]
         names = {n.split("/", 1)[1] for n in t.getnames() if "/" in n and t.getmember(n).isfile()}
     extra = {n for n in names if n == "PKG-INFO" or n == "setup.cfg" or ".egg-info/" in n}
-    assert {"tests/conftest.py", "tests/examples/test_cli.py", "mkdocs.yml", "Makefile", "docs/index.md"} <= want
+    assert {"tests/conftest.py", "tests/examples/cli/test_cli.py", "mkdocs.yml", "Makefile", "docs/index.md"} <= want
     assert names - extra == want, f"missing: {sorted(want - names)[:20]}; unexpected: {sorted(names - extra - want)[:20]}"
     assert top.startswith("mssf_blocks-")
 

@@ -33,7 +33,7 @@ from mssf_blocks.weights import ModuleMap, official_to_ours
 from mssf_blocks.samplers import MSDFF  # noqa: E402
 from mssf_blocks.geometry import VoxelCentroidProjector  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead  # noqa: E402
-from mssf_examples.backbones import SparseBasicBlock  # noqa: E402
+from mssf_examples.models.backbones import SparseBasicBlock  # noqa: E402
 from test_authors_forward import (  # noqa: E402
     CI, CV, D64, ENC, IMAGE, LO, VOXEL, L, M, P, linear, random_official, scene, their_msdff,
 )

@@ -18,7 +18,7 @@ torch's default, and turns a refusal into an :class:`~mssf_blocks.errors.MSSFErr
 mmcv 2.1 has wheels up to torch 2.1, so most of its users are there): there the same allow-list, plus the
 globals of torch's own weights-only unpickler (tensors, storages, ``OrderedDict``), is enforced by a
 restricted unpickler handed to ``torch.load`` as its ``pickle_module``
-(:mod:`mssf_examples.checkpoint_allow_list`): a global outside it is refused before it is imported, so
+(:mod:`mssf_examples.training.checkpoint_allow_list`): a global outside it is refused before it is imported, so
 nothing in the file can run code.
 """
 
@@ -33,7 +33,7 @@ import torch
 
 from mssf_blocks import torch_versions as _compat
 
-from ..checkpoint_allow_list import allow_list_pickle_module, refusal
+from ..training.checkpoint_allow_list import allow_list_pickle_module, refusal
 
 __all__ = ["checkpoint_globals", "weights_only_checkpoints", "load_from_local_weights_only"]
 
@@ -74,7 +74,7 @@ _INSTEAD = ("Load checkpoints written by mmengine's Runner (this model's trainin
 
 def load_from_local_weights_only(filename: str, map_location: Any = None) -> Any:
     """``torch.load(filename, weights_only=True)`` with :func:`checkpoint_globals` allowed (torch >= 2.6;
-    before: the same allow-list through :func:`~mssf_examples.checkpoint_allow_list.allow_list_pickle_module`);
+    before: the same allow-list through :func:`~mssf_examples.training.checkpoint_allow_list.allow_list_pickle_module`);
     a refused file raises
     :class:`MSSFError`."""
     filename = os.path.expanduser(filename)

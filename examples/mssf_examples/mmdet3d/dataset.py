@@ -14,7 +14,7 @@ from mmdet3d.datasets import KittiDataset
 
 from mssf_blocks.errors import MSSFError
 
-from ..kitti_io import TJ4D_CLASSES, VOD_CLASSES
+from ..data.kitti_io import TJ4D_CLASSES, VOD_CLASSES
 
 __all__ = ["VoDDataset", "TJ4DDataset"]
 

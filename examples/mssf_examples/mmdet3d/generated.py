@@ -24,8 +24,8 @@ def write_generated_vod(root, train: int = 4, val: int = 2, image_size: Tuple[in
     """
     from PIL import Image
 
-    from ..kitti_export import write_vod_tree
-    from ..scenes import SceneConfig, SyntheticDataset
+    from ..data.kitti_export import write_vod_tree
+    from ..scenes.synthetic import SceneConfig, SyntheticDataset
     from .infos import create_vod_infos
 
     root = Path(root)

@@ -5,7 +5,7 @@ TJ4DRadSet (:func:`create_tj4d_infos`): the KITTI layout ``<root>/training/{velo
 with ``<root>/ImageSets``, 8 floats per point (x, y, z, V_r, Range, Power, Alpha, Beta), classes Car,
 Pedestrian, Cyclist, Truck (``bbox_label_3d`` 0..3), the frame texts under ``tj4d``; otherwise as below.
 
-Reads the release layout with :class:`~mssf_examples.kitti_io.KittiFormatDataset`
+Reads the release layout with :class:`~mssf_examples.data.kitti_io.KittiFormatDataset`
 (``<root>/<sensor>/training/{velodyne,image_2,calib,label_2}``, the split files in
 ``<root>/<sensor>/ImageSets`` or ``<root>/lidar/ImageSets``) and writes, per split, the
 ``{"metainfo", "data_list"}`` dict mmdet3d 1.x datasets load:
@@ -35,7 +35,7 @@ import numpy as np
 
 from mssf_blocks.errors import MSSFError
 
-from ..kitti_io import TJ4D_CLASSES, TJ4D_RADAR, VOD_CLASSES, VOD_RADAR, KittiFormatDataset
+from ..data.kitti_io import TJ4D_CLASSES, TJ4D_RADAR, VOD_CLASSES, VOD_RADAR, KittiFormatDataset
 
 __all__ = ["frame_info", "create_vod_infos", "create_tj4d_infos"]
 

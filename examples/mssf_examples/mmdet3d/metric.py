@@ -1,7 +1,7 @@
 """``VoDMetric``: View-of-Delft evaluation (entire annotated area and driving corridor) for mmdet3d.
 
 Registered in ``mmdet3d.registry.METRICS`` by :mod:`mssf_examples.mmdet3d.plugin`. It evaluates the
-predictions with the project's kit-exact VoD protocol (:func:`mssf_examples.evaluation.evaluate`,
+predictions with the project's kit-exact VoD protocol (:func:`mssf_examples.evaluation.metrics.evaluate`,
 ``protocol="vod"``, the rules of ``vod-tudelft``'s ``kitti_official_evaluate.py``) against each frame's
 own ``label_2`` and calibration text, which :mod:`~mssf_examples.mmdet3d.infos` stores in the info file
 (every type, ``DontCare`` and neighbouring classes included, as the kit reads them). mmdet3d's
@@ -11,7 +11,7 @@ Keys (after mmengine's ``VoD/`` prefix): ``<region>/<class or mAP>/<AP3D_R11|AP3
 with ``region`` ``entire_area`` or ``driving_corridor``; the paper's Table I reports ``AP3D_R11``.
 
 ``TJ4DMetric``: the same for TJ4DRadSet with the project's TJ4D protocol (``protocol="tj4d"``,
-:mod:`mssf_examples.evaluation_tj4d`: the MSSF authors' evaluation, cumulative range bins, their 41/40 "R40"),
+:mod:`mssf_examples.evaluation.tj4d`: the MSSF authors' evaluation, cumulative range bins, their 41/40 "R40"),
 against the ``tj4d`` texts of :func:`~mssf_examples.mmdet3d.infos.create_tj4d_infos`; keys
 ``TJ4D/<range_0_50|range_0_70|range_all>/<Car|Pedestrian|Cyclist|Truck|mAP>/<...>``; the paper's Table III
 reports ``range_0_70``, ``AP3D_R40`` and ``APBEV_R40``.
@@ -29,8 +29,8 @@ from mmengine.logging import MMLogger
 
 from mssf_blocks.errors import MSSFError
 
-from ..evaluation import evaluate, format_table
-from ..kitti_io import TJ4D_CLASSES, VOD_CLASSES, parse_calibration, parse_labels
+from ..data.kitti_io import TJ4D_CLASSES, VOD_CLASSES, parse_calibration, parse_labels
+from ..evaluation.metrics import evaluate, format_table
 
 __all__ = ["VoDMetric", "TJ4DMetric", "predictions_from_mmdet3d"]
 

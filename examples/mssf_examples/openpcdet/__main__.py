@@ -101,7 +101,7 @@ def main(argv=None) -> None:
         from .cpu import prepare_cpu
 
         prepare_cpu(script.resolve().parent)
-    from ..checkpoint_allow_list import restricted_torch_load
+    from ..training.checkpoint_allow_list import restricted_torch_load
     from . import register
     from .image_module import expect_trained_checkpoint
 

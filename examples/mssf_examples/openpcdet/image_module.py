@@ -1,4 +1,4 @@
-"""The image branch of the OpenPCDet MSSF detectors: ResNet + FPN (:mod:`mssf_examples.image_branch`,
+"""The image branch of the OpenPCDet MSSF detectors: ResNet + FPN (:mod:`mssf_examples.models.image_branch`,
 no torchvision) as an OpenPCDet module that reads ``batch_dict['images']`` and writes the FPN levels.
 
 Model config (``MODEL.IMAGE_BRANCH``)::
@@ -25,7 +25,7 @@ from torch import nn
 
 from mssf_blocks.errors import MSSFError
 
-from ..image_branch import ImageBranch
+from ..models.image_branch import ImageBranch
 
 __all__ = ["OpenPCDetImageBranch", "IMAGE_BRANCH_DEFAULTS", "load_branch_checkpoint", "expect_trained_checkpoint"]
 

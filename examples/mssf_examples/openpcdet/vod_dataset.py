@@ -13,7 +13,7 @@ point and look for ``image_2/<id>.png``):
   dropped from training like any class not in ``CLASS_NAMES``);
 * infos: :func:`create_vod_infos` (``python -m mssf_examples.openpcdet create_vod_infos``), no
   ground-truth database (the paper's VoD recipe does not sample ground truth);
-* ``evaluation()``: the VoD devkit's protocol rule for rule (:mod:`mssf_examples.evaluation_vod`:
+* ``evaluation()``: the VoD devkit's protocol rule for rule (:mod:`mssf_examples.evaluation.vod`:
   entire annotated area and driving corridor, IoU 0.5 / 0.25 / 0.25, R11 and R40), not KITTI's.
 
 Importing this module imports OpenPCDet (``pcdet``).
@@ -30,9 +30,9 @@ from pcdet.datasets.kitti.kitti_dataset import KittiDataset
 
 from mssf_blocks.errors import MSSFError
 
-from ..evaluation import VOD_IOU_THRESHOLDS
-from ..evaluation_kitti import Objects
-from ..evaluation_vod import VOD_REGIONS, evaluate_vod
+from ..evaluation.kitti import Objects
+from ..evaluation.metrics import VOD_IOU_THRESHOLDS
+from ..evaluation.vod import VOD_REGIONS, evaluate_vod
 
 __all__ = ["VoDDataset", "VOD_POINT_FEATURES", "create_vod_infos", "annos_to_objects", "check_dataset_cfg",
            "check_vod_points"]

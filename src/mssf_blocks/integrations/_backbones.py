@@ -1,6 +1,6 @@
 """The example fusion backbones (SECOND / CenterPoint layouts) behind both frameworks' contracts.
 
-The sparse layers live in ``mssf_examples.backbones`` (spconv); this module builds them from a
+The sparse layers live in ``mssf_examples.models.backbones`` (spconv); this module builds them from a
 framework's grid description and runs them up to the layers a framework's neck expects (the
 ``conv_out`` spconv tensor). ``mssf_examples`` and spconv are imported when a backbone is built,
 never at import time.
@@ -27,10 +27,10 @@ FUSION_KWARGS = ("num_fusion_blocks", "fusion", "fusion_position", "image_channe
 
 def _examples_backbones() -> Any:
     try:
-        from mssf_examples import backbones
+        from mssf_examples.models import backbones
     except ImportError as exc:
         raise ImportError(
-            "the framework backbones are built from mssf_examples.backbones (spconv): install the examples "
+            "the framework backbones are built from mssf_examples.models.backbones (spconv): install the examples "
             "package and spconv (see README, 'examples') to use them; the input adapters need neither"
         ) from exc
     return backbones
@@ -56,7 +56,7 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
         kwargs["image_channels"] = [int(c) for c in kwargs["image_channels"]]
     kwargs.setdefault("seg_hidden", None)
     bb = _examples_backbones()
-    from mssf_examples.voxelize import VoxelGrid
+    from mssf_examples.models.voxelize import VoxelGrid
 
     grid = VoxelGrid(tuple(float(v) for v in point_cloud_range), tuple(float(v) for v in voxel_size))
     if grid_size is not None:

@@ -7,7 +7,7 @@ PointPillars BEV path therefore sits behind one middle encoder that takes the po
 the per-sample points instead of voxels (``Det3DDataPreprocessor(voxel=False)``, no
 ``pts_voxel_encoder``) and hands the output to ``pts_bbox_head`` directly (no ``pts_backbone`` /
 ``pts_neck``: the deblocks are mmdet3d's ``SECONDFPN``). The layers are those of
-``mssf_examples.backbones.PointPillarsBackbone`` (imported when built; spconv is not needed).
+``mssf_examples.models.backbones.PointPillarsBackbone`` (imported when built; spconv is not needed).
 """
 
 from __future__ import annotations
@@ -68,10 +68,10 @@ class MSSFPillarEncoder(nn.Module):
     ) -> None:
         super().__init__()
         try:
-            from mssf_examples.backbones import PointPillarsBackbone
-            from mssf_examples.voxelize import VoxelGrid
+            from mssf_examples.models.backbones import PointPillarsBackbone
+            from mssf_examples.models.voxelize import VoxelGrid
         except ImportError as exc:
-            raise ImportError("MSSFPillarEncoder is built from mssf_examples.backbones: install the examples "
+            raise ImportError("MSSFPillarEncoder is built from mssf_examples.models.backbones: install the examples "
                               "package (README, 'examples')") from exc
         pcr = [float(v) for v in point_cloud_range]
         vs = [float(v) for v in voxel_size]

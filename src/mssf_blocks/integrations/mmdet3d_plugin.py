@@ -52,7 +52,7 @@ class MSSFSparseEncoder(nn.Module):
             ``"VoxelResBackBone8x"`` (CenterPoint's residual layout).
         num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
         msdff_value_projection, msdff_value_dim, seg_hidden, channels, out_channels: as the example backbones
-            (``mssf_examples.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
+            (``mssf_examples.models.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
         image_aug: ``"meta"`` or ``"none"``, see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
         return_middle_feats: also return the stage outputs (as ``SparseEncoder``).
     """

@@ -8,7 +8,7 @@ metainfo = dict(classes=class_names)
 input_modality = dict(use_lidar=True, use_camera=False)
 backend_args = None
 # stored: x, y, z, V_r, Range, Power, Alpha, Beta; used: x, y, z, V_r, Power (the paper's f_in has the
-# ego-motion compensated v_rc, which the release does not hold: V_r stands in, as mssf_examples.kitti_io.TJ4D_RADAR)
+# ego-motion compensated v_rc, which the release does not hold: V_r stands in, as mssf_examples.data.kitti_io.TJ4D_RADAR)
 load_points = dict(type="LoadPointsFromFile", coord_type="LIDAR", load_dim=8, use_dim=[0, 1, 2, 3, 5],
                    backend_args=backend_args)
 train_pipeline = [

@@ -1,0 +1,1 @@
+"""The commands of ``python -m mssf_examples`` (``mssf``): train, eval, convert-authors (:mod:`mssf_examples.cli.commands`)."""

@@ -1,0 +1,1 @@
+"""Dataset readers and writers (KITTI-format View-of-Delft / TJ4DRadSet trees), the batch every detector takes, augmentation."""
