@@ -16,7 +16,8 @@ from typing import Optional, Sequence, Tuple, Type
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_floating, check_positive_int, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.lift import voxels_to_bev
 from mssf_blocks.sparse_voxels import SparseVoxels

@@ -16,10 +16,10 @@ from mssf_blocks.checks.tensors import (
     check_dtype,
     check_finite,
     check_floating,
-    check_image_size,
     check_index_range,
     check_shape,
 )
+from mssf_blocks.checks.arguments import check_image_size
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.heads import _check_boxes, points_in_boxes
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection

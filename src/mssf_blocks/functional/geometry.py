@@ -21,15 +21,13 @@ from mssf_blocks.checks.tensors import (
     check_dtype,
     check_finite,
     check_floating,
-    check_image_size,
     check_index_range,
     check_points,
-    check_positive_int,
     check_shape,
-    check_triple,
-    check_voxel_coords,
     value_check,
 )
+from mssf_blocks.checks.arguments import check_image_size, check_triple
+from mssf_blocks.checks.tensors import check_centroid_inputs
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.static_path import segment_slots
@@ -110,37 +108,6 @@ def _point_keys(
     return torch.where(inside, key, torch.full_like(key, -1))
 
 
-def _check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size,
-                           point_range_min, point_range_max):
-    check_points(points, points_batch)
-    check_finite(points[:, :3], "points[:, :3]")
-    check_dtype(points_batch, "points_batch", _INT_DTYPES)
-    check_shape(coords, "coords", ("N", 4))
-    check_dtype(coords, "coords", _INT_DTYPES)
-    spatial_shape = check_triple(spatial_shape, "spatial_shape", int, positive=True)
-    batch_size = check_positive_int(batch_size, "batch_size")
-    check_index_range(points_batch, "points_batch", batch_size, "batch_size")
-    # A coordinate outside the grid would alias another voxel's key (x == W is the next row's x == 0;
-    # x == -1 collides with the key of out-of-range points).
-    check_voxel_coords(coords, spatial_shape, batch_size)
-    stride = check_triple(stride, "stride", int, positive=True)
-    voxel_size = check_triple(voxel_size, "voxel_size", float, positive=True)
-    point_range_min = check_triple(point_range_min, "point_range_min", float)
-    if point_range_max is not None:
-        point_range_max = check_triple(point_range_max, "point_range_max", float)
-        if any(h <= l for h, l in zip(point_range_max, point_range_min)):
-            raise MSSFError(
-                f"point_range_max: expected every value above point_range_min {point_range_min}, "
-                f"got {point_range_max}"
-            )
-    if coords.device != points.device or points_batch.device != points.device:
-        raise MSSFError(
-            f"points, points_batch, coords: expected one device, got {points.device}, "
-            f"{points_batch.device}, {coords.device}"
-        )
-    return spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max
-
-
 def voxel_centroids(
     points: Tensor,
     points_batch: Tensor,
@@ -176,7 +143,7 @@ def voxel_centroids(
         ``centroids (N, 3)`` (float64 for float64 ``points``, else float32: half-precision points are
         read as float32) and ``has_points (N,)`` bool (False where the centre was used).
     """
-    spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
+    spatial_shape, batch_size, stride, voxel_size, lo, hi = check_centroid_inputs(
         points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
         point_range_max,
     )
@@ -226,7 +193,7 @@ def voxel_centroids_reference(
     point_range_max: Optional[Sequence[float]] = None,
 ) -> Tuple[Tensor, Tensor]:
     """Slow per-voxel loop with the same semantics as :func:`voxel_centroids` (for tests)."""
-    spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
+    spatial_shape, batch_size, stride, voxel_size, lo, hi = check_centroid_inputs(
         points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
         point_range_max,
     )

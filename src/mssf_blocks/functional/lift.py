@@ -25,10 +25,9 @@ from mssf_blocks.checks.tensors import (
     check_index_range,
     check_index_ranges,
     check_nonnegative,
-    check_positive_int,
     check_shape,
-    check_triple,
 )
+from mssf_blocks.checks.arguments import check_positive_int, check_triple
 from mssf_blocks.checks.geometry import check_batch_column
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.sparse_voxels import SparseVoxels

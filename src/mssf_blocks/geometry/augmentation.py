@@ -10,7 +10,8 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from mssf_blocks.checks.tensors import check_floating, check_radians, check_triple
+from mssf_blocks.checks.tensors import check_floating
+from mssf_blocks.checks.arguments import check_radians, check_triple
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["augmentation_matrix", "image_augmentation_matrix", "apply_image_augmentation"]

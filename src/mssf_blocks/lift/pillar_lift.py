@@ -12,7 +12,8 @@ from typing import Optional, Sequence, Tuple, Union
 
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_positive_int, check_shape, to_module_dtype
+from mssf_blocks.checks.tensors import check_shape, to_module_dtype
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.checks.agreement import check_channels
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.lift import (

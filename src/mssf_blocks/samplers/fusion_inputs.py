@@ -11,7 +11,8 @@ from typing import Optional, Sequence, Tuple
 
 from torch import Tensor
 
-from mssf_blocks.checks.tensors import check_image_size, check_points
+from mssf_blocks.checks.tensors import check_points
+from mssf_blocks.checks.arguments import check_image_size
 from mssf_blocks.checks.agreement import check_agreement, level_batch_entries
 from mssf_blocks.checks.image_features import check_image_features
 from mssf_blocks.checks.geometry import check_level_sizes
