@@ -4,8 +4,9 @@ triples and positive ints. They read no tensor data."""
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Sequence, Tuple
 
+import torch
 from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
@@ -98,3 +99,25 @@ def check_positive_int(value: Any, name: str, allow_zero: bool = False) -> int:
     if value < 0 or (value == 0 and not allow_zero):
         raise MSSFError(f"{name}: expected a {'non-negative' if allow_zero else 'positive'} int, got {value}")
     return value
+
+
+def check_stride2(stride, name: str = "stride") -> Tuple[int, int]:
+    """``int`` or ``(sy, sx)`` -> ``(sy, sx)`` positive ints."""
+    if isinstance(stride, bool):
+        raise MSSFError(f"{name}: expected a positive int or (sy, sx), got {stride!r}")
+    if isinstance(stride, int):
+        stride = (stride, stride)
+    try:
+        items = tuple(stride)
+    except TypeError:
+        raise MSSFError(f"{name}: expected a positive int or (sy, sx), got {stride!r}") from None
+    if len(items) != 2 or any(isinstance(s, bool) or not isinstance(s, int) or s <= 0 for s in items):
+        raise MSSFError(f"{name}: expected a positive int or (sy, sx) positive ints, got {stride!r}")
+    return items
+
+
+def check_size(size, name: str) -> Tuple[int, int]:
+    if not (isinstance(size, (tuple, list, torch.Size)) and len(size) == 2
+            and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+        raise MSSFError(f"{name}: expected (H, W) positive ints, got {size!r}")
+    return int(size[0]), int(size[1])

@@ -14,7 +14,7 @@ data and run once at capture time on the (symbolic) shapes. See ``docs/conventio
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable, Mapping, MutableMapping, Sequence, Tuple, TypeVar, Union
+from typing import Any, Callable, Mapping, MutableMapping, Optional, Sequence, Tuple, TypeVar, Union
 
 import torch
 from torch import Tensor
@@ -371,3 +371,9 @@ def check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_siz
             f"{points_batch.device}, {coords.device}"
         )
     return spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max
+
+
+def check_coords(coords: Tensor, n: Optional[int] = None) -> Tensor:
+    check_shape(coords, "coords", ("N" if n is None else n, 4))
+    check_dtype(coords, "coords", _INT_DTYPES, hint=" ((batch, z, y, x) integer indices)")
+    return check_nonnegative(coords, "coords", "(batch, z, y, x) indices")

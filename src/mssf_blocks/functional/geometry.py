@@ -24,13 +24,13 @@ from mssf_blocks.checks.tensors import (
     check_index_range,
     check_points,
     check_shape,
-    value_check,
 )
 from mssf_blocks.checks.arguments import check_image_size, check_triple
 from mssf_blocks.checks.tensors import check_centroid_inputs
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.static_path import segment_slots
+from mssf_blocks.checks.matrices import check_points_to_sensor_matrix
 
 __all__ = [
     "voxel_centers",
@@ -249,34 +249,6 @@ def normalize_lidar2img(lidar2img: Tensor, batch_size: Optional[int] = None) -> 
     return lidar2img[:, :, :3, :]
 
 
-def _check_points_to_sensor(points_to_sensor: Tensor, batch_size: int) -> Tensor:
-    check_shape(points_to_sensor, "points_to_sensor", (batch_size, 4, 4))
-    check_floating(points_to_sensor, "points_to_sensor")
-    check_finite(points_to_sensor, "points_to_sensor")
-    return _check_affine_invertible(points_to_sensor)
-
-
-@value_check
-def _check_affine_invertible(points_to_sensor: Tensor) -> Tensor:
-    m = points_to_sensor.detach().double()
-    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype, device=m.device)
-    if not torch.allclose(m[:, 3], last.expand(m.shape[0], 4), atol=1e-9):
-        raise MSSFError(
-            "points_to_sensor: expected affine 4x4 matrices with last row (0, 0, 0, 1), "
-            f"got last rows {m[:, 3].tolist()}"
-        )
-    lin = m[:, :3, :3]
-    det = torch.linalg.det(lin).abs()
-    scale = lin.abs().amax(dim=(1, 2)).clamp(min=1e-300) ** 3
-    bad = (det <= 1e-12 * scale).nonzero().flatten().tolist()
-    if bad:
-        raise MSSFError(
-            f"points_to_sensor: expected invertible augmentation matrices, got singular matrices for "
-            f"samples {bad} (|det| = {[float(det[i]) for i in bad]})"
-        )
-    return points_to_sensor
-
-
 @dataclass(frozen=True)
 class Projection:
     """Result of :func:`project_points`.
@@ -351,7 +323,7 @@ def project_points(
         ones = torch.ones_like(xyz[:, :1])
         hom = torch.cat([xyz, ones], dim=1)  # (N, 4)
         if points_to_sensor is not None:
-            p2s = _check_points_to_sensor(points_to_sensor, batch_size).to(dtype)
+            p2s = check_points_to_sensor_matrix(points_to_sensor, batch_size).to(dtype)
             hom = torch.einsum("nij,nj->ni", p2s[b], hom)
         cam = torch.einsum("nvij,nj->nvi", l2i.to(dtype)[b], hom)  # (N, V, 3)
         depth = cam[..., 2]
