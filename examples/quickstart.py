@@ -57,7 +57,7 @@ def main(argv=None) -> int:
 
     cfg = SceneConfig()
     scenes = [generate_scene(args.seed + i, cfg) for i in range(2)]
-    grid = VoxelGrid(cfg.point_cloud_range, (0.1, 0.1, 0.125))
+    grid = VoxelGrid(voxel_size=(0.1, 0.1, 0.125), point_cloud_range=cfg.point_cloud_range)
     points = torch.cat([s.points for s in scenes])
     points_batch = torch.cat([torch.full((len(s.points),), i, dtype=torch.long) for i, s in enumerate(scenes)])
     vox = dynamic_voxelize(points, points_batch, 2, grid)

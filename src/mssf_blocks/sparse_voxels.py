@@ -14,40 +14,13 @@ from typing import Any, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from mssf_blocks.checks.tensors import (
-    check_dtype,
-    check_floating,
-    check_index_ranges,
-    check_positive_int,
-    check_shape,
-    check_triple,
-)
+from mssf_blocks.checks.arguments import check_positive_int, check_triple
+from mssf_blocks.checks.tensors import check_voxel_features, check_voxel_tensors
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.voxel_grid import VoxelGrid
 from mssf_blocks.static_path import register_pytree
 
-__all__ = ["SparseVoxels", "is_spconv_tensor"]
-
-
-def is_spconv_tensor(x: Any) -> bool:
-    """Whether ``x`` is an spconv ``SparseConvTensor`` (by its attributes: spconv need not be imported)."""
-    return all(hasattr(x, a) for a in ("features", "indices", "spatial_shape", "batch_size", "replace_feature"))
-
-
-def _permutation_hint(coords: Tensor, spatial_shape: Tuple[int, int, int]) -> str:
-    """Where the coordinates fit a permutation of ``spatial_shape`` (e.g. ``(W, H, D)`` given), say so."""
-    import itertools
-
-    if int(coords[:, 1:].amin()) < 0:
-        return ""
-    top = [int(v) + 1 for v in coords[:, 1:].amax(0).tolist()]  # (z, y, x) extents needed
-    candidates = [tuple(spatial_shape)[::-1]] + list(itertools.permutations(spatial_shape))  # (W, H, D) first
-    fits = [p for p in candidates
-            if p != tuple(spatial_shape) and all(t <= s for t, s in zip(top, p))]
-    if not fits:
-        return ""
-    return (f"; the coordinates fit spatial_shape={fits[0]}: spatial_shape is (D, H, W) = (z, y, x) cells, "
-            f"given in another axis order (e.g. (W, H, D))?")
+__all__ = ["SparseVoxels"]
 
 
 @dataclass(frozen=True, eq=False, init=False)
@@ -138,28 +111,7 @@ class SparseVoxels:
         set_(self, "point_range_min", grid.point_range_min)  # (x, y, z) lower corner
         set_(self, "stride", stride)
         set_(self, "spconv_source", spconv_source)
-        self._check_coords(self.coords)
-        self._check_features(self.features, self.coords.shape[0])
-
-    # -- validation -------------------------------------------------------------------------------
-    def _check_coords(self, coords: Tensor) -> None:
-        check_shape(coords, "coords", ("N", 4))
-        check_dtype(coords, "coords", (torch.int32,), hint=" (convert with coords.int())")
-        if coords.numel():
-            # one host synchronisation for the four range checks, not eight (a GPU stalls on each)
-            try:
-                check_index_ranges(
-                    [(coords[:, 0], "coords[:, 0] (batch index)", self.batch_size, "batch_size")]
-                    + [(coords[:, a], f"coords[:, {a}] ({n} index)", self.spatial_shape[a - 1],
-                        f"spatial_shape[{a - 1}]") for a, n in zip((1, 2, 3), ("z", "y", "x"))]
-                )
-            except MSSFError as exc:  # (the error path only: one more read, to name a permuted spatial_shape)
-                raise MSSFError(f"{exc}{_permutation_hint(coords, self.spatial_shape)}") from None
-
-    @staticmethod
-    def _check_features(features: Tensor, n: int) -> None:
-        check_shape(features, "features", (n, None))
-        check_floating(features, "features")
+        check_voxel_tensors(self.features, self.coords, self.spatial_shape, self.batch_size)
 
     # -- derived ----------------------------------------------------------------------------------
     @property
@@ -219,7 +171,7 @@ class SparseVoxels:
             new = object.__new__(type(self))
             new.__dict__.update(self.__dict__)
             object.__setattr__(new, "features", changes.get("features", self.features))
-            self._check_features(new.features, self.num_voxels)
+            check_voxel_features(new.features, self.num_voxels)
             return new
         kwargs = {name: getattr(self, name) for name in self.__dataclass_fields__}
         if any(k in changes for k in ("coords", "spatial_shape", "batch_size", "grid", "stride")) or loose:

@@ -84,8 +84,8 @@ class VoxelGrid:
             if abs(cells - round(cells)) > 1e-3 * max(1.0, cells) or round(cells) < 1:
                 raise MSSFError(
                     f"point_cloud_range: expected a whole number of voxels along {axis}, got "
-                    f"({pcr[a + 3]} - {pcr[a]}) / voxel_size {vs[a]} = {cells:.4f} cells; adjust the range or "
-                    "voxel_size (the frameworks round this to the grid size)"
+                    f"({pcr[a + 3]} - {pcr[a]}) / voxel_size {vs[a]} = {cells:.4f} cells (not a multiple of "
+                    "voxel_size); adjust the range or voxel_size (the frameworks round this to the grid size)"
                 )
         object.__setattr__(self, "voxel_size", vs)
         object.__setattr__(self, "point_cloud_range", pcr)
@@ -113,6 +113,12 @@ class VoxelGrid:
     def point_range_max(self) -> Tuple[float, float, float]:
         """``(x, y, z)`` upper corner in metres."""
         return self.point_cloud_range[3:]  # type: ignore[return-value]
+
+    @property
+    def grid_size(self) -> Tuple[int, int, int]:
+        """``(nx, ny, nz)`` cells at stride 1 (mmdetection3d's and OpenPCDet's ``grid_size``, x first)."""
+        d, h, w = self.spatial_shape
+        return (w, h, d)
 
     @property
     def spatial_shape(self) -> Tuple[int, int, int]:

@@ -184,7 +184,7 @@ class MSSFDetector(nn.Module):
             raise MSSFError(f"pillar_layout: 'authors' is their MSSF-PP (pointpillars, 2 MSDFF stages), got name={name!r}, "
                             f"num_fusion_blocks={num_fusion_blocks}, fusion={fusion!r}")
         if name == "pointpillars":
-            grid = VoxelGrid(p.pillar_range, (p.pillar_size[0], p.pillar_size[1], p.pillar_range[5] - p.pillar_range[2]))
+            grid = VoxelGrid(voxel_size=(p.pillar_size[0], p.pillar_size[1], p.pillar_range[5] - p.pillar_range[2]), point_cloud_range=p.pillar_range)
             if pillar_layout == "authors":
                 from .backbones import AuthorsPointPillarsBackbone
 
@@ -208,7 +208,7 @@ class MSSFDetector(nn.Module):
             self.head = AnchorHead(self.backbone.bev_channels, bev_grid, p.anchor_sizes, p.anchor_z_centers,
                                    matched_thresholds=matched, unmatched_thresholds=unmatched, **head_kw)
         else:
-            grid = VoxelGrid(p.point_cloud_range, p.voxel_size)
+            grid = VoxelGrid(voxel_size=p.voxel_size, point_cloud_range=p.point_cloud_range)
             self.voxelizer = DynamicVoxelizer(p.point_cloud_range, p.voxel_size)
             fusion_kwargs["head_position"] = head_position
             if name == "voxelnext":

@@ -16,10 +16,12 @@ from typing import Optional, Sequence, Tuple, Type
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_floating, check_positive_int, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.lift import voxels_to_bev
 from mssf_blocks.sparse_voxels import SparseVoxels
+from mssf_blocks.voxel_grid import VoxelGrid  # (the library's grid: one grid description for the library and the examples)
 
 __all__ = [
     "VoxelGrid",
@@ -30,62 +32,6 @@ __all__ = [
     "PillarFeatureNet",
     "pillars_to_bev",
 ]
-
-
-@dataclass(frozen=True)
-class VoxelGrid:
-    """A regular grid over a point-cloud range.
-
-    Attributes:
-        point_cloud_range: ``(x_min, y_min, z_min, x_max, y_max, z_max)`` metres.
-        voxel_size: ``(x, y, z)`` metres; every extent must be a whole multiple of it.
-    """
-
-    point_cloud_range: Tuple[float, float, float, float, float, float]
-    voxel_size: Tuple[float, float, float]
-
-    def __post_init__(self) -> None:
-        pcr = tuple(float(v) for v in self.point_cloud_range)
-        vs = tuple(float(v) for v in self.voxel_size)
-        if len(pcr) != 6:
-            raise MSSFError(f"point_cloud_range: expected 6 values (x0, y0, z0, x1, y1, z1), got {len(pcr)}")
-        if len(vs) != 3 or min(vs) <= 0:
-            raise MSSFError(f"voxel_size: expected 3 positive values, got {self.voxel_size!r}")
-        for axis in range(3):
-            extent = pcr[axis + 3] - pcr[axis]
-            if extent <= 0:
-                raise MSSFError(f"point_cloud_range: expected max > min on axis {axis}, got {pcr!r}")
-            n = extent / vs[axis]
-            if abs(n - round(n)) > 1e-4:
-                raise MSSFError(
-                    f"voxel_size: extent {extent:g} m on axis {'xyz'[axis]} is not a multiple of "
-                    f"voxel_size {vs[axis]:g} (got {n:.4f} voxels)"
-                )
-        object.__setattr__(self, "point_cloud_range", pcr)
-        object.__setattr__(self, "voxel_size", vs)
-
-    @property
-    def grid_size(self) -> Tuple[int, int, int]:
-        """``(nx, ny, nz)``."""
-        return tuple(
-            int(round((self.point_cloud_range[a + 3] - self.point_cloud_range[a]) / self.voxel_size[a]))
-            for a in range(3)
-        )
-
-    @property
-    def spatial_shape(self) -> Tuple[int, int, int]:
-        """``(D, H, W) = (nz, ny, nx)`` (spconv order)."""
-        nx, ny, nz = self.grid_size
-        return (nz, ny, nx)
-
-    @property
-    def point_range_min(self) -> Tuple[float, float, float]:
-        return self.point_cloud_range[:3]
-
-    def sparse_voxels(self, features: Tensor, coords: Tensor, batch_size: int) -> SparseVoxels:
-        """``features (N, C)`` at ``coords (N, 4)`` of this grid (stride 1) as :class:`SparseVoxels`."""
-        return SparseVoxels(features=features, coords=coords, spatial_shape=self.spatial_shape, batch_size=batch_size,
-                            voxel_size=self.voxel_size, point_range_min=self.point_range_min)
 
 
 @dataclass
@@ -179,11 +125,11 @@ class DynamicVoxelizer(nn.Module):
 
     def __init__(self, point_cloud_range: Sequence[float], voxel_size: Sequence[float]) -> None:
         super().__init__()
-        self.grid = VoxelGrid(tuple(point_cloud_range), tuple(voxel_size))
+        self.grid = VoxelGrid(voxel_size=tuple(voxel_size), point_cloud_range=tuple(point_cloud_range))
 
     def forward(self, points: Tensor, points_batch: Tensor, batch_size: int) -> SparseVoxels:
         vox = dynamic_voxelize(points, points_batch, batch_size, self.grid)
-        return self.grid.sparse_voxels(vox.features, vox.coords, batch_size)
+        return SparseVoxels(vox.features, vox.coords, batch_size=batch_size, grid=self.grid)
 
     def extra_repr(self) -> str:
         return f"point_cloud_range={self.grid.point_cloud_range}, voxel_size={self.grid.voxel_size}"
@@ -274,7 +220,7 @@ class PillarFeatureNet(nn.Module):
         if len(tuple(pillar_size)) != 2:
             raise MSSFError(f"pillar_size: expected (x, y), got {pillar_size!r}")
         self.in_channels = in_channels
-        self.grid = VoxelGrid(pcr, (float(pillar_size[0]), float(pillar_size[1]), pcr[5] - pcr[2]))
+        self.grid = VoxelGrid(voxel_size=(float(pillar_size[0]), float(pillar_size[1]), pcr[5] - pcr[2]), point_cloud_range=pcr)
         # BN follows, so the bias would be redundant (as in PointPillars).
         self.linear = nn.Linear(in_channels + 6, out_channels, bias=False, device=device, dtype=dtype)
         self.norm = norm_layer(out_channels, device=device, dtype=dtype)
@@ -285,7 +231,7 @@ class PillarFeatureNet(nn.Module):
             raise MSSFError(f"points: expected {self.in_channels} columns, got shape {tuple(points.shape)}")
         feats, vox = pillar_feature_net(points, points_batch, batch_size, self.grid, self.linear, self.norm,
                                         voxelization, self.max_points)
-        return self.grid.sparse_voxels(feats, vox.coords, batch_size)
+        return SparseVoxels(feats, vox.coords, batch_size=batch_size, grid=self.grid)
 
     def extra_repr(self) -> str:
         return (

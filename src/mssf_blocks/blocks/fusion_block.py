@@ -34,17 +34,23 @@ from mssf_blocks.checks.agreement import camera_batch_entries, check_agreement, 
 from mssf_blocks.checks.geometry import check_grid, check_indices_in_shape
 from mssf_blocks.checks.image_features import check_image_features
 from mssf_blocks.checks.spconv_inputs import check_sparse_tensor
-from mssf_blocks.checks.tensors import check_triple, is_tracing, to_module_dtype
+from mssf_blocks.checks.tensors import is_tracing, to_module_dtype
+from mssf_blocks.checks.arguments import check_triple
 from mssf_blocks.errors import MSSFError, MSSFGeometryWarning
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection, VoxelCentroidProjector
 from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit, sample_at_projection
-from mssf_blocks.sparse_voxels import SparseVoxels, is_spconv_tensor
+from mssf_blocks.sparse_voxels import SparseVoxels
 from mssf_blocks.voxel_grid import VoxelGrid
 
 __all__ = ["FusionBlock", "FusionBlockOutput", "infer_downsample_stride"]
 
 _POSITIONS = ("before_residual", "after_residual")
+
+
+def _is_spconv_tensor(x: Any) -> bool:
+    """Whether ``x`` is an spconv ``SparseConvTensor`` (by its attributes: spconv need not be imported)."""
+    return all(hasattr(x, a) for a in ("features", "indices", "spatial_shape", "batch_size", "replace_feature"))
 _HEAD_POSITIONS = ("after_fusion", "after_residual")
 
 
@@ -263,7 +269,7 @@ class FusionBlock(nn.Module):
             raise MSSFError(f"return_logits: expected a bool, got {return_logits!r}")
         if return_logits and self.semantic_head is None:
             raise MSSFError("return_logits: True needs a semantic_head; this FusionBlock was built without one")
-        if not isinstance(x, SparseVoxels) and not is_spconv_tensor(x):
+        if not isinstance(x, SparseVoxels) and not _is_spconv_tensor(x):
             raise MSSFError(f"x: expected SparseVoxels or an spconv SparseConvTensor, got {type(x).__name__}")
         # Before any spconv code: what SparseVoxels.to_spconv checks, plus what the first spconv module takes.
         first = self.downsample if self.downsample is not None else (

@@ -8,7 +8,12 @@
 * ``geometry.py`` - geometry sanity: grid against shape, level sizes, coverage warnings, frames of boxes
   and angles; ``first_call.py`` - the one-time checks of a projector's first batch; ``coverage.py`` - the
   running coverage figures; ``calibration.py`` - a framework's calibration against its image size.
+* ``arguments.py`` - plain arguments: image sizes, angles, triples, ints, strides.
+* ``boxes.py`` - 3D boxes and the label arguments; ``matrices.py`` - ``points_to_sensor`` and 4 x 4 affines.
 * ``deform.py`` - the sampling op's inputs; ``spconv_inputs.py`` - what reaches spconv.
+
+The feature-blurring diagnostics keep their few checks beside their own result types
+(``diagnostics/``): those checks read ``BlurClassification``, which lives there.
 
 One switch, :func:`set_geometry_checks`, decides where the data-reading geometry checks run (CPU tensors
 only by default: on an accelerator each would cost a host synchronisation).

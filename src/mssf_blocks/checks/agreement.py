@@ -170,3 +170,28 @@ def camera_batch_entries(inputs: Any) -> list:
     if inputs.points_to_sensor is not None and inputs.points_to_sensor.dim() == 3:  # (else the projector's shape error)
         entries.append(("points_to_sensor", inputs.points_to_sensor.shape[0], tuple(inputs.points_to_sensor.shape)))
     return entries
+
+
+def check_input_agreement(image_features, lidar2img: Tensor, l2i: Tensor, points_to_sensor) -> None:
+    """The batch size (and the cameras) of the camera inputs agree; else the error names the argument most
+    of the others disagree with, with both shapes (shapes only). On a tie in the batch size the image levels
+    win: they come out of a network run on the whole batch, while ``lidar2img`` / ``points_to_sensor`` are
+    assembled by hand."""
+    # (with several cameras a 4-d level is wrong whatever its batch, folded (B*V, C, H, W) most likely:
+    # check_image_features says so, instead of a batch-size vote)
+    ndims = (4, 5) if l2i.shape[1] == 1 else (5,)
+    entries = level_batch_entries(image_features, ndims=ndims) + [("lidar2img", l2i.shape[0], tuple(lidar2img.shape))]
+    if isinstance(points_to_sensor, Tensor) and points_to_sensor.dim() == 3:
+        entries.append(("points_to_sensor", points_to_sensor.shape[0], tuple(points_to_sensor.shape)))
+    check_agreement(entries, "batch size")
+    # Cameras: lidar2img wins a tie (one matrix per camera of the set-up). 4-d levels are
+    # one camera each: check_image_features names that case.
+    check_agreement([("lidar2img", l2i.shape[1], tuple(lidar2img.shape))]
+                    + level_batch_entries(image_features, dim=1, ndims=(5,)), "number of cameras V")
+
+
+def check_visible_rows(norm: nn.Module, rows: int, n: int) -> None:
+    """Our error, not BatchNorm's, for one visible voxel in training mode (the count is on the host already:
+    ``nonzero`` read it). Every sampler's output stage goes through it."""
+    check_batch_statistics(norm, rows, "projection", f"exactly one of the {n} voxels is visible in the image",
+                           "fusion block")

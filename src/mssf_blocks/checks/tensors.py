@@ -14,17 +14,18 @@ data and run once at capture time on the (symbolic) shapes. See ``docs/conventio
 from __future__ import annotations
 
 import functools
-import math
-from typing import Any, Callable, Mapping, MutableMapping, Sequence, TypeVar, Union
+from typing import Any, Callable, Mapping, MutableMapping, Optional, Sequence, Tuple, TypeVar, Union
 
 import torch
 from torch import Tensor
 
 from mssf_blocks import torch_versions
+from mssf_blocks.checks.arguments import check_positive_int, check_triple
 from mssf_blocks.errors import MSSFError
 
 Dim = Union[int, str, None]
 _F = TypeVar("_F", bound=Callable[..., Any])
+_INT_DTYPES = (torch.int32, torch.int64)
 
 
 def is_tracing() -> bool:
@@ -294,84 +295,85 @@ def convert_up(x: Tensor, dtype: torch.dtype, name: str, what: str) -> Tensor:
     return x.to(dtype)
 
 
-def check_image_size(image_size: Any, level_hw: Sequence[int] | None = None, name: str = "image_size",
-                     level_name: str = "image_features[0]") -> tuple:
-    """``(H, W)`` positive ints; with ``level_hw = (H_0, W_0)`` (the first image level), also that some
-    stride ``s`` gives ``|H / s - H_0| <= 1`` and ``|W / s - W_0| <= 1`` (one level-0 pixel each way,
-    which allows the rounding of strided convolutions and padding): a swapped ``(W, H)`` fails it."""
-    try:
-        h, w = (int(v) for v in image_size)
-    except (TypeError, ValueError, RuntimeError):
-        raise MSSFError(f"{name}: expected (H, W), got {image_size!r}{_per_sample_hint(image_size)}") from None
-    if h <= 0 or w <= 0:
-        raise MSSFError(f"{name}: expected positive (H, W), got {image_size!r}")
-    if level_hw is not None and not is_tracing():  # (int() of a symbolic level size would specialise a graph)
-        h0, w0 = (int(v) for v in level_hw)
-        # 1 / s must lie in [(H_0 - 1) / H, (H_0 + 1) / H] and in [(W_0 - 1) / W, (W_0 + 1) / W].
-        if max((h0 - 1) / h, (w0 - 1) / w) > min((h0 + 1) / h, (w0 + 1) / w):
-            hint = " (swapped? image_size is (H, W))" if (
-                max((h0 - 1) / w, (w0 - 1) / h) <= min((h0 + 1) / w, (w0 + 1) / h)) else ""
-            raise MSSFError(
-                f"{name}: expected (H, W) with the aspect of {level_name} (H_0, W_0) = ({h0}, {w0}) within "
-                f"one level-0 pixel, got {(h, w)}{hint}"
+
+
+# --------------------------------------------------------------------------------------------------
+# sparse tensors: a SparseVoxels' fields, voxel_centroids' inputs (one call each: the data stays here)
+# --------------------------------------------------------------------------------------------------
+def _permutation_hint(coords: Tensor, spatial_shape: Tuple[int, int, int]) -> str:
+    """Where the coordinates fit a permutation of ``spatial_shape`` (e.g. ``(W, H, D)`` given), say so."""
+    import itertools
+
+    if int(coords[:, 1:].amin()) < 0:
+        return ""
+    top = [int(v) + 1 for v in coords[:, 1:].amax(0).tolist()]  # (z, y, x) extents needed
+    candidates = [tuple(spatial_shape)[::-1]] + list(itertools.permutations(spatial_shape))  # (W, H, D) first
+    fits = [p for p in candidates
+            if p != tuple(spatial_shape) and all(t <= s for t, s in zip(top, p))]
+    if not fits:
+        return ""
+    return (f"; the coordinates fit spatial_shape={fits[0]}: spatial_shape is (D, H, W) = (z, y, x) cells, "
+            f"given in another axis order (e.g. (W, H, D))?")
+
+
+def check_voxel_features(features: Tensor, n: int, name: str = "features") -> Tensor:
+    """``(n, C)`` floating-point features of ``n`` voxels."""
+    check_shape(features, name, (n, None))
+    return check_floating(features, name)
+
+
+def check_voxel_tensors(features: Tensor, coords: Tensor, spatial_shape: Sequence[int], batch_size: int) -> None:
+    """A sparse tensor's ``coords (N, 4)`` int32 ``(batch, z, y, x)`` inside ``[0, batch_size) x spatial_shape``
+    and ``features (N, C)`` floating; a range error names a permuted ``spatial_shape`` that would fit."""
+    check_shape(coords, "coords", ("N", 4))
+    check_dtype(coords, "coords", (torch.int32,), hint=" (convert with coords.int())")
+    if coords.numel():
+        # one host synchronisation for the four range checks, not eight (a GPU stalls on each)
+        try:
+            check_index_ranges(
+                [(coords[:, 0], "coords[:, 0] (batch index)", batch_size, "batch_size")]
+                + [(coords[:, a], f"coords[:, {a}] ({n} index)", spatial_shape[a - 1],
+                    f"spatial_shape[{a - 1}]") for a, n in zip((1, 2, 3), ("z", "y", "x"))]
             )
-    return h, w
+        except MSSFError as exc:  # (the error path only: one more read, to name a permuted spatial_shape)
+            raise MSSFError(f"{exc}{_permutation_hint(coords, spatial_shape)}") from None
+    check_voxel_features(features, coords.shape[0])
 
 
-def _per_sample_hint(image_size: Any) -> str:
-    """Where ``image_size`` holds one ``(H, W)`` per sample (mmdet3d's per-sample ``img_shape``), say what to pass."""
-    try:
-        rows = [tuple(int(v) for v in row) for row in image_size]
-    except (TypeError, ValueError, RuntimeError):
-        return ""
-    if not rows or any(len(r) != 2 for r in rows):
-        return ""
-    return (f": {len(rows)} per-sample sizes; pass one (H, W) for the whole batch, the size lidar2img projects "
-            f"into (the padded batch input{'' if len(set(rows)) == 1 else ': the samples differ, pad them to one size'})")
+def check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size,
+                          point_range_min, point_range_max):
+    """The inputs of :func:`~mssf_blocks.functional.geometry.voxel_centroids`, normalised: returns
+    ``(spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max)``."""
+    check_points(points, points_batch)
+    check_finite(points[:, :3], "points[:, :3]")
+    check_dtype(points_batch, "points_batch", _INT_DTYPES)
+    check_shape(coords, "coords", ("N", 4))
+    check_dtype(coords, "coords", _INT_DTYPES)
+    spatial_shape = check_triple(spatial_shape, "spatial_shape", int, positive=True)
+    batch_size = check_positive_int(batch_size, "batch_size")
+    check_index_range(points_batch, "points_batch", batch_size, "batch_size")
+    # A coordinate outside the grid would alias another voxel's key (x == W is the next row's x == 0;
+    # x == -1 collides with the key of out-of-range points).
+    check_voxel_coords(coords, spatial_shape, batch_size)
+    stride = check_triple(stride, "stride", int, positive=True)
+    voxel_size = check_triple(voxel_size, "voxel_size", float, positive=True)
+    point_range_min = check_triple(point_range_min, "point_range_min", float)
+    if point_range_max is not None:
+        point_range_max = check_triple(point_range_max, "point_range_max", float)
+        if any(h <= l for h, l in zip(point_range_max, point_range_min)):
+            raise MSSFError(
+                f"point_range_max: expected every value above point_range_min {point_range_min}, "
+                f"got {point_range_max}"
+            )
+    if coords.device != points.device or points_batch.device != points.device:
+        raise MSSFError(
+            f"points, points_batch, coords: expected one device, got {points.device}, "
+            f"{points_batch.device}, {coords.device}"
+        )
+    return spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max
 
 
-def check_triple(value: Any, name: str, kind: type, positive: bool = False) -> tuple:
-    """Turn a length-3 sequence (or tensor) into a tuple of ``kind``, with a clear error."""
-    if isinstance(value, Tensor):
-        value = value.detach().cpu().tolist()
-    try:
-        items = list(value)
-    except TypeError:
-        raise MSSFError(f"{name}: expected a sequence of 3 numbers, got {value!r}") from None
-    if len(items) != 3:
-        raise MSSFError(f"{name}: expected 3 values, got {len(items)}: {value!r}")
-    out = []
-    for v in items:
-        if kind is int:
-            if isinstance(v, bool) or int(v) != v:
-                raise MSSFError(f"{name}: expected integers, got {value!r}")
-            v = int(v)
-        else:
-            v = float(v)
-            if v != v or v in (float("inf"), float("-inf")):
-                raise MSSFError(f"{name}: expected finite values, got {value!r}")
-        if positive and v <= 0:
-            raise MSSFError(f"{name}: expected positive values, got {value!r}")
-        out.append(v)
-    return tuple(out)
-
-
-def check_positive_int(value: Any, name: str, allow_zero: bool = False) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise MSSFError(f"{name}: expected an int, got {type(value).__name__} {value!r}")
-    if value < 0 or (value == 0 and not allow_zero):
-        raise MSSFError(f"{name}: expected a {'non-negative' if allow_zero else 'positive'} int, got {value}")
-    return value
-
-
-def check_radians(angle: Any, name: str) -> float:
-    """A finite angle in radians: a magnitude above ``2 pi`` is an angle in degrees (45 for pi / 4)."""
-    try:
-        a = float(angle)
-    except (TypeError, ValueError):
-        raise MSSFError(f"{name}: expected an angle in radians (a float), got {angle!r}") from None
-    if not math.isfinite(a) or abs(a) > 2 * math.pi + 1e-9:
-        raise MSSFError(f"{name}: expected radians with |{name}| <= 2 pi, got {angle!r}: degrees? pass radians "
-                        f"(math.radians({angle!r}) = {math.radians(a):.4f})" if math.isfinite(a) else
-                        f"{name}: expected a finite angle in radians, got {angle!r}")
-    return a
+def check_coords(coords: Tensor, n: Optional[int] = None) -> Tensor:
+    check_shape(coords, "coords", ("N" if n is None else n, 4))
+    check_dtype(coords, "coords", _INT_DTYPES, hint=" ((batch, z, y, x) integer indices)")
+    return check_nonnegative(coords, "coords", "(batch, z, y, x) indices")

@@ -16,12 +16,13 @@ from mssf_blocks.checks.tensors import (
     check_dtype,
     check_finite,
     check_floating,
-    check_image_size,
     check_index_range,
     check_shape,
 )
+from mssf_blocks.checks.arguments import check_image_size
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional.heads import _check_boxes, points_in_boxes
+from mssf_blocks.checks.boxes import check_boxes
+from mssf_blocks.functional.heads import points_in_boxes
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
 
 __all__ = ["BlurClassification", "classify_feature_blurring", "classify_projection", "instance_foreground_counts"]
@@ -255,7 +256,7 @@ def classify_feature_blurring(
     for i, boxes in enumerate(gt_boxes):
         rows = (b == i).nonzero().flatten()
         # Validate every sample's boxes, also where it has no points.
-        hits = points_in_boxes(xyz[rows], _check_boxes(boxes, f"gt_boxes[{i}]").to(xyz.device), origin=origin)
+        hits = points_in_boxes(xyz[rows], check_boxes(boxes, f"gt_boxes[{i}]").to(xyz.device), origin=origin)
         if rows.numel():
             in_box3d[rows] = hits.any(dim=1)
     return BlurClassification.from_masks(fore2d, in_box3d)
@@ -307,7 +308,7 @@ def instance_foreground_counts(
     b = batch_index.long()
     n2, n3 = [], []
     for i, (box3, box2) in enumerate(zip(gt_boxes, boxes2)):
-        if _check_boxes(box3, f"gt_boxes[{i}]").shape[0] != box2.shape[0]:
+        if check_boxes(box3, f"gt_boxes[{i}]").shape[0] != box2.shape[0]:
             raise MSSFError(
                 f"boxes_2d[{i}]: expected one row per 3D box ({box3.shape[0]} in gt_boxes[{i}]), "
                 f"got {box2.shape[0]}"

@@ -21,18 +21,16 @@ from mssf_blocks.checks.tensors import (
     check_dtype,
     check_finite,
     check_floating,
-    check_image_size,
     check_index_range,
     check_points,
-    check_positive_int,
     check_shape,
-    check_triple,
-    check_voxel_coords,
-    value_check,
 )
+from mssf_blocks.checks.arguments import check_image_size, check_triple
+from mssf_blocks.checks.tensors import check_centroid_inputs
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.static_path import segment_slots
+from mssf_blocks.checks.matrices import check_points_to_sensor_matrix
 
 __all__ = [
     "voxel_centers",
@@ -110,37 +108,6 @@ def _point_keys(
     return torch.where(inside, key, torch.full_like(key, -1))
 
 
-def _check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size,
-                           point_range_min, point_range_max):
-    check_points(points, points_batch)
-    check_finite(points[:, :3], "points[:, :3]")
-    check_dtype(points_batch, "points_batch", _INT_DTYPES)
-    check_shape(coords, "coords", ("N", 4))
-    check_dtype(coords, "coords", _INT_DTYPES)
-    spatial_shape = check_triple(spatial_shape, "spatial_shape", int, positive=True)
-    batch_size = check_positive_int(batch_size, "batch_size")
-    check_index_range(points_batch, "points_batch", batch_size, "batch_size")
-    # A coordinate outside the grid would alias another voxel's key (x == W is the next row's x == 0;
-    # x == -1 collides with the key of out-of-range points).
-    check_voxel_coords(coords, spatial_shape, batch_size)
-    stride = check_triple(stride, "stride", int, positive=True)
-    voxel_size = check_triple(voxel_size, "voxel_size", float, positive=True)
-    point_range_min = check_triple(point_range_min, "point_range_min", float)
-    if point_range_max is not None:
-        point_range_max = check_triple(point_range_max, "point_range_max", float)
-        if any(h <= l for h, l in zip(point_range_max, point_range_min)):
-            raise MSSFError(
-                f"point_range_max: expected every value above point_range_min {point_range_min}, "
-                f"got {point_range_max}"
-            )
-    if coords.device != points.device or points_batch.device != points.device:
-        raise MSSFError(
-            f"points, points_batch, coords: expected one device, got {points.device}, "
-            f"{points_batch.device}, {coords.device}"
-        )
-    return spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max
-
-
 def voxel_centroids(
     points: Tensor,
     points_batch: Tensor,
@@ -176,7 +143,7 @@ def voxel_centroids(
         ``centroids (N, 3)`` (float64 for float64 ``points``, else float32: half-precision points are
         read as float32) and ``has_points (N,)`` bool (False where the centre was used).
     """
-    spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
+    spatial_shape, batch_size, stride, voxel_size, lo, hi = check_centroid_inputs(
         points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
         point_range_max,
     )
@@ -226,7 +193,7 @@ def voxel_centroids_reference(
     point_range_max: Optional[Sequence[float]] = None,
 ) -> Tuple[Tensor, Tensor]:
     """Slow per-voxel loop with the same semantics as :func:`voxel_centroids` (for tests)."""
-    spatial_shape, batch_size, stride, voxel_size, lo, hi = _check_centroid_inputs(
+    spatial_shape, batch_size, stride, voxel_size, lo, hi = check_centroid_inputs(
         points, points_batch, coords, spatial_shape, batch_size, stride, voxel_size, point_range_min,
         point_range_max,
     )
@@ -280,34 +247,6 @@ def normalize_lidar2img(lidar2img: Tensor, batch_size: Optional[int] = None) -> 
     check_floating(lidar2img, "lidar2img")
     check_finite(lidar2img, "lidar2img")
     return lidar2img[:, :, :3, :]
-
-
-def _check_points_to_sensor(points_to_sensor: Tensor, batch_size: int) -> Tensor:
-    check_shape(points_to_sensor, "points_to_sensor", (batch_size, 4, 4))
-    check_floating(points_to_sensor, "points_to_sensor")
-    check_finite(points_to_sensor, "points_to_sensor")
-    return _check_affine_invertible(points_to_sensor)
-
-
-@value_check
-def _check_affine_invertible(points_to_sensor: Tensor) -> Tensor:
-    m = points_to_sensor.detach().double()
-    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype, device=m.device)
-    if not torch.allclose(m[:, 3], last.expand(m.shape[0], 4), atol=1e-9):
-        raise MSSFError(
-            "points_to_sensor: expected affine 4x4 matrices with last row (0, 0, 0, 1), "
-            f"got last rows {m[:, 3].tolist()}"
-        )
-    lin = m[:, :3, :3]
-    det = torch.linalg.det(lin).abs()
-    scale = lin.abs().amax(dim=(1, 2)).clamp(min=1e-300) ** 3
-    bad = (det <= 1e-12 * scale).nonzero().flatten().tolist()
-    if bad:
-        raise MSSFError(
-            f"points_to_sensor: expected invertible augmentation matrices, got singular matrices for "
-            f"samples {bad} (|det| = {[float(det[i]) for i in bad]})"
-        )
-    return points_to_sensor
 
 
 @dataclass(frozen=True)
@@ -384,7 +323,7 @@ def project_points(
         ones = torch.ones_like(xyz[:, :1])
         hom = torch.cat([xyz, ones], dim=1)  # (N, 4)
         if points_to_sensor is not None:
-            p2s = _check_points_to_sensor(points_to_sensor, batch_size).to(dtype)
+            p2s = check_points_to_sensor_matrix(points_to_sensor, batch_size).to(dtype)
             hom = torch.einsum("nij,nj->ni", p2s[b], hom)
         cam = torch.einsum("nvij,nj->nvi", l2i.to(dtype)[b], hom)  # (N, V, 3)
         depth = cam[..., 2]

@@ -28,6 +28,7 @@ from mssf_blocks.checks.tensors import (
 )
 from mssf_blocks.checks.geometry import check_boxes_frame, check_yaw_radians
 from mssf_blocks.errors import MSSFError
+from mssf_blocks.checks.boxes import check_boxes, check_margin, check_origin
 
 __all__ = [
     "sigmoid_focal_loss",
@@ -36,7 +37,6 @@ __all__ = [
 ]
 
 _INT_DTYPES = (torch.int32, torch.int64)
-_ORIGINS = ("center", "bottom")
 _REDUCTIONS = ("positives", "sum", "mean", "none")
 
 
@@ -140,32 +140,6 @@ def _tensor(x, name: str) -> Tensor:
     return x
 
 
-def _check_boxes(boxes: Tensor, name: str) -> Tensor:
-    check_shape(boxes, name, ("G", None))
-    if boxes.shape[1] < 7:
-        raise MSSFError(
-            f"{name}: expected shape (G, 7) boxes (x, y, z, dx, dy, dz, yaw) (extra columns are ignored), "
-            f"got shape {tuple(boxes.shape)}"
-        )
-    check_floating(boxes, name)
-    check_finite(boxes[:, :7], name)
-    if boxes.shape[0] and bool((boxes[:, 3:6] < 0).any()):
-        raise MSSFError(f"{name}: expected non-negative sizes dx, dy, dz, got min {float(boxes[:, 3:6].min())}")
-    return boxes
-
-
-def _check_origin(origin: str) -> str:
-    if origin not in _ORIGINS:
-        raise MSSFError(f"origin: expected 'center' or 'bottom' (z of the box centre or bottom face), got {origin!r}")
-    return origin
-
-
-def _check_margin(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 <= value < float("inf")):
-        raise MSSFError(f"{name}: expected a finite non-negative float (metres), got {value!r}")
-    return float(value)
-
-
 def points_in_boxes(
     points: Tensor,
     boxes: Tensor,
@@ -203,10 +177,10 @@ def points_in_boxes(
     if points.shape[1] < 3:
         raise MSSFError(f"points: expected shape (P, >=3) with x, y, z first, got {tuple(points.shape)}")
     check_finite(points[:, :3], "points[:, :3]")
-    _check_boxes(boxes, "boxes")
-    _check_origin(origin)
-    margin = _check_margin(margin, "margin")
-    eps = _check_margin(eps, "eps")
+    check_boxes(boxes, "boxes")
+    check_origin(origin)
+    margin = check_margin(margin, "margin")
+    eps = check_margin(eps, "eps")
     if boxes.device != points.device:
         raise MSSFError(f"boxes: expected device {points.device} (of points), got {boxes.device}")
     check_yaw_radians(boxes, "boxes")
@@ -268,11 +242,11 @@ def voxel_foreground_labels(
             f"gt_boxes: expected a list with one (G_b, 7) tensor per sample, got {type(gt_boxes).__name__}"
         )
     check_index_range(batch_index, "batch_index", len(gt_boxes), "len(gt_boxes)")
-    margin = _check_margin(margin, "margin")
+    margin = check_margin(margin, "margin")
     for i, boxes in enumerate(gt_boxes):
-        _check_boxes(boxes, f"gt_boxes[{i}]")
+        check_boxes(boxes, f"gt_boxes[{i}]")
         check_yaw_radians(boxes, f"gt_boxes[{i}]")
-    _check_origin(origin)
+    check_origin(origin)
     check_finite(centroids[:, :3], "points[:, :3]")  # (the name points_in_boxes gave it)
     check_boxes_frame(centroids, batch_index, gt_boxes, origin)
     n = centroids.shape[0]

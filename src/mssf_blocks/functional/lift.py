@@ -24,14 +24,14 @@ from mssf_blocks.checks.tensors import (
     check_floating,
     check_index_range,
     check_index_ranges,
-    check_nonnegative,
-    check_positive_int,
     check_shape,
-    check_triple,
 )
+from mssf_blocks.checks.arguments import check_positive_int, check_triple
 from mssf_blocks.checks.geometry import check_batch_column
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.sparse_voxels import SparseVoxels
+from mssf_blocks.checks.arguments import check_stride2
+from mssf_blocks.checks.tensors import check_coords
 
 __all__ = [
     "pillar_lift",
@@ -44,32 +44,11 @@ __all__ = [
 _INT_DTYPES = (torch.int32, torch.int64)
 
 
-def _check_stride2(stride, name: str = "stride") -> Tuple[int, int]:
-    """``int`` or ``(sy, sx)`` -> ``(sy, sx)`` positive ints."""
-    if isinstance(stride, bool):
-        raise MSSFError(f"{name}: expected a positive int or (sy, sx), got {stride!r}")
-    if isinstance(stride, int):
-        stride = (stride, stride)
-    try:
-        items = tuple(stride)
-    except TypeError:
-        raise MSSFError(f"{name}: expected a positive int or (sy, sx), got {stride!r}") from None
-    if len(items) != 2 or any(isinstance(s, bool) or not isinstance(s, int) or s <= 0 for s in items):
-        raise MSSFError(f"{name}: expected a positive int or (sy, sx) positive ints, got {stride!r}")
-    return items
-
-
 def bev_shape_for(grid_hw: Sequence[int], stride=1) -> Tuple[int, int]:
     """``(ceil(H / sy), ceil(W / sx))``: the BEV map shape at ``stride`` of a voxel grid ``(H, W)``."""
-    sy, sx = _check_stride2(stride)
+    sy, sx = check_stride2(stride)
     h, w = (int(v) for v in grid_hw)
     return (-(-h // sy), -(-w // sx))
-
-
-def _check_coords(coords: Tensor, n: Optional[int] = None) -> Tensor:
-    check_shape(coords, "coords", ("N" if n is None else n, 4))
-    check_dtype(coords, "coords", _INT_DTYPES, hint=" ((batch, z, y, x) integer indices)")
-    return check_nonnegative(coords, "coords", "(batch, z, y, x) indices")
 
 
 def pillar_lift(
@@ -99,8 +78,8 @@ def pillar_lift(
     """
     check_shape(bev, "bev", ("B", "C", "H_b", "W_b"))
     check_floating(bev, "bev")
-    _check_coords(coords)
-    sy, sx = _check_stride2(stride)
+    check_coords(coords)
+    sy, sx = check_stride2(stride)
     b_, c, hb, wb = bev.shape
     if coords.device != bev.device:
         raise MSSFError(f"coords: expected device {bev.device} (of bev), got {coords.device}")
@@ -195,7 +174,7 @@ def _bev_pillar_index(features: Tensor, coords: Tensor, batch_size, bev_shape, s
     """Validate the arguments of the voxels -> BEV functions; return ``(B, H_b, W_b, flat pillar index)``."""
     check_shape(features, "features", ("N", "C"))
     check_floating(features, "features")
-    _check_coords(coords, features.shape[0])
+    check_coords(coords, features.shape[0])
     batch_size = check_positive_int(batch_size, "batch_size")
     try:
         hb, wb = (int(v) for v in bev_shape)
@@ -203,7 +182,7 @@ def _bev_pillar_index(features: Tensor, coords: Tensor, batch_size, bev_shape, s
         raise MSSFError(f"bev_shape: expected (H_b, W_b), got {bev_shape!r}") from None
     if hb <= 0 or wb <= 0:
         raise MSSFError(f"bev_shape: expected positive (H_b, W_b), got {bev_shape!r}")
-    sy, sx = _check_stride2(stride)
+    sy, sx = check_stride2(stride)
     return batch_size, hb, wb, _pillar_index(coords, batch_size, hb, wb, sy, sx)
 
 

@@ -10,8 +10,10 @@ from typing import Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from mssf_blocks.checks.tensors import check_floating, check_radians, check_triple
+from mssf_blocks.checks.tensors import check_floating
+from mssf_blocks.checks.arguments import check_radians, check_triple
 from mssf_blocks.errors import MSSFError
+from mssf_blocks.checks.arguments import check_size
 
 __all__ = ["augmentation_matrix", "image_augmentation_matrix", "apply_image_augmentation"]
 
@@ -92,12 +94,12 @@ def image_augmentation_matrix(
         >>> (a @ torch.tensor([0.0, 1.0, 1.0], dtype=torch.float64)).tolist(), size
         ([5.0, 1.0, 1.0], (4, 6))
     """
-    h, w = _check_size(image_size, "image_size")
+    h, w = check_size(image_size, "image_size")
     if not isinstance(corner_origin, bool):
         raise MSSFError(f"corner_origin: expected a bool, got {corner_origin!r}")
     a = torch.eye(3, dtype=dtype)
     if resize is not None:
-        nh, nw = _check_size(resize, "resize")
+        nh, nw = check_size(resize, "resize")
         sx, sy = nw / w, nh / h
         ox, oy = (0.0, 0.0) if corner_origin else (0.5 * (sx - 1.0), 0.5 * (sy - 1.0))
         s = torch.tensor([[sx, 0.0, ox], [0.0, sy, oy], [0.0, 0.0, 1.0]], dtype=dtype)
@@ -106,7 +108,7 @@ def image_augmentation_matrix(
         if not (isinstance(crop, (tuple, list)) and len(crop) == 4 and all(isinstance(c, int) for c in crop)):
             raise MSSFError(f"crop: expected (top, left, height, width) ints, got {crop!r}")
         top, left, ch, cw = crop
-        _check_size((ch, cw), "crop height/width")
+        check_size((ch, cw), "crop height/width")
         c = torch.tensor([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]], dtype=dtype)
         a, (h, w) = c @ a, (ch, cw)
     if flip:
@@ -154,8 +156,3 @@ def apply_image_augmentation(lidar2img: Tensor, matrix: Tensor) -> Tensor:
     return out.to(lidar2img.dtype)
 
 
-def _check_size(size, name: str) -> Tuple[int, int]:
-    if not (isinstance(size, (tuple, list, torch.Size)) and len(size) == 2
-            and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
-        raise MSSFError(f"{name}: expected (H, W) positive ints, got {size!r}")
-    return int(size[0]), int(size[1])

@@ -13,7 +13,8 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_points, check_shape, check_triple
+from mssf_blocks.checks.tensors import check_points, check_shape
+from mssf_blocks.checks.arguments import check_triple
 from mssf_blocks.checks.coverage import RunningCoverage
 from mssf_blocks.checks.first_call import (
     check_image_size_small,

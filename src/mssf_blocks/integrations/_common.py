@@ -59,17 +59,6 @@ def affine_4x4(linear: Optional[Tensor] = None, translation: Optional[Tensor] = 
     return m
 
 
-def check_affine_4x4(m: Tensor, name: str) -> Tensor:
-    """``m`` is ``(..., 4, 4)`` with last row ``(0, 0, 0, 1)`` and an invertible linear part."""
-    last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype)
-    if not torch.allclose(m[..., 3, :], last.expand_as(m[..., 3, :]), atol=1e-9):
-        raise MSSFError(f"{name}: expected affine 4x4 matrices with last row (0, 0, 0, 1), got {m[..., 3, :].tolist()}")
-    det = torch.linalg.det(m[..., :3, :3])
-    if bool((det.abs() < 1e-12).any()):
-        raise MSSFError(f"{name}: expected invertible matrices, got determinant(s) {det.tolist()}")
-    return m
-
-
 def pixel_affine_from_4x4(m: Tensor, name: str) -> Tensor:
     """The ``(..., 3, 3)`` pixel affine of a BEVFusion-style ``(..., 4, 4)`` image augmentation.
 

@@ -30,7 +30,8 @@ from mssf_blocks.errors import MSSFError
 from mssf_blocks.samplers import FusionInputs
 from mssf_blocks.geometry import apply_image_augmentation, augmentation_matrix
 from mssf_blocks.checks.calibration import check_calibration_image_size
-from mssf_blocks.integrations._common import affine_4x4, as_bool, as_float64, check_affine_4x4, image_levels_bv, lidar2img_3x4, pixel_affine_from_4x4
+from mssf_blocks.checks.matrices import check_affine_4x4
+from mssf_blocks.integrations._common import affine_4x4, as_bool, as_float64, image_levels_bv, lidar2img_3x4, pixel_affine_from_4x4
 
 __all__ = [
     "lidar_aug_matrix",

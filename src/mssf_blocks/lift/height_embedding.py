@@ -7,7 +7,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_index_range, check_positive_int, check_shape
+from mssf_blocks.checks.tensors import check_index_range, check_shape
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["HeightEmbedding"]

@@ -12,11 +12,12 @@ from typing import Optional, Sequence, Tuple, Union
 
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_positive_int, check_shape, to_module_dtype
+from mssf_blocks.checks.tensors import check_shape, to_module_dtype
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.checks.agreement import check_channels
 from mssf_blocks.errors import MSSFError
+from mssf_blocks.checks.arguments import check_stride2
 from mssf_blocks.functional.lift import (
-    _check_stride2,
     bev_shape_for,
     pillar_lift,
     voxels_to_bev,
@@ -98,7 +99,7 @@ class PillarLift(nn.Module):
         if num_z is None:
             raise MSSFError("num_z: expected the voxel grid's D (z cells), or grid=VoxelGrid(...), got None")
         self.num_z = check_positive_int(num_z, "num_z")
-        self.stride = _check_stride2(stride)
+        self.stride = check_stride2(stride)
         if not isinstance(use_height_embedding, bool):
             raise MSSFError(f"use_height_embedding: expected a bool, got {use_height_embedding!r}")
         if not isinstance(use_bev, bool):

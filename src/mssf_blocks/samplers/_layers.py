@@ -9,10 +9,11 @@ import torch
 from torch import Tensor, nn
 
 from mssf_blocks.checks.tensors import autocast_off, convert_up
-from mssf_blocks.checks.agreement import batch_norm_in_training, check_batch_statistics
+from mssf_blocks.checks.agreement import batch_norm_in_training
 from mssf_blocks.checks.geometry import geometry_checks_enabled
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.static_path import linear_norm_visible_static
+from mssf_blocks.checks.agreement import check_visible_rows
 
 
 def _norm(norm_layer: Optional[Type[nn.Module]], channels: int, factory: dict) -> nn.Module:
@@ -59,13 +60,6 @@ def _linear_bn_visible(linear: nn.Module, norm: nn.Module, x: Tensor, visible: T
         check_visible_rows(norm, rows.numel(), x.shape[0])
         return norm(linear(x))
     return _linear_bn_rows(linear, norm, x[rows], rows, x.shape[0])
-
-
-def check_visible_rows(norm: nn.Module, rows: int, n: int) -> None:
-    """Our error, not BatchNorm's, for one visible voxel in training mode (the count is on the host already:
-    ``nonzero`` read it). Every sampler's output stage goes through it."""
-    check_batch_statistics(norm, rows, "projection", f"exactly one of the {n} voxels is visible in the image",
-                           "fusion block")
 
 
 def _linear_bn_rows(linear: nn.Module, norm: nn.Module, x_rows: Tensor, rows: Tensor, n: int) -> Tensor:

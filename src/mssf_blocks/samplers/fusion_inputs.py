@@ -11,32 +11,15 @@ from typing import Optional, Sequence, Tuple
 
 from torch import Tensor
 
-from mssf_blocks.checks.tensors import check_image_size, check_points
-from mssf_blocks.checks.agreement import check_agreement, level_batch_entries
+from mssf_blocks.checks.tensors import check_points
+from mssf_blocks.checks.arguments import check_image_size
 from mssf_blocks.checks.image_features import check_image_features
 from mssf_blocks.checks.geometry import check_level_sizes
 from mssf_blocks.functional.geometry import normalize_lidar2img
 from mssf_blocks.static_path import register_pytree
+from mssf_blocks.checks.agreement import check_input_agreement
 
 __all__ = ["FusionInputs", "check_input_agreement"]
-
-
-def check_input_agreement(image_features, lidar2img: Tensor, l2i: Tensor, points_to_sensor) -> None:
-    """The batch size (and the cameras) of the camera inputs agree; else the error names the argument most
-    of the others disagree with, with both shapes (shapes only). On a tie in the batch size the image levels
-    win: they come out of a network run on the whole batch, while ``lidar2img`` / ``points_to_sensor`` are
-    assembled by hand."""
-    # (with several cameras a 4-d level is wrong whatever its batch, folded (B*V, C, H, W) most likely:
-    # check_image_features says so, instead of a batch-size vote)
-    ndims = (4, 5) if l2i.shape[1] == 1 else (5,)
-    entries = level_batch_entries(image_features, ndims=ndims) + [("lidar2img", l2i.shape[0], tuple(lidar2img.shape))]
-    if isinstance(points_to_sensor, Tensor) and points_to_sensor.dim() == 3:
-        entries.append(("points_to_sensor", points_to_sensor.shape[0], tuple(points_to_sensor.shape)))
-    check_agreement(entries, "batch size")
-    # Cameras: lidar2img wins a tie (one matrix per camera of the set-up). 4-d levels are
-    # one camera each: check_image_features names that case.
-    check_agreement([("lidar2img", l2i.shape[1], tuple(lidar2img.shape))]
-                    + level_batch_entries(image_features, dim=1, ndims=(5,)), "number of cameras V")
 
 
 @dataclass(frozen=True, eq=False)

@@ -13,7 +13,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mssf_blocks import torch_versions
-from mssf_blocks.checks.tensors import check_floating, check_positive_int, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.checks.agreement import check_channels
 from mssf_blocks.samplers._layers import (
     _autocast_off,

@@ -8,7 +8,8 @@ from typing import Optional, Sequence, Type, Union
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_floating, check_positive_int, check_shape, to_module_dtype
+from mssf_blocks.checks.tensors import check_floating, check_shape, to_module_dtype
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.checks.agreement import check_batch_statistics, check_channels
 from mssf_blocks.samplers._layers import _factory, _norm
 from mssf_blocks.errors import MSSFError

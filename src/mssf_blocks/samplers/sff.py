@@ -31,7 +31,7 @@ from typing import Optional, Sequence, Type
 import torch
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_positive_int
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.samplers._layers import (
     _autocast_off,
     _corner_aligned_uv,

@@ -18,7 +18,7 @@ from mssf_examples.models.authors_checkpoint import convert_authors  # noqa: E40
 from mssf_examples.models.backbones import AuthorsPointPillarsBackbone  # noqa: E402
 from mssf_examples.models.voxelize import VoxelGrid  # noqa: E402
 
-VOD_PILLARS = VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.16, 0.16, 5.0))
+VOD_PILLARS = VoxelGrid(voxel_size=(0.16, 0.16, 5.0), point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
 
 
 def _bn(p, c):
@@ -199,7 +199,7 @@ def their_mssf_v_shapes():
 def test_their_mssf_v_checkpoint_loads_strictly_into_voxelnext_in_their_layout():
     from mssf_examples.models.backbones import VoxelNeXtBackbone
 
-    grid = VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.05, 0.05, 0.125))
+    grid = VoxelGrid(voxel_size=(0.05, 0.05, 0.125), point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
     model = VoxelNeXtBackbone(7, grid, authors_layout=True, num_fusion_blocks=2, image_channels=[256] * 5)
     assert model.input_shape == (41, 1024, 1024)
     ckpt = random_checkpoint(their_mssf_v_shapes(), seed=2)
@@ -222,7 +222,7 @@ def test_voxelnext_in_their_layout_runs_its_regular_conv_out_and_shared_conv():
     from mssf_examples.models.backbones import VoxelNeXtBackbone
     from mssf_examples.models.voxelize import DynamicVoxelizer
 
-    grid = VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.4, 0.4, 0.125))
+    grid = VoxelGrid(voxel_size=(0.4, 0.4, 0.125), point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
     kw = dict(channels=(8,) * 7, out_channels=8, num_fusion_blocks=2, image_channels=[16] * 3, msdff_heads=2,
               msdff_points=2, seg_hidden=(8,))
     torch.manual_seed(0)
@@ -294,7 +294,7 @@ def test_pfn_with_folded_weights_and_padding_equals_their_pillar_feature_net(tra
     from mssf_examples.models.voxelize import PillarFeatureNet
 
     g = torch.Generator().manual_seed(5)
-    grid = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (1.6, 1.6, 5.0))
+    grid = VoxelGrid(voxel_size=(1.6, 1.6, 5.0), point_cloud_range=(0.0, -6.4, -3.0, 12.8, 6.4, 2.0))
     pts = torch.rand(120, 7, generator=g, dtype=torch.float64) * torch.tensor([12.8, 12.8, 5, 1, 1, 1, 1],
                                                                               dtype=torch.float64)
     pts[:, 1:3] -= torch.tensor([6.4, 3.0], dtype=torch.float64)

@@ -231,7 +231,7 @@ def test_converted_second_blocks_and_fpn_deblocks_equal_theirs_in_float64():
     from mssf_examples.models.backbones import AuthorsPointPillarsBackbone
     from mssf_examples.models.voxelize import VoxelGrid
 
-    model = AuthorsPointPillarsBackbone(7, VoxelGrid((0.0, -25.6, -3.0, 51.2, 25.6, 2.0), (0.16, 0.16, 5.0)), [256] * 5)
+    model = AuthorsPointPillarsBackbone(7, VoxelGrid(voxel_size=(0.16, 0.16, 5.0), point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0)), [256] * 5)
     theirs = _random(their_mssf_pp_shapes(), 5)
     sd, report = convert_authors({k: v.float() if v.is_floating_point() else v for k, v in theirs.items()}, model)
     model.load_state_dict(sd, strict=True)
@@ -336,7 +336,7 @@ def test_voxelnext_bev_tail_in_their_layout_equals_theirs_in_float64():
 
     g = torch.Generator().manual_seed(8)
     c = 8
-    grid = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (0.2, 0.2, 0.125))  # 64 x 64, BEV 8 x 8 at stride 8
+    grid = VoxelGrid(voxel_size=(0.2, 0.2, 0.125), point_cloud_range=(0.0, -6.4, -3.0, 12.8, 6.4, 2.0))  # 64 x 64, BEV 8 x 8 at stride 8
     model = VoxelNeXtBackbone(7, grid, channels=(c,) * 7, out_channels=c, authors_layout=True, num_fusion_blocks=0)
     model = model.double().train()
     for m in (model.conv_out[1], model.shared_conv[1]):

@@ -19,8 +19,8 @@ from mssf_examples.models.backbones import (  # noqa: E402
 )
 from mssf_examples.models.voxelize import DynamicVoxelizer, VoxelGrid  # noqa: E402
 
-GRID = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (0.4, 0.4, 0.125))
-PILLARS = VoxelGrid((0.0, -6.4, -3.0, 12.8, 6.4, 2.0), (0.4, 0.4, 5.0))
+GRID = VoxelGrid(voxel_size=(0.4, 0.4, 0.125), point_cloud_range=(0.0, -6.4, -3.0, 12.8, 6.4, 2.0))
+PILLARS = VoxelGrid(voxel_size=(0.4, 0.4, 5.0), point_cloud_range=(0.0, -6.4, -3.0, 12.8, 6.4, 2.0))
 # spconv's multi-threaded CPU kernels are not bit-deterministic between calls (differences of
 # ~1e-5 relative); comparisons of two forward passes below need one thread.
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -183,7 +183,7 @@ def test_bad_settings():
     with pytest.raises(MSSFError, match="image_channels"):
         SECONDBackbone(5, GRID, num_fusion_blocks=1)
     with pytest.raises(MSSFError, match="z extent"):
-        SECONDBackbone(5, VoxelGrid((0, 0, 0, 4, 4, 1), (0.5, 0.5, 0.25)))
+        SECONDBackbone(5, VoxelGrid(voxel_size=(0.5, 0.5, 0.25), point_cloud_range=(0, 0, 0, 4, 4, 1)))
     with pytest.raises(MSSFError, match="fusion_inputs"):
         pts, pb, _ = _scene()
         vox = DynamicVoxelizer(GRID.point_cloud_range, GRID.voxel_size)(pts, pb, 2)

@@ -13,7 +13,7 @@ from mssf_examples.models.voxelize import (
     pillars_to_bev,
 )
 
-GRID = VoxelGrid((0.0, -2.0, -1.0, 4.0, 2.0, 1.0), (0.5, 0.5, 0.5))
+GRID = VoxelGrid(voxel_size=(0.5, 0.5, 0.5), point_cloud_range=(0.0, -2.0, -1.0, 4.0, 2.0, 1.0))
 
 
 def _points(n=200, seed=0, c=5):
@@ -46,7 +46,7 @@ def test_grid_shape_and_divisibility():
     assert GRID.grid_size == (8, 8, 4)
     assert GRID.spatial_shape == (4, 8, 8)
     with pytest.raises(MSSFError, match="not a multiple"):
-        VoxelGrid((0, 0, 0, 1.0, 1.0, 1.0), (0.3, 0.5, 0.5))
+        VoxelGrid(voxel_size=(0.3, 0.5, 0.5), point_cloud_range=(0, 0, 0, 1.0, 1.0, 1.0))
 
 
 def test_dynamic_voxelize_matches_naive_loop():

@@ -93,7 +93,7 @@ class PointPillarsBackbone(nn.Module):
         self.grid = grid
         self.num_fusion_blocks, self.fusion_type, self.fusion_position = num_fusion_blocks, fusion, fusion_position
         pcr = grid.point_cloud_range
-        self.lift_grid = VoxelGrid(pcr, (grid.voxel_size[0], grid.voxel_size[1], float(lift_z_size)))
+        self.lift_grid = VoxelGrid(voxel_size=(grid.voxel_size[0], grid.voxel_size[1], float(lift_z_size)), point_cloud_range=pcr)
         self.pfn = PillarFeatureNet(in_channels, pfn_channels, pcr, grid.voxel_size[:2])
         self.down = nn.ModuleList()
         self.convs = nn.ModuleList()
@@ -155,7 +155,7 @@ class PointPillarsBackbone(nn.Module):
         lifts = []
         if self.num_fusion_blocks:
             vox = dynamic_voxelize(points, points_batch, batch_size, self.lift_grid)
-            lift_voxels = self.lift_grid.sparse_voxels(vox.features[:, :1], vox.coords, batch_size)
+            lift_voxels = SparseVoxels(vox.features[:, :1], vox.coords, batch_size=batch_size, grid=self.lift_grid)
             lifts = [self._coarsen(lift_voxels, self.strides[i]) for i in range(self.num_fusion_blocks)]
         return pillars, lifts
 

@@ -92,7 +92,7 @@ class AuthorsPointPillarsBackbone(nn.Module):
         pcr = grid.point_cloud_range
         self.grid, self.z_pad = grid, int(z_pad)
         vx, vy, _ = grid.voxel_size
-        self.lift_grids = [VoxelGrid(pcr, (vx, vy, float(lift_z_size))), VoxelGrid(pcr, (2 * vx, 2 * vy, float(lift_z_size)))]
+        self.lift_grids = [VoxelGrid(voxel_size=(vx, vy, float(lift_z_size)), point_cloud_range=pcr), VoxelGrid(voxel_size=(2 * vx, 2 * vy, float(lift_z_size)), point_cloud_range=pcr)]
         num_z = self.lift_grids[0].spatial_shape[0] + self.z_pad
         # mmdet3d's PFN norm: BN1d(eps=1e-3, momentum=0.01)
         self.pfn = PillarFeatureNet(in_channels, pfn_channels, pcr, (vx, vy), max_points=max_points,

@@ -27,7 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mssf_blocks.checks.tensors import check_floating, check_positive_int, check_shape
+from mssf_blocks.checks.tensors import check_floating, check_shape
+from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.errors import MSSFError
 
 from ..ops.boxes import decode_residual, encode_residual, limit_period, residual_code_size
