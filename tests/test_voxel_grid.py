@@ -109,3 +109,16 @@ def test_sparse_voxels_grid_and_loose_forms_agree():
         SparseVoxels(torch.ones(1, 2), coords, (21, 512, 512), 1, (0.05, 0.05, 0.125), (0, -25.6, -3))
     with pytest.raises(MSSFError, match=r"either grid= or voxel_size="):
         SparseVoxels(torch.ones(1, 2), coords, (21, 512, 512), 1, grid=VOD, voxel_size=(0.05, 0.05, 0.125))
+
+
+def test_modules_take_the_grid_or_its_loose_value_not_both():
+    from mssf_blocks import QueryInit, VoxelCentroidProjector
+
+    assert VoxelCentroidProjector(grid=VOD).point_range_max == VOD.point_range_max
+    assert QueryInit(4, 4, 4, grid=VOD).point_cloud_range == QueryInit(4, 4, 4, VOD).point_cloud_range == VOD.point_cloud_range
+    with pytest.raises(MSSFError, match=r"point_range_max: expected either grid= or point_range_max="):
+        VoxelCentroidProjector(point_range_max=(1.0, 1.0, 1.0), grid=VOD)
+    with pytest.raises(MSSFError, match=r"point_cloud_range: expected either grid= or point_cloud_range="):
+        QueryInit(4, 4, 4, (0, 0, 0, 1, 1, 1), grid=VOD)
+    with pytest.raises(MSSFError, match=r"grid: expected a VoxelGrid, got tuple"):
+        VoxelCentroidProjector(grid=(0.05, 0.05, 0.125))

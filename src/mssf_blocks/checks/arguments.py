@@ -11,7 +11,7 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
-__all__ = ["check_image_size", "check_radians", "check_triple", "check_positive_int"]
+__all__ = ["check_image_size", "check_radians", "check_triple", "check_positive_int", "check_grid_argument"]
 
 
 # sizes and angles
@@ -121,3 +121,17 @@ def check_size(size, name: str) -> Tuple[int, int]:
             and all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
         raise MSSFError(f"{name}: expected (H, W) positive ints, got {size!r}")
     return int(size[0]), int(size[1])
+
+
+def check_grid_argument(grid: Any, loose: Any, loose_name: str) -> Any:
+    """``grid`` a :class:`~mssf_blocks.VoxelGrid` or ``None``, and not given together with ``loose_name``, the
+    loose spelling of what a module reads from it; returns ``grid``."""
+    if grid is None:
+        return None
+    from mssf_blocks.voxel_grid import VoxelGrid  # (voxel_grid builds on checks: imported when used)
+
+    if not isinstance(grid, VoxelGrid):
+        raise MSSFError(f"grid: expected a VoxelGrid, got {type(grid).__name__}")
+    if loose is not None:
+        raise MSSFError(f"{loose_name}: expected either grid= or {loose_name}= (the grid's own value), got both")
+    return grid

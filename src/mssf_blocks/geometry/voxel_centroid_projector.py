@@ -32,6 +32,7 @@ from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.geometry import project_points, voxel_centroids
 from mssf_blocks.sparse_voxels import SparseVoxels
 from mssf_blocks.static_path import register_pytree
+from mssf_blocks.checks.arguments import check_grid_argument
 from mssf_blocks.voxel_grid import VoxelGrid
 
 __all__ = ["VoxelCentroidProjector", "CentroidProjection", "set_geometry_checks"]
@@ -109,11 +110,7 @@ class VoxelCentroidProjector(nn.Module):
                  half_pixel: bool = True, inside_image_only: bool = True, *,
                  grid: Optional[VoxelGrid] = None) -> None:
         super().__init__()
-        if grid is not None:
-            if not isinstance(grid, VoxelGrid):
-                raise MSSFError(f"grid: expected a VoxelGrid, got {type(grid).__name__}")
-            if point_range_max is not None:
-                raise MSSFError("point_range_max: expected either grid= or point_range_max=, got both")
+        if check_grid_argument(grid, point_range_max, "point_range_max") is not None:
             point_range_max = grid.point_range_max
         for name, flag in (("half_pixel", half_pixel), ("inside_image_only", inside_image_only)):
             if not isinstance(flag, bool):

@@ -13,6 +13,7 @@ from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.checks.agreement import check_batch_statistics, check_channels
 from mssf_blocks.samplers._layers import _factory, _norm
 from mssf_blocks.errors import MSSFError
+from mssf_blocks.checks.arguments import check_grid_argument
 from mssf_blocks.voxel_grid import VoxelGrid
 
 __all__ = ["QueryInit"]
@@ -67,11 +68,7 @@ class QueryInit(nn.Module):
         super().__init__()
         if isinstance(point_cloud_range, VoxelGrid):
             point_cloud_range, grid = None, point_cloud_range if grid is None else grid
-        if grid is not None:
-            if not isinstance(grid, VoxelGrid):
-                raise MSSFError(f"grid: expected a VoxelGrid, got {type(grid).__name__}")
-            if point_cloud_range is not None:
-                raise MSSFError("point_cloud_range: expected either grid= or point_cloud_range= (the same range), got both")
+        if check_grid_argument(grid, point_cloud_range, "point_cloud_range") is not None:
             point_cloud_range = grid.point_cloud_range
         if point_cloud_range is None:
             raise MSSFError("grid: expected the voxels' VoxelGrid (or point_cloud_range=, its 6 values), got None")
