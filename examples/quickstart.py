@@ -21,14 +21,14 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from mssf_blocks import SparseVoxels  # noqa: E402
+from mssf_blocks import SparseVoxels, VoxelGrid  # noqa: E402
 from mssf_blocks.blocks import FusionBlock  # noqa: E402
 from mssf_blocks.samplers import MSDFF, SFF, FusionInputs, QueryInit  # noqa: E402
 from mssf_blocks.heads import SemanticGuidedHead, voxel_foreground_labels  # noqa: E402
 from mssf_examples.models.image_branch import ImageBranch  # noqa: E402
 from mssf_examples.scenes.synthetic import SceneConfig, generate_scene  # noqa: E402
 from mssf_examples.models.spconv_helpers import enable_cpu_backward  # noqa: E402
-from mssf_examples.models.voxelize import VoxelGrid, dynamic_voxelize  # noqa: E402
+from mssf_examples.models.voxelize import dynamic_voxelize  # noqa: E402
 
 
 def sparse_stage(spconv, cin: int, cout: int, key: str):

@@ -56,9 +56,10 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
         kwargs["image_channels"] = [int(c) for c in kwargs["image_channels"]]
     kwargs.setdefault("seg_hidden", None)
     bb = _examples_backbones()
-    from mssf_examples.models.voxelize import VoxelGrid
+    from mssf_blocks.voxel_grid import VoxelGrid
 
-    grid = VoxelGrid(tuple(float(v) for v in point_cloud_range), tuple(float(v) for v in voxel_size))
+    grid = VoxelGrid(voxel_size=tuple(float(v) for v in voxel_size),
+                     point_cloud_range=tuple(float(v) for v in point_cloud_range))
     if grid_size is not None:
         given = tuple(int(g) for g in (grid_size.tolist() if hasattr(grid_size, "tolist") else grid_size))
         if given != grid.grid_size:
@@ -77,7 +78,7 @@ def _input_voxels(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_
     from mssf_blocks.integrations.spconv import enable_cpu_backward
 
     enable_cpu_backward()  # spconv's backward on a CPU-only torch (no effect on CUDA builds)
-    return net.grid.sparse_voxels(voxel_features, coords, int(batch_size))
+    return SparseVoxels(voxel_features, coords, batch_size=int(batch_size), grid=net.grid)
 
 
 def run_dense_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor, batch_size: int,

@@ -69,7 +69,7 @@ class MSSFPillarEncoder(nn.Module):
         super().__init__()
         try:
             from mssf_examples.models.backbones import PointPillarsBackbone
-            from mssf_examples.models.voxelize import VoxelGrid
+            from mssf_blocks.voxel_grid import VoxelGrid
         except ImportError as exc:
             raise ImportError("MSSFPillarEncoder is built from mssf_examples.models.backbones: install the examples "
                               "package (README, 'examples')") from exc
@@ -81,7 +81,7 @@ class MSSFPillarEncoder(nn.Module):
             raise MSSFError(f"voxel_size: a pillar spans the whole z range {pcr[5] - pcr[2]:g} m, got z size {vs[2]:g}")
         self.in_channels = int(in_channels)
         self.net = PointPillarsBackbone(
-            self.in_channels, VoxelGrid(tuple(pcr), tuple(vs)), lift_z_size=float(lift_z_size),
+            self.in_channels, VoxelGrid(voxel_size=tuple(vs), point_cloud_range=tuple(pcr)), lift_z_size=float(lift_z_size),
             pfn_channels=int(pfn_channels), layer_nums=tuple(layer_nums), layer_strides=tuple(layer_strides),
             num_filters=tuple(num_filters), upsample_strides=tuple(upsample_strides),
             num_upsample_filters=tuple(num_upsample_filters), num_fusion_blocks=int(num_fusion_blocks), fusion=fusion,
