@@ -22,10 +22,13 @@ CORE_TESTS=(tests/functional tests/integrations tests/checks/test_audit_inputs.p
             tests/test_export.py
             tests/samplers/test_sff.py tests/geometry/test_voxel_centroid_projector.py tests/heads/test_semantic_guided_head.py tests/lift/test_pillar_lift.py tests/samplers/test_msdff.py
             tests/weights/test_authors_forward.py tests/samplers/test_precision.py tests/test_sparse_voxels.py tests/test_static_path.py
-            tests/test_testing.py)
+            tests/test_testing.py tests/test_voxel_grid.py tests/blocks/test_fusion_block_grid.py
+            tests/samplers/test_sff_tester.py tests/samplers/test_msdff_tester.py tests/geometry/test_voxel_centroid_projector_tester.py
+            tests/heads/test_semantic_guided_head_tester.py tests/lift/test_pillar_lift_tester.py tests/blocks/test_fusion_block_tester.py)
 # per Python version: import + forward / backward / gradcheck of the core blocks
 PY_TESTS=(tests/test_torch_versions.py tests/samplers/test_sff.py tests/samplers/test_msdff.py tests/lift/test_pillar_lift.py tests/heads/test_semantic_guided_head.py
-          tests/geometry/test_voxel_centroid_projector.py)
+          tests/geometry/test_voxel_centroid_projector.py tests/test_voxel_grid.py
+          tests/samplers/test_sff_tester.py tests/samplers/test_msdff_tester.py tests/heads/test_semantic_guided_head_tester.py)
 TEST_DEPS=(einops pytest hypothesis)
 FRAMEWORK_DEPS=(shapely pyyaml easydict "spconv>=2.3" tqdm pillow addict yapf termcolor rich)
 # what OpenPCDet's code (tests/integrations, the archive in ../shared) imports at module level, as the Makefile
