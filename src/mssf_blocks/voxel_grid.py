@@ -10,31 +10,19 @@ block asks for it.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, List, Optional, Sequence, Tuple
 
 import torch
 from torch import Tensor
 
+from mssf_blocks.checks.arguments import check_point_cloud_range, check_triple
 from mssf_blocks.errors import MSSFError
 
 __all__ = ["VoxelGrid"]
 
 #: the largest power-of-two stride tried per axis (2 ** 7 = 128: beyond any backbone's downsampling)
 _MAX_LOG2_STRIDE = 7
-
-
-def _floats(value: Any, name: str, n: int) -> Tuple[float, ...]:
-    if isinstance(value, Tensor):
-        value = value.detach().cpu().tolist()
-    try:
-        out = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        raise MSSFError(f"{name}: expected {n} numbers, got {value!r}") from None
-    if len(out) != n or not all(math.isfinite(v) for v in out):
-        raise MSSFError(f"{name}: expected {n} finite numbers, got {value!r}")
-    return out
 
 
 def _reachable(cells: int, log2_stride: int) -> set:
@@ -70,15 +58,10 @@ class VoxelGrid:
     point_cloud_range: Tuple[float, float, float, float, float, float]
 
     def __post_init__(self) -> None:
-        vs = _floats(self.voxel_size, "voxel_size", 3)
+        vs = check_triple(self.voxel_size, "voxel_size", float)
         if not all(v > 0 for v in vs):
             raise MSSFError(f"voxel_size: expected 3 positive numbers (x, y, z) in metres, got {self.voxel_size!r}")
-        pcr = _floats(self.point_cloud_range, "point_cloud_range", 6)
-        if not all(pcr[a + 3] > pcr[a] for a in range(3)):
-            raise MSSFError(
-                "point_cloud_range: expected (x_min, y_min, z_min, x_max, y_max, z_max) with max > min, "
-                f"got {self.point_cloud_range!r}"
-            )
+        pcr = check_point_cloud_range(self.point_cloud_range)
         for a, axis in enumerate("xyz"):
             cells = (pcr[a + 3] - pcr[a]) / vs[a]
             if abs(cells - round(cells)) > 1e-3 * max(1.0, cells) or round(cells) < 1:
@@ -96,8 +79,8 @@ class VoxelGrid:
                  spatial_shape: Sequence[int], stride: Sequence[int] = (1, 1, 1)) -> "VoxelGrid":
         """The grid a sparse tensor spans: ``point_range_min`` up to ``min + spatial_shape * stride *
         voxel_size`` (the loose ``voxel_size=`` / ``point_range_min=`` spelling of a grid)."""
-        vs = _floats(voxel_size, "voxel_size", 3)
-        lo = _floats(point_range_min, "point_range_min", 3)
+        vs = check_triple(voxel_size, "voxel_size", float)
+        lo = check_triple(point_range_min, "point_range_min", float)
         d, h, w = (int(s) for s in spatial_shape)
         sz, sy, sx = (int(s) for s in stride)
         hi = (lo[0] + w * sx * vs[0], lo[1] + h * sy * vs[1], lo[2] + d * sz * vs[2])

@@ -11,7 +11,8 @@ from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
 
-__all__ = ["check_image_size", "check_radians", "check_triple", "check_positive_int", "check_grid_argument"]
+__all__ = ["check_image_size", "check_radians", "check_triple", "check_positive_int", "check_point_cloud_range",
+           "check_grid_argument"]
 
 
 # sizes and angles
@@ -91,6 +92,21 @@ def check_triple(value: Any, name: str, kind: type, positive: bool = False) -> t
             raise MSSFError(f"{name}: expected positive values, got {value!r}")
         out.append(v)
     return tuple(out)
+
+
+def check_point_cloud_range(value: Any, name: str = "point_cloud_range") -> Tuple[float, ...]:
+    """Six finite numbers ``(x_min, y_min, z_min, x_max, y_max, z_max)`` with max > min (a sequence or a
+    tensor), as a tuple of floats."""
+    if isinstance(value, Tensor):
+        value = value.detach().cpu().tolist()
+    try:
+        pcr = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        raise MSSFError(f"{name}: expected 6 numbers, got {value!r}") from None
+    if len(pcr) != 6 or not all(math.isfinite(x) for x in pcr) or not all(pcr[i + 3] > pcr[i] for i in range(3)):
+        raise MSSFError(f"{name}: expected 6 finite numbers (x_min, y_min, z_min, x_max, y_max, z_max) with max > min, "
+                        f"got {value!r}")
+    return pcr
 
 
 def check_positive_int(value: Any, name: str, allow_zero: bool = False) -> int:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from typing import Optional, Sequence, Type, Union
 
 import torch
@@ -13,7 +12,7 @@ from mssf_blocks.checks.arguments import check_positive_int
 from mssf_blocks.checks.agreement import check_batch_statistics, check_channels
 from mssf_blocks.samplers._layers import _factory, _norm
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.checks.arguments import check_grid_argument
+from mssf_blocks.checks.arguments import check_grid_argument, check_point_cloud_range
 from mssf_blocks.voxel_grid import VoxelGrid
 
 __all__ = ["QueryInit"]
@@ -80,19 +79,7 @@ class QueryInit(nn.Module):
         self.voxel_channels = check_positive_int(voxel_channels, "voxel_channels")
         self.image_channels = check_positive_int(image_channels, "image_channels")
         self.out_channels = check_positive_int(out_channels, "out_channels")
-        if isinstance(point_cloud_range, Tensor):
-            point_cloud_range = point_cloud_range.detach().cpu().tolist()
-        try:
-            pcr = tuple(float(x) for x in point_cloud_range)
-        except (TypeError, ValueError):
-            raise MSSFError(f"point_cloud_range: expected 6 numbers, got {point_cloud_range!r}") from None
-        if len(pcr) != 6 or not all(math.isfinite(x) for x in pcr) or not all(
-            pcr[i + 3] > pcr[i] for i in range(3)
-        ):
-            raise MSSFError(
-                "point_cloud_range: expected 6 finite numbers (x_min, y_min, z_min, x_max, y_max, z_max) "
-                f"with max > min, got {point_cloud_range!r}"
-            )
+        pcr = check_point_cloud_range(point_cloud_range)
         self.point_cloud_range = pcr
         factory = _factory(device, dtype)
         self.linear = nn.Linear(self.voxel_channels + self.image_channels + 3, self.out_channels, **factory)
