@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from typing import List, Optional, Sequence, Tuple
 
-import torch
 from torch import Tensor
 
 from mssf_blocks.checks.tensors import (
+    INDEX_DTYPES,
     check_dtype,
     check_finite,
     check_floating,
@@ -19,7 +19,6 @@ from mssf_blocks.errors import MSSFError
 
 __all__ = ["check_projection"]
 
-_INT_DTYPES = (torch.int32, torch.int64)
 
 
 def _check_deform_inputs(
@@ -54,7 +53,7 @@ def _check_deform_inputs(
             f"values: expected Mv = 1 (shared by all heads) or Mv = M = {dims['M']} heads, got Mv = {dims['Mv']}"
         )
     check_shape(image_index, "image_index", (dims["Q"],))
-    check_dtype(image_index, "image_index", _INT_DTYPES)
+    check_dtype(image_index, "image_index", INDEX_DTYPES)
     check_index_range(image_index, "image_index", dims["I"], "I")
     check_finite(locations, "locations")
     check_finite(weights, "weights")

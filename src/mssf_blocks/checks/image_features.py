@@ -8,7 +8,7 @@ from typing import List, Optional, Sequence, Tuple
 import torch
 from torch import Tensor
 
-from mssf_blocks.checks.tensors import check_dtype, check_floating, check_index_range, check_shape
+from mssf_blocks.checks.tensors import INDEX_DTYPES, check_dtype, check_floating, check_index_range, check_shape
 from mssf_blocks.checks.agreement import channels_last_hint
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
@@ -16,7 +16,6 @@ from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
 __all__ = ["check_image_features"]
 
 
-_INT_DTYPES = (torch.int32, torch.int64)
 
 
 def check_image_features(
@@ -133,6 +132,6 @@ def _check_projection(projection: CentroidProjection, batch_size: int, num_camer
     valid = check_shape(projection.valid, f"{name}.valid", ("N", "V"), dims)
     check_dtype(valid, f"{name}.valid", (torch.bool,))
     batch_index = check_shape(projection.batch_index, f"{name}.batch_index", ("N",), dims)
-    check_dtype(batch_index, f"{name}.batch_index", _INT_DTYPES)
+    check_dtype(batch_index, f"{name}.batch_index", INDEX_DTYPES)
     check_index_range(batch_index, f"{name}.batch_index", batch_size, "image batch size B")
     return uv, valid, batch_index.long()

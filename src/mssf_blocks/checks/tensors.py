@@ -25,7 +25,8 @@ from mssf_blocks.errors import MSSFError
 
 Dim = Union[int, str, None]
 _F = TypeVar("_F", bound=Callable[..., Any])
-_INT_DTYPES = (torch.int32, torch.int64)
+#: the integer dtypes index tensors may have (batch indices, voxel coordinates)
+INDEX_DTYPES = (torch.int32, torch.int64)
 
 
 def is_tracing() -> bool:
@@ -346,9 +347,9 @@ def check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_siz
     ``(spatial_shape, batch_size, stride, voxel_size, point_range_min, point_range_max)``."""
     check_points(points, points_batch)
     check_finite(points[:, :3], "points[:, :3]")
-    check_dtype(points_batch, "points_batch", _INT_DTYPES)
+    check_dtype(points_batch, "points_batch", INDEX_DTYPES)
     check_shape(coords, "coords", ("N", 4))
-    check_dtype(coords, "coords", _INT_DTYPES)
+    check_dtype(coords, "coords", INDEX_DTYPES)
     spatial_shape = check_triple(spatial_shape, "spatial_shape", int, positive=True)
     batch_size = check_positive_int(batch_size, "batch_size")
     check_index_range(points_batch, "points_batch", batch_size, "batch_size")
@@ -375,5 +376,5 @@ def check_centroid_inputs(points, points_batch, coords, spatial_shape, batch_siz
 
 def check_coords(coords: Tensor, n: Optional[int] = None) -> Tensor:
     check_shape(coords, "coords", ("N" if n is None else n, 4))
-    check_dtype(coords, "coords", _INT_DTYPES, hint=" ((batch, z, y, x) integer indices)")
+    check_dtype(coords, "coords", INDEX_DTYPES, hint=" ((batch, z, y, x) integer indices)")
     return check_nonnegative(coords, "coords", "(batch, z, y, x) indices")

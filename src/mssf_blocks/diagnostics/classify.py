@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from mssf_blocks.checks.tensors import (
+    INDEX_DTYPES,
     check_dtype,
     check_finite,
     check_floating,
@@ -27,7 +28,6 @@ from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
 
 __all__ = ["BlurClassification", "classify_feature_blurring", "classify_projection", "instance_foreground_counts"]
 
-_INT_DTYPES = (torch.int32, torch.int64)
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ def _check_per_centroid(centroids: Tensor, batch_index: Tensor, uv: Tensor, vali
     """
     n = centroids.shape[0]
     check_shape(batch_index, "batch_index", (n,))
-    check_dtype(batch_index, "batch_index", _INT_DTYPES)
+    check_dtype(batch_index, "batch_index", INDEX_DTYPES)
     uv, valid = _normalize_uv(uv, valid)
     if uv.shape[0] != n:
         raise MSSFError(f"uv: expected {n} rows (one per centroid), got shape {tuple(uv.shape)}")

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from mssf_blocks.checks.tensors import (
+    INDEX_DTYPES,
     autocast_off,
     check_dtype,
     check_finite,
@@ -41,7 +42,6 @@ __all__ = [
     "normalize_lidar2img",
 ]
 
-_INT_DTYPES = (torch.int32, torch.int64)
 
 
 def voxel_centers(
@@ -64,7 +64,7 @@ def voxel_centers(
         ``(N, 3)`` ``(x, y, z)`` centres: ``(index + 0.5) * voxel_size * stride + point_range_min``.
     """
     check_shape(coords, "coords", ("N", 4))
-    check_dtype(coords, "coords", _INT_DTYPES)
+    check_dtype(coords, "coords", INDEX_DTYPES)
     vs = check_triple(voxel_size, "voxel_size", float, positive=True)
     lo = check_triple(point_range_min, "point_range_min", float)
     sz, sy, sx = check_triple(stride, "stride", int, positive=True)
@@ -301,7 +301,7 @@ def project_points(
             raise MSSFError(f"{tname}: expected device {points.device} (of points), got {t.device}; move it with "
                             f".to(points.device)")
     check_finite(points[:, :3], "points[:, :3]")
-    check_dtype(points_batch, "points_batch", _INT_DTYPES)
+    check_dtype(points_batch, "points_batch", INDEX_DTYPES)
     l2i = normalize_lidar2img(lidar2img)
     batch_size = l2i.shape[0]
     check_index_range(points_batch, "points_batch", batch_size, "lidar2img.shape[0] (batch size)")

@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from mssf_blocks.checks.tensors import (
+    INDEX_DTYPES,
     check_dtype,
     check_finite,
     check_floating,
@@ -36,7 +37,6 @@ __all__ = [
     "voxel_foreground_labels",
 ]
 
-_INT_DTYPES = (torch.int32, torch.int64)
 _REDUCTIONS = ("positives", "sum", "mean", "none")
 
 
@@ -236,7 +236,7 @@ def voxel_foreground_labels(
     if centroids.shape[1] < 3:
         raise MSSFError(f"centroids: expected shape (N, >=3), got {tuple(centroids.shape)}")
     check_shape(batch_index, "batch_index", (centroids.shape[0],))
-    check_dtype(batch_index, "batch_index", _INT_DTYPES)
+    check_dtype(batch_index, "batch_index", INDEX_DTYPES)
     if isinstance(gt_boxes, Tensor) or not isinstance(gt_boxes, Sequence):
         raise MSSFError(
             f"gt_boxes: expected a list with one (G_b, 7) tensor per sample, got {type(gt_boxes).__name__}"

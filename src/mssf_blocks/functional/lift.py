@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 from mssf_blocks.checks.tensors import (
+    INDEX_DTYPES,
     check_dtype,
     check_finite,
     check_floating,
@@ -41,7 +42,6 @@ __all__ = [
     "bev_shape_for",
 ]
 
-_INT_DTYPES = (torch.int32, torch.int64)
 
 
 def bev_shape_for(grid_hw: Sequence[int], stride=1) -> Tuple[int, int]:
@@ -258,7 +258,7 @@ def voxelize_points(
         raise MSSFError(f"points: expected shape (P, >=3) with x, y, z first, got {tuple(points.shape)}")
     check_finite(points, "points")
     check_shape(points_batch, "points_batch", (points.shape[0],))
-    check_dtype(points_batch, "points_batch", _INT_DTYPES)
+    check_dtype(points_batch, "points_batch", INDEX_DTYPES)
     batch_size = check_positive_int(batch_size, "batch_size")
     check_index_range(points_batch, "points_batch", batch_size, "batch_size")
     check_batch_column(points, points_batch)

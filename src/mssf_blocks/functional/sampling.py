@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from mssf_blocks.checks.tensors import (
+    INDEX_DTYPES,
     check_dtype,
     check_finite,
     check_floating,
@@ -37,7 +38,6 @@ from mssf_blocks.functional.plan_costs import bilinear_auto_method
 
 __all__ = ["bilinear_sample", "camera_mean"]
 
-_INT_DTYPES = (torch.int32, torch.int64)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -97,7 +97,7 @@ def bilinear_sample(
     check_dtype(uv, "uv", (image.dtype,), hint=" (must match image)")
     n = dims["N"]
     check_shape(batch_index, "batch_index", (n,))
-    check_dtype(batch_index, "batch_index", _INT_DTYPES)
+    check_dtype(batch_index, "batch_index", INDEX_DTYPES)
     check_index_range(batch_index, "batch_index", b, "B")
     if valid is not None:
         check_shape(valid, "valid", (n, v))
