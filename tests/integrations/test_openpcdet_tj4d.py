@@ -16,6 +16,8 @@ from __future__ import annotations
 import copy
 import logging
 import pickle
+import re
+import shlex
 import shutil
 import sys
 import types
@@ -48,8 +50,18 @@ def tj4d(tools):
 
     shutil.copytree(CONFIGS / "tj4d_models", tools.root / "cfgs" / "tj4d_models", dirs_exist_ok=True)
     root = write_tj4d_tree(tools.root.parent / "data" / "TJ4DRadSet", mmdet3d_infos=False)
-    main(["create_tj4d_infos", "cfgs/dataset_configs/tj4d_dataset.yaml"])  # the documented command
+    (command,) = documented_lines("create_tj4d_infos")
+    main(shlex.split(command)[3:])  # docs/frameworks.md's line, as printed
     return types.SimpleNamespace(root=root, ckpt=tools.ckpt)
+
+
+def documented_lines(word):
+    """The ``python -m mssf_examples.openpcdet`` lines of docs/frameworks.md's "TJ4DRadSet in OpenPCDet" holding
+    ``word``."""
+    text = (Path(__file__).resolve().parents[2] / "docs" / "frameworks.md").read_text()
+    section = text.split("### TJ4DRadSet in OpenPCDet", 1)[1].split("\n### ", 1)[0]
+    return [line for block in re.findall(r"```bash\n(.*?)```", section, flags=re.S)
+            for line in block.replace("\\\n", " ").splitlines() if word in line]
 
 
 def tj4d_small(name, ckpt):

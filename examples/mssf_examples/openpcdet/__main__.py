@@ -20,7 +20,6 @@ import runpy
 import sys
 from pathlib import Path
 
-
 #: the infos commands: name -> (the dataset's default class names, a sample config)
 _INFOS = {"create_vod_infos": (("Car", "Pedestrian", "Cyclist"), "cfgs/dataset_configs/vod_radar5_dataset.yaml"),
           "create_tj4d_infos": (("Car", "Pedestrian", "Cyclist", "Truck"), "cfgs/dataset_configs/tj4d_dataset.yaml")}
