@@ -113,16 +113,6 @@ def test_tj4d_configs_are_the_vod_ones_with_tj4d_data(tj4d):
             assert head.CLASS_NAMES_EACH_HEAD == [CLASSES]
 
 
-def test_vod_single_scan_config_is_the_5_scan_one_at_radar(tools):
-    from easydict import EasyDict
-    from pcdet.config import cfg_from_yaml_file
-
-    one, five = (cfg_from_yaml_file(f"cfgs/dataset_configs/{n}.yaml", EasyDict())
-                 for n in ("vod_radar_dataset", "vod_radar5_dataset"))
-    assert one.DATA_PATH == "../data/view_of_delft/radar" and five.DATA_PATH == "../data/view_of_delft/radar_5frames"
-    assert _without(one, ["DATA_PATH"]) == _without(five, ["DATA_PATH"])
-
-
 def test_infos_and_dataset_read_8_float_points_png(tj4d):
     cfg = tj4d_small("mssf_second", tj4d.ckpt)
     dataset, loader, _ = build(cfg, training=False)
@@ -169,6 +159,8 @@ def test_trains_and_evaluates_with_the_tj4d_protocol(tj4d, name, tmp_path):
     if fusion:
         grads = [p.grad for n, p in model.backbone_3d.named_parameters() if ".fusion." in n]
         assert grads and all(g is not None for g in grads)
+    if "NMS_CONFIG" in cfg.MODEL.POST_PROCESSING:  # the anchor head: fewer of the untrained head's boxes into NMS
+        cfg.MODEL.POST_PROCESSING.NMS_CONFIG.NMS_PRE_MAXSIZE = 256
     _, test_loader, _ = build(keep_all_boxes(cfg), training=False)
     model.eval()
     args = types.SimpleNamespace(save_to_file=False, infer_time=False)
