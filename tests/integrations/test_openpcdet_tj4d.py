@@ -3,7 +3,8 @@
 A generated TJ4DRadSet tree (``tests/integrations/mmdet3d_vod_tree.write_tj4d_tree``: 8-float points,
 ``.png`` images, the four classes with a ``Truck`` in every frame; 2 training and 2 validation frames,
 304 x 484 images) is written under OpenPCDet's ``data/TJ4DRadSet``, its infos come from the documented
-``python -m mssf_examples.openpcdet create_tj4d_infos``, and every TJ4D model config (three detector kinds,
+``python -m mssf_examples.openpcdet create_tj4d_infos`` (docs/frameworks.md's line, run as printed, as are
+its ``train.py`` / ``test.py`` lines with CPU sizes), and every TJ4D model config (three detector kinds,
 each with its radar-only twin, shrunk as test_openpcdet_vod.py shrinks them) trains two steps through
 OpenPCDet's ``train_one_epoch`` and evaluates through ``eval_one_epoch`` with the dataset's
 ``evaluation()``. That evaluation is compared with the project's TJ4D evaluation
@@ -214,3 +215,29 @@ def test_tj4d_evaluation_equals_the_protocol_on_the_label_files(tj4d, tmp_path):
     # (with a few GTs per class the protocol fills only as many of its 41 recall slots: small APs here)
     assert compared == 48 and 0 < max(values) < 100  # every class present, neither empty nor perfect
     assert theirs["range_0_70"]["Truck"]["APBEV_R40"] > 0
+
+
+def test_documented_train_and_test_commands_run(tj4d, monkeypatch):
+    """docs/frameworks.md's TJ4DRadSet ``train.py`` and ``test.py`` lines, from tools/, with CPU sizes given through
+    OpenPCDet's own options (as test_openpcdet_vod.py runs the VoD ones): one epoch, then the saved checkpoint
+    evaluated with the TJ4D protocol."""
+    from mssf_examples.models.image_branch import ImageBranch
+    from mssf_examples.openpcdet.__main__ import main
+
+    monkeypatch.setattr("time.sleep", lambda seconds: None)  # repeat_eval_ckpt waits 30 s for new checkpoints
+    ckpt = tj4d.root.parents[1] / "checkpoints" / "htc_r50_fpn_image_branch.pth"  # the config's CHECKPOINT
+    ckpt.parent.mkdir(exist_ok=True)
+    torch.save(ImageBranch(depth=18, base_channels=8, fpn_channels=256, num_outs=4).state_dict(), ckpt)
+    # batch size 1: two steps over the two training frames (one-cycle's warm-up needs more than one)
+    cpu = ["--workers", "0", "--batch_size", "1", "--set", "MODEL.IMAGE_BRANCH.DEPTH", "18",
+           "MODEL.IMAGE_BRANCH.BASE_CHANNELS", "8", "OPTIMIZATION.PCT_START", "0.5"]
+    (train_line,) = documented_lines("train.py --cfg_file cfgs/tj4d")
+    (test_line,) = documented_lines("test.py")
+    main(["--pure-torch-nms", *shlex.split(train_line)[3:], "--epochs", "1", "--wo_gpu_stat", *cpu])
+    out = tj4d.root.parents[1] / "output" / "tj4d_models" / "mssf_voxelnext" / "default"
+    assert (out / "ckpt" / "checkpoint_epoch_1.pth").is_file()
+    log = "".join(p.read_text() for p in out.glob("*.log"))
+    assert "TJ4D range_0_50:" in log and "TJ4D range_all:" in log, log[-2000:]
+    main(["--pure-torch-nms", *shlex.split(test_line.replace("checkpoint_epoch_80", "checkpoint_epoch_1"))[3:], *cpu])
+    logs = list((out / "eval").rglob("log_eval_*.txt"))
+    assert logs and "TJ4D range_0_70:" in logs[-1].read_text()
