@@ -32,17 +32,17 @@ def write_tree(root: Path, train: int = 4, val: int = 2, image_size=(304, 484), 
     return write_generated_vod(root, train, val, image_size, seed)
 
 
-def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 11):
+def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 11,
+                    mmdet3d_infos: bool = True):
     """``root`` as a TJ4DRadSet release (``training/{velodyne,image_2,calib,label_2}``, ``ImageSets``) of
     generated scenes: the points stored as TJ4DRadSet's 8 floats (x, y, z, V_r, Range, Power, Alpha, Beta), the
-    first car of every frame labelled ``Truck`` (the fourth class), and ``tj4d_infos_{train,val}.pkl``.
-    Returns ``root`` (the data root)."""
+    first car of every frame labelled ``Truck`` (the fourth class), and (``mmdet3d_infos``) mmdet3d's
+    ``tj4d_infos_{train,val}.pkl``. Returns ``root`` (the data root)."""
     import shutil
 
     import numpy as np
 
     from mssf_examples.data.kitti_export import write_vod_tree
-    from mssf_examples.mmdet3d.infos import create_tj4d_infos
     from mssf_examples.scenes.synthetic import SceneConfig, SyntheticDataset
 
     cfg = SceneConfig(image_size=image_size, point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
@@ -64,7 +64,10 @@ def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 4
     (root / "ImageSets").mkdir()
     for split in ("train", "val"):
         (root / "ImageSets" / f"{split}.txt").write_text("\n".join(ids[split]) + "\n")
-    create_tj4d_infos(root, ("train", "val"))
+    if mmdet3d_infos:
+        from mssf_examples.mmdet3d.infos import create_tj4d_infos
+
+        create_tj4d_infos(root, ("train", "val"))
     return root
 
 

@@ -21,6 +21,8 @@ CHECK = """
 import pcdet.datasets as d, pcdet.models.backbones_3d as b, pcdet.models.detectors as m
 import mssf_examples.openpcdet.vod_dataset as v, mssf_examples.openpcdet.detectors as det
 assert d.__all__['VoDDataset'] is v.VoDDataset
+import mssf_examples.openpcdet.tj4d_dataset as t
+assert d.__all__['TJ4DDataset'] is t.TJ4DDataset and m.__all__['MSSFCenterPoint'] is det.MSSFCenterPoint
 assert {'MSSFVoxelBackBone8x', 'MSSFVoxelResBackBone8x', 'MSSFVoxelResBackBone8xVoxelNeXt'} <= set(b.__all__)
 assert m.__all__['MSSFVoxelNeXt'] is det.MSSFVoxelNeXt and m.__all__['MSSFSECONDNet'] is det.MSSFSECONDNet
 print('ok')

@@ -29,7 +29,7 @@ from mssf_blocks import MSSFError  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 CONFIGS = Path(__file__).resolve().parents[2] / "examples" / "configs" / "openpcdet"
-MODELS = ("mssf_second", "second_radar", "mssf_voxelnext", "voxelnext_radar")
+MODELS = ("mssf_second", "second_radar", "mssf_voxelnext", "voxelnext_radar", "mssf_centerpoint", "centerpoint_radar")
 
 
 @pytest.fixture(scope="module")
@@ -67,26 +67,29 @@ def tools(openpcdet, tmp_path_factory):
         os.chdir(cwd)
 
 
-def load(name):
+def load(name, folder="vod_models"):
     from easydict import EasyDict
     from pcdet.config import cfg_from_yaml_file
 
     cfg = EasyDict()
-    cfg_from_yaml_file(f"cfgs/vod_models/{name}.yaml", cfg)
+    cfg_from_yaml_file(f"cfgs/{folder}/{name}.yaml", cfg)
     cfg.LOCAL_RANK = 0
     return cfg
 
 
-def small(name, ckpt):
+def small(name, ckpt, folder="vod_models"):
     """The shipped config, shrunk for the CPU (no setting the tests check is changed)."""
-    cfg = load(name)
+    cfg = load(name, folder)
     cfg.DATA_CONFIG.DATA_PROCESSOR[-1].VOXEL_SIZE = [0.4, 0.4, 0.125]  # 128 x 128 x 40
     m = cfg.MODEL
     if "IMAGE_BRANCH" in m:
         m.IMAGE_BRANCH.update(DEPTH=18, BASE_CHANNELS=8, FPN_CHANNELS=16, CHECKPOINT=str(ckpt))
     m.BACKBONE_3D.update(IMAGE_CHANNELS=[16] * 4, MSDFF_HEADS=2, MSDFF_POINTS=2, SEG_HIDDEN=[16])
-    if m.NAME == "MSSFSECONDNet":
+    if m.NAME in ("MSSFSECONDNet", "MSSFCenterPoint"):
         m.BACKBONE_2D.update(LAYER_NUMS=[1, 1], NUM_FILTERS=[32, 64], NUM_UPSAMPLE_FILTERS=[32, 32])
+        if m.NAME == "MSSFCenterPoint":
+            m.DENSE_HEAD.SHARED_CONV_CHANNEL = 16
+            m.DENSE_HEAD.POST_PROCESSING.MAX_OBJ_PER_SAMPLE = 100  # at most the 16 x 16 BEV cells (top-k)
     else:
         m.BACKBONE_3D.update(CHANNELS=[8, 8, 16, 16, 32, 32, 32], OUT_CHANNELS=32)
         m.DENSE_HEAD.update(INPUT_FEATURES=32, SHARED_CONV_CHANNEL=32)

@@ -1,4 +1,5 @@
-"""MSSF for OpenPCDet: the View-of-Delft dataset, MSSF-SECOND and MSSF-VoxelNeXt (docs/frameworks.md).
+"""MSSF for OpenPCDet: the View-of-Delft and TJ4DRadSet datasets, MSSF-SECOND, MSSF-VoxelNeXt and MSSF-CenterPoint
+(docs/frameworks.md).
 
 ``register()`` inserts the classes into OpenPCDet's registries (the ``__all__`` dicts of
 ``pcdet.datasets``, ``pcdet.models.backbones_3d`` and ``pcdet.models.detectors``) for users who do
@@ -15,9 +16,9 @@ __all__ = ["register", "REGISTERED_NAMES"]
 
 #: registry -> the names :func:`register` adds to it
 REGISTERED_NAMES = {
-    "pcdet.datasets": ("VoDDataset",),
+    "pcdet.datasets": ("VoDDataset", "TJ4DDataset"),
     "pcdet.models.backbones_3d": ("MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt"),
-    "pcdet.models.detectors": ("MSSFSECONDNet", "MSSFVoxelNeXt"),
+    "pcdet.models.detectors": ("MSSFSECONDNet", "MSSFVoxelNeXt", "MSSFCenterPoint"),
 }
 
 
@@ -36,9 +37,11 @@ def register(pure_torch_box_ops: bool = False) -> Dict[str, tuple]:
     from mssf_blocks.integrations.openpcdet_backbones import OPENPCDET_BACKBONES
 
     from .detectors import MSSF_DETECTORS
+    from .tj4d_dataset import TJ4DDataset
     from .vod_dataset import VoDDataset
 
     datasets.__all__["VoDDataset"] = VoDDataset
+    datasets.__all__["TJ4DDataset"] = TJ4DDataset
     backbones_3d.__all__.update(OPENPCDET_BACKBONES)
     detectors.__all__.update(MSSF_DETECTORS)
     if pure_torch_box_ops:

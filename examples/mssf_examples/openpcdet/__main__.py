@@ -2,6 +2,8 @@
 
     python -m mssf_examples.openpcdet [--cpu] create_vod_infos CFG [--data_path DIR] [--save_path DIR]
         Write vod_infos_{train,val,trainval}.pkl from the dataset config CFG (DATA_PATH unless --data_path).
+    python -m mssf_examples.openpcdet [--cpu] create_tj4d_infos CFG [--data_path DIR] [--save_path DIR]
+        The same for TJ4DRadSet: tj4d_infos_{train,val,trainval}.pkl.
     python -m mssf_examples.openpcdet [--cpu] [--pure-torch-nms] SCRIPT.py ARGS...
         register() the MSSF classes, then run OpenPCDet's tools/SCRIPT.py (train.py, test.py) with ARGS,
         from the current folder (OpenPCDet's tools/, where its configs' relative paths resolve).
@@ -18,23 +20,30 @@ import runpy
 import sys
 from pathlib import Path
 
+#: the infos commands: name -> (the dataset's default class names, a sample config)
+_INFOS = {"create_vod_infos": (("Car", "Pedestrian", "Cyclist"), "cfgs/dataset_configs/vod_radar5_dataset.yaml"),
+          "create_tj4d_infos": (("Car", "Pedestrian", "Cyclist", "Truck"), "cfgs/dataset_configs/tj4d_dataset.yaml")}
 
-def _infos(argv) -> None:
-    parser = argparse.ArgumentParser(prog="python -m mssf_examples.openpcdet create_vod_infos")
-    parser.add_argument("cfg_file", help="the VoD dataset config (e.g. cfgs/dataset_configs/vod_radar5_dataset.yaml)")
-    parser.add_argument("--data_path", default=None, help="the VoD sensor folder; default: the config's DATA_PATH")
+
+def _infos(command: str, argv) -> None:
+    classes, sample = _INFOS[command]
+    parser = argparse.ArgumentParser(prog=f"python -m mssf_examples.openpcdet {command}")
+    parser.add_argument("cfg_file", help=f"the dataset config (e.g. {sample})")
+    parser.add_argument("--data_path", default=None, help="the release's folder; default: the config's DATA_PATH")
     parser.add_argument("--save_path", default=None, help="where the .pkl files go; default: the data path")
     parser.add_argument("--workers", type=int, default=4)
     args = parser.parse_args(argv)
-    import yaml
     from easydict import EasyDict
+    from pcdet.config import cfg_from_yaml_file
 
+    from .tj4d_dataset import create_tj4d_infos
     from .vod_dataset import create_vod_infos
 
-    cfg = EasyDict(yaml.safe_load(Path(args.cfg_file).read_text()))
+    cfg = cfg_from_yaml_file(args.cfg_file, EasyDict())  # OpenPCDet's reading: _BASE_CONFIG_ resolved
     data_path = Path(args.data_path or cfg.DATA_PATH)
-    create_vod_infos(cfg, cfg.get("CLASS_NAMES", ["Car", "Pedestrian", "Cyclist"]), data_path,
-                     Path(args.save_path) if args.save_path else data_path, workers=args.workers)
+    create = create_tj4d_infos if command == "create_tj4d_infos" else create_vod_infos
+    create(cfg, cfg.get("CLASS_NAMES", list(classes)), data_path, Path(args.save_path) if args.save_path else data_path,
+           workers=args.workers)
 
 
 def checkpoint_numpy_globals() -> list:
@@ -84,15 +93,16 @@ def main(argv=None) -> None:
     while argv and argv[0] in ("--cpu", "--pure-torch-nms"):
         flags.add(argv.pop(0))
     if not argv:
-        raise SystemExit("expected create_vod_infos or SCRIPT.py after the options (python -m mssf_examples.openpcdet -h)")
+        raise SystemExit("expected create_vod_infos, create_tj4d_infos or SCRIPT.py after the options "
+                         "(python -m mssf_examples.openpcdet -h)")
     cpu = "--cpu" in flags
     pure = cpu or "--pure-torch-nms" in flags
-    if argv[0] == "create_vod_infos":
+    if argv[0] in _INFOS:
         if cpu:
             from .cpu import prepare_cpu
 
             prepare_cpu(Path.cwd())
-        _infos(argv[1:])
+        _infos(argv[0], argv[1:])
         return
     script = Path(argv[0])
     if not script.is_file():

@@ -1,6 +1,7 @@
-"""MSSF-SECOND and MSSF-VoxelNeXt as OpenPCDet detectors (``MODEL.NAME: MSSFSECONDNet`` / ``MSSFVoxelNeXt``).
+"""MSSF-SECOND, MSSF-VoxelNeXt and MSSF-CenterPoint as OpenPCDet detectors (``MODEL.NAME: MSSFSECONDNet`` /
+``MSSFVoxelNeXt`` / ``MSSFCenterPoint``).
 
-Each is OpenPCDet's ``SECONDNet`` / ``VoxelNeXt`` with two changes:
+Each is OpenPCDet's ``SECONDNet`` / ``VoxelNeXt`` / ``CenterPoint`` with two changes:
 
 * an image branch (``MODEL.IMAGE_BRANCH``, :class:`~mssf_examples.openpcdet.image_module.OpenPCDetImageBranch`)
   runs first in ``module_list`` (before ``vfe`` and ``backbone_3d``) and writes the FPN levels the
@@ -19,6 +20,7 @@ import warnings
 from typing import Any, Dict
 
 import torch
+from pcdet.models.detectors.centerpoint import CenterPoint
 from pcdet.models.detectors.second_net import SECONDNet
 from pcdet.models.detectors.voxelnext import VoxelNeXt
 
@@ -27,7 +29,7 @@ from mssf_blocks.integrations.openpcdet import DEFAULT_AUGMENTOR_ORDER, augmento
 
 from .image_module import IMAGE_BRANCH_DEFAULTS, OpenPCDetImageBranch
 
-__all__ = ["MSSFSECONDNet", "MSSFVoxelNeXt", "MSSF_DETECTORS", "check_mssf_config"]
+__all__ = ["MSSFSECONDNet", "MSSFVoxelNeXt", "MSSFCenterPoint", "MSSF_DETECTORS", "check_mssf_config"]
 
 
 def check_mssf_config(model_cfg: Any, dataset_cfg: Any) -> bool:
@@ -68,7 +70,7 @@ def check_mssf_config(model_cfg: Any, dataset_cfg: Any) -> bool:
 
 
 class _MSSFDetector:
-    """What both detectors add to their OpenPCDet parent (listed first in the bases)."""
+    """What the detectors add to their OpenPCDet parent (listed first in the bases)."""
 
     def _add_image_branch(self, model_cfg: Any, dataset: Any) -> None:
         self.image_branch = None
@@ -176,5 +178,21 @@ class MSSFVoxelNeXt(_MSSFDetector, VoxelNeXt):
             dense_heads.__all__[name] = stock
 
 
+class MSSFCenterPoint(_MSSFDetector, CenterPoint):
+    """CenterPoint (``MSSFVoxelResBackBone8x`` + ``HeightCompression`` + ``BaseBEVBackbone`` + ``CenterHead``,
+    OpenPCDet's voxel CenterPoint) with the MSSF image branch and semantic loss."""
+
+    def __init__(self, model_cfg, num_class, dataset):
+        CenterPoint.__init__(self, model_cfg=model_cfg, num_class=num_class, dataset=dataset)
+        self._add_image_branch(model_cfg, dataset)
+        head = self.dense_head
+        cells = int(head.grid_size[0] // head.feature_map_stride) * int(head.grid_size[1] // head.feature_map_stride)
+        k = int(head.model_cfg.POST_PROCESSING.MAX_OBJ_PER_SAMPLE)
+        if k > cells:  # CenterHead's decoding takes the top k of each class's heatmap: torch.topk fails later
+            raise MSSFError(f"MODEL.DENSE_HEAD.POST_PROCESSING.MAX_OBJ_PER_SAMPLE: {k} is more than the {cells} cells "
+                            f"of the heatmap (POINT_CLOUD_RANGE / VOXEL_SIZE / FEATURE_MAP_STRIDE "
+                            f"{head.feature_map_stride}); expected at most {cells}")
+
+
 #: what to merge into ``pcdet.models.detectors.__all__``
-MSSF_DETECTORS = {"MSSFSECONDNet": MSSFSECONDNet, "MSSFVoxelNeXt": MSSFVoxelNeXt}
+MSSF_DETECTORS = {"MSSFSECONDNet": MSSFSECONDNet, "MSSFVoxelNeXt": MSSFVoxelNeXt, "MSSFCenterPoint": MSSFCenterPoint}
