@@ -58,12 +58,15 @@ def parse_args(argv=None):
     ap.add_argument("--fusion-blocks", type=int, default=1, help="n of the fusion models (the demo's 1)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=1, help="data-loader workers of the frameworks")
+    ap.add_argument("--openpcdet", type=Path, default=None,
+                    help="an OpenPCDet clone (default: ../shared/thirdparty's archive, unpacked into --out)")
     ap.add_argument("--out", type=Path, default=ROOT / "outputs" / "framework_gap")
     ap.add_argument("--smoke", action="store_true", help="a few steps on a few small scenes (checks the path)")
     args = ap.parse_args(argv)
     if args.smoke:
-        args.steps, args.train_scenes, args.val_scenes, args.image_pretrain_steps = 2, 4, 2, 2
-        args.batch_size = min(args.batch_size, 2)
+        # one epoch of 4 steps: OpenPCDet's one-cycle schedule divides by its warm-up length (0 below 3 steps)
+        args.steps, args.train_scenes, args.val_scenes, args.image_pretrain_steps = 4, 4, 2, 2
+        args.batch_size = 1
     for name in ("steps", "batch_size", "train_scenes", "val_scenes", "image_pretrain_steps", "fusion_blocks"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')}: expected a positive int, got {getattr(args, name)}")
