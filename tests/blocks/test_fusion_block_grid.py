@@ -1,6 +1,7 @@
 """FusionBlock on one VoxelGrid (issue 43): the stride of an spconv input read from its shape, the query
 built by the block, the head's centroids handed back, and the old argument forms refused or kept."""
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -88,6 +89,13 @@ def test_the_head_centroids_when_the_head_reads_other_voxels():
     assert res.head_voxels.num_voxels > voxels.num_voxels  # dilated
     again = VoxelCentroidProjector()(res.head_voxels, inputs.points, inputs.points_batch, inputs.lidar2img,
                                      inputs.image_size)
+    torch.testing.assert_close(res.centroids, again.centroid, rtol=0, atol=0)
+    # half-precision points (autocast inputs): the centroids of the new voxels in float32, as the projector's
+    half = dataclasses.replace(inputs, points=inputs.points.half())
+    with torch.no_grad():
+        res = block(voxels, half, return_logits=True)
+    again = VoxelCentroidProjector()(res.head_voxels, half.points, half.points_batch, half.lidar2img, half.image_size)
+    assert res.centroids.dtype == torch.float32
     torch.testing.assert_close(res.centroids, again.centroid, rtol=0, atol=0)
 
 

@@ -302,3 +302,27 @@ def test_bad_inputs_raise_clear_errors():
         camera_from_batch_dict(no_cam)
     with pytest.raises(MSSFError, match="random_image_flip"):
         augmentor_order({"AUG_CONFIG_LIST": [{"NAME": "random_image_flip"}]})
+
+
+def test_kitti_batch_with_a_resize_record_projects_into_the_resized_image():
+    """``img_aug_matrix`` on a KITTI batch (the examples' image branch ``IMAGE_SIZE``): the pixels of the resized
+    image, by hand: with edges aligned, pixel centre ``u`` of a ``W``-wide image lands at ``(u + 0.5) w / W - 0.5``
+    of the ``w``-wide one (``v`` alike)."""
+    plain, batch = make_batches(stock_augment)
+    (h0, w0), (h, w) = batch["images"].shape[-2:], (30, 160)
+    sx, sy = w / w0, h / h0
+    m = np.eye(4)
+    m[0, 0], m[1, 1], m[0, 3], m[1, 3] = sx, sy, 0.5 * sx - 0.5, 0.5 * sy - 0.5
+    batch["img_aug_matrix"] = torch.from_numpy(np.broadcast_to(m, (2, 1, 4, 4)).copy()).float()
+    batch["images"] = torch.nn.functional.interpolate(batch["images"], size=(h, w), mode="bilinear")
+    batch["image_fpn"] = fpn(2, (h, w))
+    inputs = fusion_inputs_from_batch_dict(batch)
+    ref = reference_pixels(plain, 2)
+    pix, depth = adapter_pixels(inputs)
+    expected = torch.stack([(ref[:, 0] + 0.5) * sx - 0.5, (ref[:, 1] + 0.5) * sy - 0.5], 1)
+    torch.testing.assert_close(depth, ref[:, 2], rtol=0, atol=2e-4)
+    torch.testing.assert_close(pix, expected, rtol=0, atol=2e-3 * max(sx, sy) + 1e-6)
+    assert inputs.image_size == (h, w)
+    batch["img_aug_matrix"] = batch["img_aug_matrix"][:1]  # one record for a batch of two
+    with pytest.raises(MSSFError, match="img_aug_matrix"):
+        fusion_inputs_from_batch_dict(batch)

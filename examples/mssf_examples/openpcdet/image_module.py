@@ -13,6 +13,14 @@ Model config (``MODEL.IMAGE_BRANCH``)::
         MEAN: [0.485, 0.456, 0.406]   # on [0, 1] RGB, as OpenPCDet's KittiDataset loads images
         STD: [0.229, 0.224, 0.225]
         OUTPUT_KEY: image_fpn     # = BACKBONE_3D.IMAGE_FEATURES_KEY
+        IMAGE_SIZE: [608, 968]    # optional (H, W) the branch resizes the images to (default: as loaded)
+
+OpenPCDet's KITTI-style datasets have no image resize: a VoD frame reaches the model at 1216 x 1936. With
+``IMAGE_SIZE`` the branch resizes ``batch_dict['images']`` (bilinear, antialiased, edges aligned: the image
+tensor is replaced) and records the resize as BEVFusion's ``img_aug_matrix`` ``(B, 1, 4, 4)`` (composed with
+one already there), which the fusion blocks apply to ``trans_cam_to_img @ trans_lidar_to_cam`` in exact
+pixel-centre form (:func:`mssf_blocks.geometry.image_augmentation_matrix`). Boxes and evaluation keep the
+calibration files: only the image the network sees changes.
 """
 
 from __future__ import annotations
@@ -21,9 +29,12 @@ from pathlib import Path
 from typing import Any, Dict, Mapping
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from mssf_blocks.checks.arguments import check_image_size
 from mssf_blocks.errors import MSSFError
+from mssf_blocks.geometry import image_augmentation_matrix
 
 from ..models.image_branch import ImageBranch
 
@@ -45,7 +56,7 @@ def expect_trained_checkpoint(expected: bool = True) -> None:
 IMAGE_BRANCH_DEFAULTS: Dict[str, Any] = {
     "DEPTH": 50, "BASE_CHANNELS": 64, "FPN_CHANNELS": 256, "NUM_OUTS": 4, "FROZEN": True, "CHECKPOINT": None,
     "CHECKPOINT_PREFIXES": {"img_backbone.": "backbone.", "img_neck.": "neck."},
-    "MEAN": [0.485, 0.456, 0.406], "STD": [0.229, 0.224, 0.225], "OUTPUT_KEY": "image_fpn",
+    "MEAN": [0.485, 0.456, 0.406], "STD": [0.229, 0.224, 0.225], "OUTPUT_KEY": "image_fpn", "IMAGE_SIZE": None,
 }
 
 
@@ -91,6 +102,8 @@ class OpenPCDetImageBranch(nn.Module):
         cfg = {**IMAGE_BRANCH_DEFAULTS, **dict(model_cfg)}
         self.cfg = cfg
         self.output_key = str(cfg["OUTPUT_KEY"])
+        self.image_size = None if cfg["IMAGE_SIZE"] is None else \
+            check_image_size(cfg["IMAGE_SIZE"], name="MODEL.IMAGE_BRANCH.IMAGE_SIZE")
         self.branch = ImageBranch(depth=int(cfg["DEPTH"]), base_channels=int(cfg["BASE_CHANNELS"]),
                                   fpn_channels=int(cfg["FPN_CHANNELS"]), num_outs=int(cfg["NUM_OUTS"]),
                                   frozen=bool(cfg["FROZEN"]), channels_last=False)
@@ -107,6 +120,23 @@ class OpenPCDetImageBranch(nn.Module):
         self.register_buffer("mean", torch.tensor(cfg["MEAN"], dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(cfg["STD"], dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
 
+    def _resize(self, batch_dict: Dict[str, Any], images: torch.Tensor) -> torch.Tensor:
+        """``IMAGE_SIZE``: the resized images (written back to the batch) and their ``img_aug_matrix``. The batch's
+        images are padded at the bottom / right to the largest: one factor per axis for all, exact for each."""
+        a, _ = image_augmentation_matrix(tuple(images.shape[-2:]), resize=self.image_size)
+        m = torch.eye(4, dtype=torch.float64)
+        m[:2, :2], m[:2, 3] = a[:2, :2], a[:2, 2]
+        b = images.shape[0]
+        prev = batch_dict.get("img_aug_matrix", None)
+        if prev is not None:
+            m = m @ torch.as_tensor(prev, dtype=torch.float64).cpu()  # after the augmentation already recorded
+        else:
+            m = m.expand(b, 1, 4, 4)
+        batch_dict["img_aug_matrix"] = m.to(images.device)
+        resized = F.interpolate(images, size=self.image_size, mode="bilinear", align_corners=False, antialias=True)
+        batch_dict["images"] = resized
+        return resized
+
     @property
     def level_channels(self) -> list:
         return [int(self.cfg["FPN_CHANNELS"])] * int(self.cfg["NUM_OUTS"])
@@ -120,6 +150,8 @@ class OpenPCDetImageBranch(nn.Module):
         if not torch.is_tensor(images) or images.dim() != 4 or images.shape[1] != 3:
             raise MSSFError("batch_dict['images']: expected (B, 3, H, W) (DATA_CONFIG.GET_ITEM_LIST with 'images'), "
                             f"got {getattr(images, 'shape', type(images).__name__)}")
+        if self.image_size is not None and tuple(images.shape[-2:]) != self.image_size:
+            images = self._resize(batch_dict, images)
         x = (images - self.mean) / self.std
         levels = self.branch(x.unsqueeze(1))  # (B, 1, C, h, w) per level
         batch_dict[self.output_key] = tuple(lvl[:, 0] for lvl in levels)

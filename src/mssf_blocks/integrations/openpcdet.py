@@ -182,7 +182,8 @@ def camera_from_batch_dict(batch_dict: Mapping) -> Tuple[Tensor, Tuple[int, int]
     """``(lidar2img (B, V, 3, 4) float64, image_size (H, W))`` from the batch's camera keys.
 
     ``lidar2image`` (+ ``img_aug_matrix``) when present, otherwise ``trans_cam_to_img @
-    trans_lidar_to_cam`` (one camera). ``image_size`` is that of the (padded) image tensor.
+    trans_lidar_to_cam`` (one camera; + ``img_aug_matrix`` ``(B, 1, 4, 4)`` when present, e.g. the examples'
+    image branch's resize). ``image_size`` is that of the (padded) image tensor.
     """
     b = int(batch_dict["batch_size"])
     if "lidar2image" in batch_dict:
@@ -194,6 +195,9 @@ def camera_from_batch_dict(batch_dict: Mapping) -> Tuple[Tensor, Tuple[int, int]
         l2c = as_float64(batch_dict["trans_lidar_to_cam"], "trans_lidar_to_cam", (b, 4, 4))
         c2i = as_float64(batch_dict["trans_cam_to_img"], "trans_cam_to_img", (b, 3, 4))
         l2i = (c2i @ l2c)[:, None]
+        if "img_aug_matrix" in batch_dict:  # e.g. the image branch's IMAGE_SIZE resize (one camera)
+            aug = as_float64(batch_dict["img_aug_matrix"], "img_aug_matrix", (b, 1, 4, 4))
+            l2i = apply_image_augmentation(l2i, pixel_affine_from_4x4(aug, "img_aug_matrix"))
     else:
         raise MSSFError(
             "batch_dict: expected camera matrices, lidar2image (BEVFusion/nuScenes) or trans_lidar_to_cam + "
