@@ -1,7 +1,7 @@
-"""MSSF for OpenPCDet: the View-of-Delft dataset, MSSF-SECOND and MSSF-VoxelNeXt (docs/frameworks.md).
+"""MSSF for OpenPCDet: the View-of-Delft dataset, MSSF-SECOND, MSSF-VoxelNeXt and MSSF-PP (docs/frameworks.md).
 
 ``register()`` inserts the classes into OpenPCDet's registries (the ``__all__`` dicts of
-``pcdet.datasets``, ``pcdet.models.backbones_3d`` and ``pcdet.models.detectors``) for users who do
+``pcdet.datasets``, ``pcdet.models.backbones_3d``, ``pcdet.models.backbones_2d`` and ``pcdet.models.detectors``) for users who do
 not edit pcdet's ``__init__.py`` files; ``python -m mssf_examples.openpcdet train.py --cfg_file ...``
 registers and then runs one of OpenPCDet's ``tools/`` scripts. Importing this package does not import
 OpenPCDet; ``register()`` and the submodules ``vod_dataset`` / ``detectors`` do.
@@ -17,7 +17,8 @@ __all__ = ["register", "REGISTERED_NAMES"]
 REGISTERED_NAMES = {
     "pcdet.datasets": ("VoDDataset",),
     "pcdet.models.backbones_3d": ("MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt"),
-    "pcdet.models.detectors": ("MSSFSECONDNet", "MSSFVoxelNeXt"),
+    "pcdet.models.backbones_2d": ("MSSFBaseBEVBackbone",),
+    "pcdet.models.detectors": ("MSSFSECONDNet", "MSSFVoxelNeXt", "MSSFPointPillar"),
 }
 
 
@@ -30,16 +31,19 @@ def register(pure_torch_box_ops: bool = False) -> Dict[str, tuple]:
             evaluation on a machine where OpenPCDet's extensions are not built.
     """
     import pcdet.datasets as datasets
+    import pcdet.models.backbones_2d as backbones_2d
     import pcdet.models.backbones_3d as backbones_3d
     import pcdet.models.detectors as detectors
 
     from mssf_blocks.integrations.openpcdet_backbones import OPENPCDET_BACKBONES
 
+    from .bev_backbone import OPENPCDET_BEV_BACKBONES
     from .detectors import MSSF_DETECTORS
     from .vod_dataset import VoDDataset
 
     datasets.__all__["VoDDataset"] = VoDDataset
     backbones_3d.__all__.update(OPENPCDET_BACKBONES)
+    backbones_2d.__all__.update(OPENPCDET_BEV_BACKBONES)
     detectors.__all__.update(MSSF_DETECTORS)
     if pure_torch_box_ops:
         from .box_ops import use_pure_torch_box_ops
