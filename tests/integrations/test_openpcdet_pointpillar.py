@@ -290,3 +290,41 @@ def test_config_errors_name_the_key(tools):
         MSSFBaseBEVBackbone(b2, 16, voxel_size=[0.32, 0.32, 0.125], point_cloud_range=grid["point_cloud_range"])
     with pytest.raises(MSSFError, match="voxel_size, point_cloud_range: required"):
         MSSFBaseBEVBackbone(b2, 16)
+
+
+def documented_pointpillar_commands():
+    """The ``python -m mssf_examples.openpcdet`` lines of docs/frameworks.md's MSSF-PP section, as argv."""
+    import re
+    import shlex
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "frameworks.md").read_text()
+    section = text.split("### MSSF-PP (PointPillars)", 1)[1].split("\n### ", 1)[0]
+    lines = [line for block in re.findall(r"```bash\n(.*?)```", section, flags=re.S) for line in block.splitlines()]
+    return [shlex.split(line)[3:] for line in lines if line.startswith("python -m mssf_examples.openpcdet ")]
+
+
+def test_documented_commands_run_openpcdet_train_py(tools, monkeypatch):
+    """The section's commands, from tools/, with CPU sizes through train.py's own options: OpenPCDet's train.py
+    trains each model one epoch, saves a checkpoint and evaluates it with the VoD evaluation."""
+    from mssf_examples.models.image_branch import ImageBranch
+    from mssf_examples.openpcdet.__main__ import main
+
+    monkeypatch.setattr("time.sleep", lambda seconds: None)  # repeat_eval_ckpt waits 30 s for new checkpoints
+    ckpt = tools.root.parent / "checkpoints" / "htc_r50_fpn_image_branch.pth"  # the config's CHECKPOINT
+    ckpt.parent.mkdir(exist_ok=True)
+    torch.save(ImageBranch(depth=18, base_channels=8, fpn_channels=256, num_outs=4).state_dict(), ckpt)
+    commands = documented_pointpillar_commands()
+    assert [c[:3] for c in commands] == [["train.py", "--cfg_file", f"cfgs/vod_models/{n}.yaml"] for n in (MSSF, TWIN)]
+    narrow = ["MODEL.VFE.NUM_FILTERS", "[16]", "MODEL.MAP_TO_BEV.NUM_BEV_FEATURES", "16",
+              "MODEL.BACKBONE_2D.LAYER_NUMS", "[1,1,1]", "MODEL.BACKBONE_2D.NUM_FILTERS", "[16,32,32]",
+              "MODEL.BACKBONE_2D.NUM_UPSAMPLE_FILTERS", "[16,16,16]", "OPTIMIZATION.PCT_START", "0.5"]
+    image = ["MODEL.IMAGE_BRANCH.DEPTH", "18", "MODEL.IMAGE_BRANCH.BASE_CHANNELS", "8",
+             "MODEL.BACKBONE_2D.MSDFF_HEADS", "2", "MODEL.BACKBONE_2D.SEG_HIDDEN", "[16]"]
+    for argv, name in zip(commands, (MSSF, TWIN)):
+        cpu = ["--epochs", "1", "--workers", "0", "--extra_tag", "cpu_test", "--batch_size", "2", "--wo_gpu_stat",
+               "--set", *narrow, *(image if name == MSSF else [])]
+        main(["--pure-torch-nms", *argv, *cpu])
+        out = tools.root.parent / "output" / "vod_models" / name / "cpu_test"
+        assert (out / "ckpt" / "checkpoint_epoch_1.pth").is_file()
+        log = "".join(p.read_text() for p in out.glob("*.log"))
+        assert "VoD entire_area:" in log and "VoD driving_corridor:" in log, log[-2000:]
