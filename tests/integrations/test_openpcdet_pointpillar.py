@@ -286,7 +286,8 @@ def test_config_errors_name_the_key(tools):
         bad[key] = value
         with pytest.raises(MSSFError, match=match):
             MSSFBaseBEVBackbone(bad, 16, **grid)
-    with pytest.raises(MSSFError, match="a pillar spans the whole z range 5 m, got z size 0.125"):
+    z_size = r"VOXEL_SIZE: a pillar spans the whole z range 5 m \(POINT_CLOUD_RANGE\), got z size 0.125"
+    with pytest.raises(MSSFError, match=z_size):
         MSSFBaseBEVBackbone(b2, 16, voxel_size=[0.32, 0.32, 0.125], point_cloud_range=grid["point_cloud_range"])
     with pytest.raises(MSSFError, match="voxel_size, point_cloud_range: required"):
         MSSFBaseBEVBackbone(b2, 16)
@@ -299,7 +300,7 @@ def documented_pointpillar_commands():
 
     text = (Path(__file__).resolve().parents[2] / "docs" / "frameworks.md").read_text()
     section = text.split("### MSSF-PP (PointPillars)", 1)[1].split("\n### ", 1)[0]
-    lines = [line for block in re.findall(r"```bash\n(.*?)```", section, flags=re.S) for line in block.splitlines()]
+    lines = [line for block in re.findall(r"```bash\n(.*?)```", section, flags=re.DOTALL) for line in block.splitlines()]
     return [shlex.split(line)[3:] for line in lines if line.startswith("python -m mssf_examples.openpcdet ")]
 
 

@@ -114,8 +114,8 @@ class MSSFBaseBEVBackbone(BaseBEVBackbone):
         pcr = tuple(float(v) for v in point_cloud_range)
         vx, vy, vz = (float(v) for v in voxel_size)
         if abs((pcr[5] - pcr[2]) - vz) > 1e-6:
-            raise MSSFError(f"DATA_CONFIG VOXEL_SIZE: a pillar spans the whole z range {pcr[5] - pcr[2]:g} m, got z "
-                            f"size {vz:g}")
+            raise MSSFError(f"DATA_CONFIG.DATA_PROCESSOR transform_points_to_voxels VOXEL_SIZE: a pillar spans the "
+                            f"whole z range {pcr[5] - pcr[2]:g} m (POINT_CLOUD_RANGE), got z size {vz:g}")
         self.lift_grid = VoxelGrid(voxel_size=(vx, vy, float(s["LIFT_Z_SIZE"])), point_cloud_range=pcr)
         image_channels = [int(c) for c in s["IMAGE_CHANNELS"]]
         seg_hidden = s["SEG_HIDDEN"]

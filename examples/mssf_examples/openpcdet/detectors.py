@@ -9,6 +9,9 @@ Each is OpenPCDet's ``SECONDNet`` / ``VoxelNeXt`` / ``PointPillar`` with two cha
 * ``get_training_loss(batch_dict)`` adds the semantic-guided head's focal loss
   (``backbone_3d.get_loss``, ``tb_dict['loss_mssf_seg']``) to the dense head's.
 
+MSSF-PP fuses in its 2D backbone: read ``BACKBONE_2D`` / ``backbone_2d`` for ``BACKBONE_3D`` /
+``backbone_3d`` there (``FUSION_MODULE``).
+
 The configuration is checked when the model is built; errors name the key (image levels / channels
 against ``BACKBONE_3D.IMAGE_CHANNELS``, ``DATA_CONFIG.GET_ITEM_LIST`` without images, ``AUG_ORDER``
 against ``DATA_AUGMENTOR.AUG_CONFIG_LIST``). Importing this module imports OpenPCDet.
