@@ -196,7 +196,8 @@ def test_fusion_removed_equals_openpcdets_pointpillar(tools):
             torch.testing.assert_close(pb[key], pa[key], rtol=0, atol=0)
 
 
-def test_fusion_equals_the_example_pointpillars_backbone(tools):
+@pytest.mark.parametrize("fusion, position", [("msdff", "before_residual"), ("sff", "after_residual")])
+def test_fusion_equals_the_example_pointpillars_backbone(tools, fusion, position):
     """MSSFBaseBEVBackbone's fusion = the example PointPillarsBackbone's (what mmdet3d's MSSFPillarEncoder
     runs: its own lift voxels, fusion blocks, pillar sum and semantic head) on the same scattered pillar
     features and the same camera inputs, weights copied: the same BEV map and seg logits."""
@@ -209,6 +210,7 @@ def test_fusion_equals_the_example_pointpillars_backbone(tools):
 
     torch.manual_seed(0)
     cfg = small(MSSF, tools.ckpt)
+    cfg.MODEL.BACKBONE_2D.update(FUSION=fusion, FUSION_POSITION=position)
     _, loader, model = build(cfg, training=False)
     model.eval()
     batch = _eval_batch(loader)
@@ -221,7 +223,8 @@ def test_fusion_equals_the_example_pointpillars_backbone(tools):
     ref = PointPillarsBackbone(7, grid, lift_z_size=b2.LIFT_Z_SIZE, pfn_channels=16, layer_nums=b2.LAYER_NUMS,
                                layer_strides=b2.LAYER_STRIDES, num_filters=b2.NUM_FILTERS,
                                upsample_strides=b2.UPSAMPLE_STRIDES, num_upsample_filters=b2.NUM_UPSAMPLE_FILTERS,
-                               num_fusion_blocks=2, image_channels=[16] * 4, msdff_heads=2, msdff_points=2,
+                               num_fusion_blocks=2, fusion=fusion, fusion_position=position,
+                               image_channels=[16] * 4, msdff_heads=2, msdff_points=2,
                                seg_hidden=(16,))
     with torch.no_grad():  # off the initial values everywhere (zero-initialised attention weights included)
         for p in bb.parameters():
