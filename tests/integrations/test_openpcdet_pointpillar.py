@@ -278,6 +278,10 @@ def test_config_errors_name_the_key(tools):
     bad.MODEL.BACKBONE_2D.AUG_ORDER = ["random_world_rotation", "random_world_flip", "random_world_scaling"]
     with pytest.raises(MSSFError, match="MODEL.BACKBONE_2D.AUG_ORDER.*AUG_CONFIG_LIST"):
         build(bad)
+    bad = copy.deepcopy(cfg)
+    bad.MODEL.BACKBONE_2D.NAME = "BaseBEVBackbone"  # OpenPCDet's would ignore the fusion keys
+    with pytest.raises(MSSFError, match="MODEL.BACKBONE_2D.NAME: NUM_FUSION_BLOCKS 2 needs MSSFBaseBEVBackbone"):
+        build(bad)
     b2 = cfg.MODEL.BACKBONE_2D
     grid = {"voxel_size": [0.32, 0.32, 5], "point_cloud_range": [0, -25.6, -3, 51.2, 25.6, 2]}
     for key, value, match in (("NUM_FUSION_BLOCK", 2, r"MODEL.BACKBONE_2D: unknown keys \['NUM_FUSION_BLOCK'\]"),

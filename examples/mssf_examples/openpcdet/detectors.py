@@ -204,6 +204,9 @@ class MSSFPointPillar(_MSSFDetector, PointPillar):
 
         cfg = self.model_cfg.get("BACKBONE_2D", None)
         if cfg is None or cfg.NAME != "MSSFBaseBEVBackbone":
+            if cfg is not None and int(cfg.get("NUM_FUSION_BLOCKS", 0) or 0) > 0:  # would run without fusing
+                raise MSSFError(f"MODEL.BACKBONE_2D.NAME: NUM_FUSION_BLOCKS {cfg.NUM_FUSION_BLOCKS} needs "
+                                f"MSSFBaseBEVBackbone (the 2D backbone that fuses), got {cfg.NAME!r}")
             return super().build_backbone_2d(model_info_dict)
         module = MSSFBaseBEVBackbone(cfg, input_channels=model_info_dict["num_bev_features"],
                                      voxel_size=model_info_dict["voxel_size"],
