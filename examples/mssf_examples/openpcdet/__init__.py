@@ -16,7 +16,8 @@ __all__ = ["register", "REGISTERED_NAMES"]
 #: registry -> the names :func:`register` adds to it
 REGISTERED_NAMES = {
     "pcdet.datasets": ("VoDDataset",),
-    "pcdet.models.backbones_3d": ("MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt"),
+    "pcdet.models.backbones_3d": ("MSSFVoxelBackBone8x", "MSSFVoxelResBackBone8x", "MSSFVoxelResBackBone8xVoxelNeXt",
+                                  "MSSFVoxelResBackBone8xVoxelNeXt2D"),
     "pcdet.models.backbones_2d": ("MSSFBaseBEVBackbone",),
     "pcdet.models.detectors": ("MSSFSECONDNet", "MSSFVoxelNeXt", "MSSFPointPillar"),
 }
@@ -39,10 +40,14 @@ def register(pure_torch_box_ops: bool = False) -> Dict[str, tuple]:
 
     from .bev_backbone import OPENPCDET_BEV_BACKBONES
     from .detectors import MSSF_DETECTORS
+    from .scatter_ops import use_pure_torch_scatter
+    from .voxelnext2d_backbone import OPENPCDET_PILLAR_BACKBONES
     from .vod_dataset import VoDDataset
 
     datasets.__all__["VoDDataset"] = VoDDataset
     backbones_3d.__all__.update(OPENPCDET_BACKBONES)
+    backbones_3d.__all__.update(OPENPCDET_PILLAR_BACKBONES)
+    use_pure_torch_scatter()  # VoxelNeXt-2D's DynamicPillarVFESimple2D, where torch_scatter is not installed
     backbones_2d.__all__.update(OPENPCDET_BEV_BACKBONES)
     detectors.__all__.update(MSSF_DETECTORS)
     if pure_torch_box_ops:

@@ -88,6 +88,8 @@ class _MSSFDetector:
 
     def forward(self, batch_dict: Dict[str, Any]):
         coords = batch_dict.get("voxel_coords", None)
+        if coords is None:  # a dynamic VFE (VoxelNeXt-2D) groups the points itself
+            coords = batch_dict.get("points", None)
         if coords is not None and coords.shape[0] == 0:  # a shape: no host read
             return self._batch_without_voxels(batch_dict)
         for cur_module in self.module_list:
