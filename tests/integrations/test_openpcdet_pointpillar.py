@@ -300,13 +300,13 @@ def test_config_errors_name_the_key(tools):
         MSSFBaseBEVBackbone(b2, 16)
 
 
-def documented_pointpillar_commands():
-    """The ``python -m mssf_examples.openpcdet`` lines of docs/frameworks.md's MSSF-PP section, as argv."""
+def documented_commands(section="MSSF-PP (PointPillars)"):
+    """The ``python -m mssf_examples.openpcdet`` lines of a docs/frameworks.md section (``### <section>``), as argv."""
     import re
     import shlex
 
     text = (Path(__file__).resolve().parents[2] / "docs" / "frameworks.md").read_text()
-    section = text.split("### MSSF-PP (PointPillars)", 1)[1].split("\n### ", 1)[0]
+    section = text.split(f"### {section}\n", 1)[1].split("\n### ", 1)[0]
     lines = [line for block in re.findall(r"```bash\n(.*?)```", section, flags=re.DOTALL) for line in block.splitlines()]
     return [shlex.split(line)[3:] for line in lines if line.startswith("python -m mssf_examples.openpcdet ")]
 
@@ -321,7 +321,7 @@ def test_documented_commands_run_openpcdet_train_py(tools, monkeypatch):
     ckpt = tools.root.parent / "checkpoints" / "htc_r50_fpn_image_branch.pth"  # the config's CHECKPOINT
     ckpt.parent.mkdir(exist_ok=True)
     torch.save(ImageBranch(depth=18, base_channels=8, fpn_channels=256, num_outs=4).state_dict(), ckpt)
-    commands = documented_pointpillar_commands()
+    commands = documented_commands()
     assert [c[:3] for c in commands] == [["train.py", "--cfg_file", f"cfgs/vod_models/{n}.yaml"] for n in (MSSF, TWIN)]
     narrow = ["MODEL.VFE.NUM_FILTERS", "[16]", "MODEL.MAP_TO_BEV.NUM_BEV_FEATURES", "16",
               "MODEL.BACKBONE_2D.LAYER_NUMS", "[1,1,1]", "MODEL.BACKBONE_2D.NUM_FILTERS", "[16,32,32]",

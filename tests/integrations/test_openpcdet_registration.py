@@ -25,6 +25,8 @@ assert d.__all__['VoDDataset'] is v.VoDDataset
 assert {'MSSFVoxelBackBone8x', 'MSSFVoxelResBackBone8x', 'MSSFVoxelResBackBone8xVoxelNeXt'} <= set(b.__all__)
 assert m.__all__['MSSFVoxelNeXt'] is det.MSSFVoxelNeXt and m.__all__['MSSFSECONDNet'] is det.MSSFSECONDNet
 assert m.__all__['MSSFPointPillar'] is det.MSSFPointPillar and b2.__all__['MSSFBaseBEVBackbone'] is bev.MSSFBaseBEVBackbone
+import mssf_examples.openpcdet.voxelnext2d_backbone as vn2d
+assert b.__all__['MSSFVoxelResBackBone8xVoxelNeXt2D'] is vn2d.MSSFVoxelResBackBone8xVoxelNeXt2D
 print('ok')
 """
 

@@ -243,3 +243,28 @@ def test_config_errors_name_the_key(tools):
     bad.MODEL.BACKBONE_3D.IMAGE_CHANNELS = [16, 16]
     with pytest.raises(MSSFError, match="MODEL.BACKBONE_3D.IMAGE_CHANNELS"):
         build(bad)
+
+
+def test_documented_commands_run_openpcdet_train_py(tools, monkeypatch):
+    """docs/frameworks.md's VoxelNeXt-2D commands, from tools/, with CPU sizes through train.py's own options:
+    OpenPCDet's train.py trains each model one epoch, saves a checkpoint and evaluates it (VoD evaluation)."""
+    from mssf_examples.models.image_branch import ImageBranch
+    from mssf_examples.openpcdet.__main__ import main
+    from test_openpcdet_pointpillar import documented_commands
+
+    monkeypatch.setattr("time.sleep", lambda seconds: None)  # repeat_eval_ckpt waits 30 s for new checkpoints
+    ckpt = tools.root.parent / "checkpoints" / "htc_r50_fpn_image_branch.pth"  # the config's CHECKPOINT
+    ckpt.parent.mkdir(exist_ok=True)
+    torch.save(ImageBranch(depth=18, base_channels=8, fpn_channels=256, num_outs=4).state_dict(), ckpt)
+    commands = documented_commands("VoxelNeXt-2D")
+    assert [c[:3] for c in commands] == [["train.py", "--cfg_file", f"cfgs/vod_models/{n}.yaml"] for n in (MSSF, TWIN)]
+    image = ["MODEL.IMAGE_BRANCH.DEPTH", "18", "MODEL.IMAGE_BRANCH.BASE_CHANNELS", "8",
+             "MODEL.BACKBONE_3D.MSDFF_HEADS", "2", "MODEL.BACKBONE_3D.SEG_HIDDEN", "[16]"]
+    for argv, name in zip(commands, (MSSF, TWIN)):
+        cpu = ["--epochs", "1", "--workers", "0", "--extra_tag", "cpu_test", "--batch_size", "2", "--wo_gpu_stat",
+               "--set", "OPTIMIZATION.PCT_START", "0.5", *(image if name == MSSF else [])]
+        main(["--pure-torch-nms", *argv, *cpu])
+        out = tools.root.parent / "output" / "vod_models" / name / "cpu_test"
+        assert (out / "ckpt" / "checkpoint_epoch_1.pth").is_file()
+        log = "".join(p.read_text() for p in out.glob("*.log"))
+        assert "VoD entire_area:" in log and "VoD driving_corridor:" in log, log[-2000:]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import types
+
 from torch import Tensor
 
 from mssf_blocks.errors import MSSFError
