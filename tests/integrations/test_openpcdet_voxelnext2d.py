@@ -219,7 +219,7 @@ def test_overfit_lowers_the_loss(tools):
     cfg.MODEL.BACKBONE_3D.AUG_ORDER = []
     cfg.OPTIMIZATION.update(LR=0.003, PCT_START=0.3)
     _, loader, model = build(cfg)
-    seen = train(cfg, model, loader, epochs=6)
+    seen = train(cfg, model, loader, epochs=8)
     first = np.mean([loss for loss, _ in seen[:2]])
     last = np.mean([loss for loss, _ in seen[-2:]])
     assert last < 0.6 * first, (first, last)
