@@ -1,7 +1,7 @@
 """The documented registration lines in OpenPCDet's ``__init__.py`` files, and the fixture's stand-ins.
 
 A second copy of the archive gets the lines of docs/frameworks.md ("Register the MSSF classes")
-appended to its three ``__init__.py`` files; a fresh interpreter then imports pcdet and finds the MSSF
+appended to its four ``__init__.py`` files; a fresh interpreter then imports pcdet and finds the MSSF
 names in the registries, with nothing else registered by hand.
 """
 
@@ -19,12 +19,16 @@ REPO = Path(__file__).resolve().parents[2]
 
 CHECK = """
 import pcdet.datasets as d, pcdet.models.backbones_3d as b, pcdet.models.detectors as m
+import pcdet.models.backbones_2d as b2, mssf_examples.openpcdet.bev_backbone as bev
 import mssf_examples.openpcdet.vod_dataset as v, mssf_examples.openpcdet.detectors as det
 assert d.__all__['VoDDataset'] is v.VoDDataset
 import mssf_examples.openpcdet.tj4d_dataset as t
 assert d.__all__['TJ4DDataset'] is t.TJ4DDataset and m.__all__['MSSFCenterPoint'] is det.MSSFCenterPoint
 assert {'MSSFVoxelBackBone8x', 'MSSFVoxelResBackBone8x', 'MSSFVoxelResBackBone8xVoxelNeXt'} <= set(b.__all__)
 assert m.__all__['MSSFVoxelNeXt'] is det.MSSFVoxelNeXt and m.__all__['MSSFSECONDNet'] is det.MSSFSECONDNet
+assert m.__all__['MSSFPointPillar'] is det.MSSFPointPillar and b2.__all__['MSSFBaseBEVBackbone'] is bev.MSSFBaseBEVBackbone
+import mssf_examples.openpcdet.voxelnext2d_backbone as vn2d
+assert b.__all__['MSSFVoxelResBackBone8xVoxelNeXt2D'] is vn2d.MSSFVoxelResBackBone8xVoxelNeXt2D
 print('ok')
 """
 
@@ -46,8 +50,8 @@ def documented_lines():
 def test_documented_init_lines_register_the_classes(openpcdet_copy, tmp_path):
     root = openpcdet_copy
     edits = documented_lines()
-    assert sorted(edits) == ["pcdet/datasets/__init__.py", "pcdet/models/backbones_3d/__init__.py",
-                             "pcdet/models/detectors/__init__.py"]
+    assert sorted(edits) == ["pcdet/datasets/__init__.py", "pcdet/models/backbones_2d/__init__.py",
+                             "pcdet/models/backbones_3d/__init__.py", "pcdet/models/detectors/__init__.py"]
     for name, lines in edits.items():
         with open(root / name, "a") as f:
             f.write("\n" + "\n".join(lines) + "\n")

@@ -1,13 +1,16 @@
-"""MSSF-SECOND, MSSF-VoxelNeXt and MSSF-CenterPoint as OpenPCDet detectors (``MODEL.NAME: MSSFSECONDNet`` /
-``MSSFVoxelNeXt`` / ``MSSFCenterPoint``).
+"""MSSF-SECOND, MSSF-VoxelNeXt, MSSF-CenterPoint and MSSF-PP as OpenPCDet detectors (``MODEL.NAME: MSSFSECONDNet``
+/ ``MSSFVoxelNeXt`` / ``MSSFCenterPoint`` / ``MSSFPointPillar``).
 
-Each is OpenPCDet's ``SECONDNet`` / ``VoxelNeXt`` / ``CenterPoint`` with two changes:
+Each is OpenPCDet's ``SECONDNet`` / ``VoxelNeXt`` / ``CenterPoint`` / ``PointPillar`` with two changes:
 
 * an image branch (``MODEL.IMAGE_BRANCH``, :class:`~mssf_examples.openpcdet.image_module.OpenPCDetImageBranch`)
   runs first in ``module_list`` (before ``vfe`` and ``backbone_3d``) and writes the FPN levels the
   fusion backbone reads; with ``BACKBONE_3D.NUM_FUSION_BLOCKS: 0`` (radar-only) there is none;
 * ``get_training_loss(batch_dict)`` adds the semantic-guided head's focal loss
   (``backbone_3d.get_loss``, ``tb_dict['loss_mssf_seg']``) to the dense head's.
+
+MSSF-PP fuses in its 2D backbone: read ``BACKBONE_2D`` / ``backbone_2d`` for ``BACKBONE_3D`` /
+``backbone_3d`` there (``FUSION_MODULE``).
 
 The configuration is checked when the model is built; errors name the key (image levels / channels
 against ``BACKBONE_3D.IMAGE_CHANNELS``, ``DATA_CONFIG.GET_ITEM_LIST`` without images, ``AUG_ORDER``
@@ -21,6 +24,7 @@ from typing import Any, Dict
 
 import torch
 from pcdet.models.detectors.centerpoint import CenterPoint
+from pcdet.models.detectors.pointpillar import PointPillar
 from pcdet.models.detectors.second_net import SECONDNet
 from pcdet.models.detectors.voxelnext import VoxelNeXt
 
@@ -29,12 +33,15 @@ from mssf_blocks.integrations.openpcdet import DEFAULT_AUGMENTOR_ORDER, augmento
 
 from .image_module import IMAGE_BRANCH_DEFAULTS, OpenPCDetImageBranch
 
-__all__ = ["MSSFSECONDNet", "MSSFVoxelNeXt", "MSSFCenterPoint", "MSSF_DETECTORS", "check_mssf_config"]
+__all__ = ["MSSFSECONDNet", "MSSFVoxelNeXt", "MSSFCenterPoint", "MSSFPointPillar", "MSSF_DETECTORS",
+           "check_mssf_config"]
 
 
-def check_mssf_config(model_cfg: Any, dataset_cfg: Any) -> bool:
-    """Check a model config against its dataset config; ``True`` when the backbone fuses the image."""
-    bb = model_cfg.BACKBONE_3D
+def check_mssf_config(model_cfg: Any, dataset_cfg: Any, fusion_key: str = "BACKBONE_3D") -> bool:
+    """Check a model config against its dataset config; ``True`` when the backbone fuses the image.
+
+    ``fusion_key``: the ``MODEL`` entry holding the fusion settings (``BACKBONE_2D`` for MSSF-PP)."""
+    bb = model_cfg[fusion_key]
     fuses = int(bb.get("NUM_FUSION_BLOCKS", 0) or 0) > 0
     aug = dataset_cfg.get("DATA_AUGMENTOR", None)
     if aug is not None:
@@ -42,7 +49,7 @@ def check_mssf_config(model_cfg: Any, dataset_cfg: Any) -> bool:
         given = bb.get("AUG_ORDER", None)
         given = DEFAULT_AUGMENTOR_ORDER if given is None else tuple(given)
         if fuses and given != expected:
-            raise MSSFError(f"MODEL.BACKBONE_3D.AUG_ORDER: {list(given)} does not match the order in which "
+            raise MSSFError(f"MODEL.{fusion_key}.AUG_ORDER: {list(given)} does not match the order in which "
                             f"DATA_CONFIG.DATA_AUGMENTOR.AUG_CONFIG_LIST applies the geometric augmentations "
                             f"(after DISABLE_AUG_LIST): {list(expected)}")
     if not fuses:
@@ -50,36 +57,41 @@ def check_mssf_config(model_cfg: Any, dataset_cfg: Any) -> bool:
     items = list(dataset_cfg.get("GET_ITEM_LIST", ["points"]))
     need = [k for k in ("points", "images", "calib_matricies") if k not in items]
     if need:
-        raise MSSFError(f"DATA_CONFIG.GET_ITEM_LIST: MSSF fusion (MODEL.BACKBONE_3D.NUM_FUSION_BLOCKS > 0) needs "
+        raise MSSFError(f"DATA_CONFIG.GET_ITEM_LIST: MSSF fusion (MODEL.{fusion_key}.NUM_FUSION_BLOCKS > 0) needs "
                         f"{need} from the dataset, got {items}")
     if "IMAGE_BRANCH" not in model_cfg:
-        raise MSSFError("MODEL.IMAGE_BRANCH: required when MODEL.BACKBONE_3D.NUM_FUSION_BLOCKS > 0 (the ResNet + FPN "
+        raise MSSFError(f"MODEL.IMAGE_BRANCH: required when MODEL.{fusion_key}.NUM_FUSION_BLOCKS > 0 (the ResNet + FPN "
                         "whose levels the fusion blocks sample)")
     ib = {**IMAGE_BRANCH_DEFAULTS, **dict(model_cfg.IMAGE_BRANCH)}
     levels = [int(ib["FPN_CHANNELS"])] * int(ib["NUM_OUTS"])
     declared = [int(c) for c in bb.get("IMAGE_CHANNELS", None) or []]
     if declared != levels:
-        raise MSSFError(f"MODEL.BACKBONE_3D.IMAGE_CHANNELS: the image branch (MODEL.IMAGE_BRANCH FPN_CHANNELS "
+        raise MSSFError(f"MODEL.{fusion_key}.IMAGE_CHANNELS: the image branch (MODEL.IMAGE_BRANCH FPN_CHANNELS "
                         f"{ib['FPN_CHANNELS']}, NUM_OUTS {ib['NUM_OUTS']}) gives levels of {levels} channels, the "
                         f"backbone declares {declared}")
     key = bb.get("IMAGE_FEATURES_KEY", "image_fpn")
     if key != ib["OUTPUT_KEY"]:
-        raise MSSFError(f"MODEL.BACKBONE_3D.IMAGE_FEATURES_KEY: {key!r}, but MODEL.IMAGE_BRANCH.OUTPUT_KEY writes "
+        raise MSSFError(f"MODEL.{fusion_key}.IMAGE_FEATURES_KEY: {key!r}, but MODEL.IMAGE_BRANCH.OUTPUT_KEY writes "
                         f"{ib['OUTPUT_KEY']!r}")
     return True
 
 
 class _MSSFDetector:
-    """What the detectors add to their OpenPCDet parent (listed first in the bases)."""
+    """What the MSSF detectors add to their OpenPCDet parent (listed first in the bases)."""
+
+    #: the module that fuses (its config key in ``MODEL`` and its attribute: ``get_loss`` gives the seg loss)
+    FUSION_MODULE = "backbone_3d"
 
     def _add_image_branch(self, model_cfg: Any, dataset: Any) -> None:
         self.image_branch = None
-        if check_mssf_config(model_cfg, dataset.dataset_cfg):
+        if check_mssf_config(model_cfg, dataset.dataset_cfg, self.FUSION_MODULE.upper()):
             self.image_branch = OpenPCDetImageBranch(model_cfg.IMAGE_BRANCH)
             self.module_list.insert(0, self.image_branch)  # runs before vfe / backbone_3d
 
     def forward(self, batch_dict: Dict[str, Any]):
         coords = batch_dict.get("voxel_coords", None)
+        if coords is None:  # a dynamic VFE (VoxelNeXt-2D) groups the points itself
+            coords = batch_dict.get("points", None)
         if coords is not None and coords.shape[0] == 0:  # a shape: no host read
             return self._batch_without_voxels(batch_dict)
         for cur_module in self.module_list:
@@ -135,7 +147,7 @@ class _MSSFDetector:
     def get_training_loss(self, batch_dict: Dict[str, Any] = None):
         loss, tb_dict, disp_dict = super().get_training_loss()
         if batch_dict is not None and "mssf_seg_logits" in batch_dict:
-            loss_seg, tb_seg = self.backbone_3d.get_loss(batch_dict)
+            loss_seg, tb_seg = getattr(self, self.FUSION_MODULE).get_loss(batch_dict)
             loss = loss + loss_seg
             tb_dict.update(tb_seg)
         tb_dict["loss"] = float(loss.detach())
@@ -194,5 +206,38 @@ class MSSFCenterPoint(_MSSFDetector, CenterPoint):
                             f"{head.feature_map_stride}); expected at most {cells}")
 
 
+
+class MSSFPointPillar(_MSSFDetector, PointPillar):
+    """The paper's MSSF-PP: ``PillarVFE`` + ``PointPillarScatter`` + ``MSSFBaseBEVBackbone`` (the fusion
+    blocks in the first 2D blocks, :mod:`~mssf_examples.openpcdet.bev_backbone`) + ``AnchorHeadSingle``;
+    the fusion settings are under ``BACKBONE_2D``. ``BACKBONE_2D.NAME: BaseBEVBackbone`` (or
+    ``NUM_FUSION_BLOCKS: 0`` and no ``IMAGE_BRANCH``) is OpenPCDet's ``PointPillar``."""
+
+    FUSION_MODULE = "backbone_2d"
+
+    def __init__(self, model_cfg, num_class, dataset):
+        PointPillar.__init__(self, model_cfg=model_cfg, num_class=num_class, dataset=dataset)
+        self._add_image_branch(model_cfg, dataset)
+
+    def build_backbone_2d(self, model_info_dict):
+        """OpenPCDet's, with the grid passed to the fusion backbone (the stock call passes channels only)."""
+        from .bev_backbone import MSSFBaseBEVBackbone
+
+        cfg = self.model_cfg.get("BACKBONE_2D", None)
+        if cfg is None or cfg.NAME != "MSSFBaseBEVBackbone":
+            if cfg is not None and int(cfg.get("NUM_FUSION_BLOCKS", 0) or 0) > 0:  # would run without fusing
+                raise MSSFError(f"MODEL.BACKBONE_2D.NAME: NUM_FUSION_BLOCKS {cfg.NUM_FUSION_BLOCKS} needs "
+                                f"MSSFBaseBEVBackbone (the 2D backbone that fuses), got {cfg.NAME!r}")
+            return super().build_backbone_2d(model_info_dict)
+        module = MSSFBaseBEVBackbone(cfg, input_channels=model_info_dict["num_bev_features"],
+                                     voxel_size=model_info_dict["voxel_size"],
+                                     point_cloud_range=model_info_dict["point_cloud_range"])
+        model_info_dict["module_list"].append(module)
+        model_info_dict["num_bev_features"] = module.num_bev_features
+        return module, model_info_dict
+
+
+
 #: what to merge into ``pcdet.models.detectors.__all__``
-MSSF_DETECTORS = {"MSSFSECONDNet": MSSFSECONDNet, "MSSFVoxelNeXt": MSSFVoxelNeXt, "MSSFCenterPoint": MSSFCenterPoint}
+MSSF_DETECTORS = {"MSSFSECONDNet": MSSFSECONDNet, "MSSFVoxelNeXt": MSSFVoxelNeXt, "MSSFCenterPoint": MSSFCenterPoint,
+                  "MSSFPointPillar": MSSFPointPillar}
