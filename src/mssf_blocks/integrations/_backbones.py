@@ -113,6 +113,24 @@ def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor,
     return out, encoded
 
 
+def openpcdet_voxelnext_tail(net: Any) -> None:
+    """Give the example VoxelNeXt backbone OpenPCDet's ``VoxelResBackBone8xVoxelNeXt`` tail (both frameworks' MSSF-V):
+    a (non-submanifold) 3 x 3 ``SparseConv2d`` over the merged BEV as ``conv_out``, then a 3 x 3 submanifold
+    ``shared_conv``. OpenPCDet's shared_conv has a bias before its BatchNorm, which the normalisation cancels; it
+    is left out because spconv's CPU kernels refuse biased convolutions in eval mode."""
+    import spconv.pytorch as spconv
+    from torch import nn
+
+    c, out = net.channels[3], list(net.conv_out)[0].out_channels
+    net.conv_out = spconv.SparseSequential(
+        spconv.SparseConv2d(c, out, 3, stride=1, padding=1, bias=False, indice_key="spconv_down2"),
+        nn.BatchNorm1d(out, eps=1e-3, momentum=0.01), nn.ReLU(),
+    )
+    net.shared_conv = spconv.SparseSequential(
+        spconv.SubMConv2d(out, out, 3, stride=1, padding=1, bias=False), nn.BatchNorm1d(out), nn.ReLU(True),
+    )
+
+
 def stage_spconv(out: Any) -> Dict[str, Any]:
     """``{'x_conv1': ..., 'x_conv4': ...}`` spconv tensors of the four stages (index caches kept)."""
     return {f"x_conv{i + 1}": s.to_spconv() for i, s in enumerate(out.stages[:4])}
