@@ -75,7 +75,8 @@ class MSSFVoxelNeXtHead(BaseModule):
         out_size_factor: stride of the sparse BEV (VoxelNeXt: 8).
         head_channels: the branches' hidden width (the authors' ``share_conv_channel``, 256).
         cls_weight, loc_weight: loss weights (OpenPCDet's ``cls_weight`` / ``loc_weight``; the authors' 1 and 1).
-        train_cfg: keys of :data:`TRAIN_CFG` (``train_cfg.pts`` of the model).
+        train_cfg: keys of :data:`TRAIN_CFG` (``train_cfg.pts`` of the model); ``code_weights`` in the order
+            ``(dx, dy, z, log l, log w, log h, sin, cos)`` (OpenPCDet's configs end in ``cos, sin``).
         test_cfg: keys of :data:`TEST_CFG` (``test_cfg.pts``); ``post_center_limit_range`` ``None``: no filter.
     """
 
