@@ -328,8 +328,9 @@ def test_predictions_equal_the_authors_coder_and_nms_in_float64():
 
 
 def test_settings_and_inputs_are_checked():
-    from mssf_blocks.errors import MSSFError
     from mssf_examples.mmdet3d.voxelnext_head import MSSFVoxelNeXtHead, bev_grid
+
+    from mssf_blocks.errors import MSSFError
 
     with pytest.raises(MSSFError, match="test_cfg: unknown keys \\['nms_type'\\]"):
         _ours(nms_type="rotate")

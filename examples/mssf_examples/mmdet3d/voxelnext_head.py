@@ -59,7 +59,8 @@ def bev_grid(point_cloud_range: Sequence[float], voxel_size: Sequence[float], ou
     metres from the range's minimum (spconv's stride-2 convolutions round up)."""
     r, v = [float(x) for x in point_cloud_range], [float(x) for x in voxel_size]
     if len(r) != 6 or len(v) < 2:
-        raise MSSFError(f"point_cloud_range, voxel_size: expected 6 and 3 values, got {point_cloud_range!r}, {voxel_size!r}")
+        raise MSSFError(f"point_cloud_range, voxel_size: expected 6 and 3 values, got {point_cloud_range!r}, "
+                        f"{voxel_size!r}")
     cells = [math.ceil(round((r[3 + i] - r[i]) / v[i]) / out_size_factor) for i in range(2)]
     cell = [v[i] * out_size_factor for i in range(2)]
     return BEVGrid(r[0], r[1], r[0] + cells[0] * cell[0], r[1] + cells[1] * cell[1], cells[1], cells[0])
@@ -103,8 +104,9 @@ class MSSFVoxelNeXtHead(BaseModule):
                             f"{[type(f).__name__ for f in feats] if isinstance(feats, (list, tuple)) else feats!r}")
         x = feats[0]
         if x.indices.shape[1] != 3:
-            raise MSSFError(f"feats[0].indices: expected (M, 3) (b, y, x) at the BEV stride, got {tuple(x.indices.shape)} "
-                            "(a 3-d sparse tensor: use the VoxelNeXt layout, whose encoder merges the stages into a BEV)")
+            raise MSSFError(f"feats[0].indices: expected (M, 3) (b, y, x) at the BEV stride, got "
+                            f"{tuple(x.indices.shape)} (a 3-d sparse tensor: use the VoxelNeXt layout, whose encoder "
+                            "merges the stages into a BEV)")
         batch_size = max(int(x.batch_size), int(batch_size or 0))
         return self.net(x.features, x.indices, batch_size)
 
