@@ -119,3 +119,26 @@ def test_loss_falls_on_an_overfit_frame(roots, tmp_path):
     box = [s["loss_heatmap"] + s["loss_bbox"] for s in rec.losses]
     assert len(box) == 20 and all(math.isfinite(v) for v in box)
     assert sum(box[-5:]) / 5 < 0.5 * box[0], box
+
+
+@pytest.mark.parametrize("authors_layout", [False, True])
+def test_encoder_runs_conv_out_and_shared_conv_once(authors_layout):
+    """The sparse BEV is ``shared_conv(conv_out(merged stages))``: each runs once per forward (OpenPCDet's and the
+    authors' encoders), in OpenPCDet's tail (a regular ``SparseConv2d``, then the submanifold ``shared_conv``) and
+    in the authors' (their biased ``shared_conv``)."""
+    require_mmdet3d()
+    from mssf_blocks.integrations.mmdet3d_plugin import MSSFSparseEncoder
+
+    enc = MSSFSparseEncoder(7, [41, 128, 128], [0, -25.6, -3, 51.2, 25.6, 2], [0.4, 0.4, 0.125],
+                            layout="VoxelResBackBone8xVoxelNeXt", num_fusion_blocks=0, channels=[8] * 7,
+                            out_channels=8, authors_layout=authors_layout).train()
+    calls = {"conv_out": 0, "shared_conv": 0}
+    for name in calls:
+        getattr(enc.net, name).register_forward_hook(lambda m, i, o, n=name: calls.__setitem__(n, calls[n] + 1))
+    g = torch.Generator().manual_seed(0)
+    coords = torch.stack([torch.randint(0, 2, (80,), generator=g), torch.randint(0, 40, (80,), generator=g),
+                          torch.randint(0, 128, (80,), generator=g), torch.randint(0, 128, (80,), generator=g)], 1)
+    coords = coords.unique(dim=0).int()
+    (bev,) = enc(torch.randn(len(coords), 7, generator=g), coords, 2)
+    assert calls == {"conv_out": 1, "shared_conv": 1}
+    assert bev.indices.shape[1] == 3 and bev.features.shape[1] == 8 and list(bev.spatial_shape) == [16, 16]

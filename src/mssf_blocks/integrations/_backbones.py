@@ -46,6 +46,11 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
     if layout not in LAYOUTS:
         raise MSSFError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
     layout_kwargs = {"z_pad": int(kwargs.pop("z_pad"))} if "z_pad" in kwargs else {}  # the framework's, not a setting
+    if kwargs.pop("authors_layout", False):  # the MSSF authors' VoxelNeXt (their checkpoints), VoxelNeXt only
+        if layout != "VoxelResBackBone8xVoxelNeXt":
+            raise MSSFError("authors_layout: the authors' layout exists for 'VoxelResBackBone8xVoxelNeXt', "
+                            f"got layout={layout!r}")
+        layout_kwargs["authors_layout"] = True
     unknown = sorted(set(kwargs) - set(FUSION_KWARGS))
     if unknown:
         raise MSSFError(f"backbone settings: unknown {unknown}; expected among {FUSION_KWARGS}")
@@ -98,19 +103,11 @@ def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor,
     ``(b, y, x)`` at stride 8 on the ``bev_shape`` grid, as OpenPCDet's ``VoxelResBackBone8xVoxelNeXt``."""
     import spconv.pytorch as spconv
 
-    from mssf_blocks.checks.spconv_inputs import check_module_input
-    from mssf_blocks.integrations.spconv import quiet
-
     voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net(voxels, fusion_inputs)
+    # the backbone's forward already ran conv_out and shared_conv (once, as OpenPCDet's and the authors' encoders)
     features, indices = out.sparse_bev
-    encoded = spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
-    if getattr(net, "shared_conv", None) is not None:
-        # (2-d (b, y, x) indices: the 3-d check does not apply; what shared_conv takes does)
-        check_module_input(features, net.shared_conv, "sparse_bev", "shared_conv")
-        with quiet():
-            encoded = net.shared_conv(encoded)
-    return out, encoded
+    return out, spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
 
 
 def openpcdet_voxelnext_tail(net: Any) -> None:

@@ -58,6 +58,9 @@ class MSSFSparseEncoder(nn.Module):
         msdff_value_projection, msdff_value_dim, seg_hidden, channels, out_channels: as the example backbones
             (``mssf_examples.models.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
         image_aug: ``"meta"`` or ``"none"``, see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
+        authors_layout: with the VoxelNeXt layout, the MSSF authors' ``SparseEncoderVoxelNeXtFuse`` (their fusion
+            modules' forward, a regular ``conv_out``, a biased ``shared_conv``) for their checkpoints
+            (``mssf_examples.mmdet3d.authors_mssf_v``); ``False``: OpenPCDet's VoxelNeXt.
         return_middle_feats: also return the stage outputs (as ``SparseEncoder``).
     """
 
@@ -80,6 +83,7 @@ class MSSFSparseEncoder(nn.Module):
         channels: Optional[Sequence[int]] = None,
         out_channels: Optional[int] = None,
         image_aug: str = "meta",
+        authors_layout: bool = False,
         return_middle_feats: bool = False,
     ) -> None:
         super().__init__()
@@ -88,10 +92,12 @@ class MSSFSparseEncoder(nn.Module):
             fusion_position=fusion_position, image_channels=image_channels, msdff_heads=msdff_heads,
             msdff_points=msdff_points, msdff_value_projection=msdff_value_projection,
             msdff_value_dim=msdff_value_dim, seg_hidden=seg_hidden,
-            channels=channels, out_channels=out_channels, **self._layout_kwargs(layout),
+            channels=channels, out_channels=out_channels, authors_layout=bool(authors_layout),
+            **self._layout_kwargs(layout),
         )
         self.sparse_bev = layout == "VoxelResBackBone8xVoxelNeXt"
-        if self.sparse_bev:
+        self.authors_layout = bool(authors_layout)
+        if self.sparse_bev and not self.authors_layout:
             _backbones.openpcdet_voxelnext_tail(self.net)
         if [int(s) for s in sparse_shape] != list(self.net.input_shape):
             raise MSSFError(
