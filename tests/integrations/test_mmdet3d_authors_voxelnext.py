@@ -3,7 +3,8 @@
 (``vx_mm_r50_ablation_n2m4`` on ``voxelnext_voxel005_vod_multimodal_r50pytorch``: tests/examples/models/
 test_authors_checkpoint.py's ``their_mssf_v_shapes``; no download), filled with seeded values, converts with every
 tensor mapped or ignored for a reason and nothing missing, and loads with ``strict=True``; the values land where the
-name rules say (their heatmap classes permuted to the config's order) and the model detects."""
+name rules say (their heatmap classes permuted to the config's order), and mmdet3d's ``test_step`` runs the loaded
+model on a generated VoD frame (the authors' encoder, five FPN levels, their head) to ``LiDARInstance3DBoxes``."""
 
 from __future__ import annotations
 
@@ -15,12 +16,23 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).parents[1] / "examples" / "models"))
-from mmdet3d_vod_tree import CONFIGS, require_mmdet3d  # noqa: E402
+from mmdet3d_vod_tree import CONFIGS, require_mmdet3d, write_tree  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config():
+def _finite(ckpt):
+    """Seeded values that stay finite through the whole network: variances positive, weights of unit gain."""
+    sd = ckpt["state_dict"]
+    for k, v in sd.items():
+        if k.endswith("running_var"):
+            sd[k] = v.abs() + 0.5
+        elif v.dim() >= 2:
+            sd[k] = v / (v.numel() / v.shape[0]) ** 0.5
+    return ckpt
+
+
+def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config(tmp_path):
     require_mmdet3d()
     from mmdet3d.registry import MODELS
     from mmengine.config import Config
@@ -34,7 +46,7 @@ def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config():
     cfg = Config.fromfile(str(CONFIGS / "mssf_voxelnext_vod_authors.py"))
     init_default_scope("mmdet3d")
     model = MODELS.build(cfg.model)
-    ckpt = random_checkpoint(their_mssf_v_shapes(), seed=3)
+    ckpt = _finite(random_checkpoint(their_mssf_v_shapes(), seed=3))
     theirs = ckpt["state_dict"]
     sd, report = convert_authors_mssf_v(ckpt, model, cfg.class_names)
     assert report.missing == [] and len(report.mapped) + len(report.ignored) == len(theirs)
@@ -56,3 +68,16 @@ def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config():
     paper = MODELS.build(Config.fromfile(str(CONFIGS / "mssf_voxelnext_vod.py")).model)
     with pytest.raises(MSSFError, match="authors_layout=True"):
         convert_authors_mssf_v(ckpt, paper, cfg.class_names)
+    # the loaded model through mmdet3d's own test step, on a generated VoD frame
+    from mmdet3d.structures import LiDARInstance3DBoxes
+    from mmengine.runner import Runner
+    from test_mmdet3d_train import small_cfg
+
+    root = write_tree(tmp_path / "vod", train=1, val=1)
+    loader = Runner.build_dataloader(small_cfg("mssf_voxelnext_vod_authors.py", root, tmp_path).val_dataloader)
+    model.eval()
+    with torch.no_grad():
+        (out,) = model.test_step(next(iter(loader)))
+    pred = out.pred_instances_3d
+    assert isinstance(pred.bboxes_3d, LiDARInstance3DBoxes) and len(pred.scores_3d) == len(pred.labels_3d)
+    assert model.pts_middle_encoder.net.shared_conv[0].bias is not None  # their biased shared_conv ran
