@@ -34,14 +34,14 @@ def _finite(ckpt):
 
 def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config(tmp_path):
     require_mmdet3d()
+    import mssf_examples.mmdet3d.plugin  # noqa: F401
     from mmdet3d.registry import MODELS
     from mmengine.config import Config
     from mmengine.registry import init_default_scope
+    from mssf_examples.mmdet3d.authors_mssf_v import convert_authors_mssf_v
     from test_authors_checkpoint import random_checkpoint, their_mssf_v_shapes
 
-    import mssf_examples.mmdet3d.plugin  # noqa: F401
     from mssf_blocks.errors import MSSFError
-    from mssf_examples.mmdet3d.authors_mssf_v import convert_authors_mssf_v
 
     cfg = Config.fromfile(str(CONFIGS / "mssf_voxelnext_vod_authors.py"))
     init_default_scope("mmdet3d")

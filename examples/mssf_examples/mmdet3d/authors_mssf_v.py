@@ -70,8 +70,8 @@ def convert_authors_mssf_v(theirs: Mapping[str, Tensor], model: nn.Module,
     """
     enc = getattr(model, "pts_middle_encoder", None)
     if not getattr(enc, "authors_layout", False) or getattr(model, "img_backbone", None) is None:
-        raise MSSFError("model: expected the MSSF-V built as the authors' (pts_middle_encoder.authors_layout=True, with "
-                        "the image branch: examples/configs/mmdet3d/mssf_voxelnext_vod_authors.py)")
+        raise MSSFError("model: expected the MSSF-V built as the authors' (pts_middle_encoder.authors_layout=True, "
+                        "with the image branch: examples/configs/mmdet3d/mssf_voxelnext_vod_authors.py)")
     view = _ExampleNames(model, class_names)
     sd, report = convert_authors(theirs, view, layout="mssf_v", stage_channels=AUTHORS_STAGE_CHANNELS)
     target = model.state_dict()
