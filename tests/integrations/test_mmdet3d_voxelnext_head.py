@@ -30,11 +30,12 @@ C = 16
 CODE_WEIGHTS = [1.0, 0.5, 2.0, 1.0, 1.5, 1.0, 0.7, 1.2]
 
 
-def _ours(loc_weight=0.25, code_weights=CODE_WEIGHTS, **test):
+def _ours(loc_weight=0.25, code_weights=CODE_WEIGHTS, kernel_size=3, **test):
     require_mmdet3d()
     from mssf_examples.mmdet3d.voxelnext_head import MSSFVoxelNeXtHead
 
-    return MSSFVoxelNeXtHead(C, 3, PCR, VOXEL, out_size_factor=8, head_channels=C, loc_weight=loc_weight,
+    return MSSFVoxelNeXtHead(C, 3, PCR, VOXEL, out_size_factor=8, head_channels=C, kernel_size=kernel_size,
+                             loc_weight=loc_weight,
                              train_cfg=dict(code_weights=code_weights),
                              test_cfg=dict(dict(max_num=20, score_threshold=0.1, nms_thr=0.2, post_max_size=83,
                                                 post_center_limit_range=PCR), **test))
@@ -93,18 +94,16 @@ def _swap_rot(p):
 
 # ---------------------------------------------------------------------------------------------------
 # OpenPCDet's VoxelNeXtHead
-@pytest.fixture
-def pcdet_head(openpcdet, monkeypatch):
+def _pcdet_head(kernel_size=3):
     import numpy as np
     from easydict import EasyDict
 
-    monkeypatch.setattr(torch.Tensor, "cuda", lambda self, *a, **k: self)  # CPU only (as test_openpcdet_vod)
     from pcdet.models.dense_heads.voxelnext_head import VoxelNeXtHead
 
     head_dict = {n: {"out_channels": c, "num_conv": 2} for n, c in (("center", 2), ("center_z", 1), ("dim", 3),
                                                                      ("rot", 2))}
     cfg = EasyDict(dict(
-        CLASS_NAMES_EACH_HEAD=[CLASSES], SHARED_CONV_CHANNEL=C, KERNEL_SIZE_HEAD=3, USE_BIAS_BEFORE_NORM=True,
+        CLASS_NAMES_EACH_HEAD=[CLASSES], SHARED_CONV_CHANNEL=C, KERNEL_SIZE_HEAD=kernel_size, USE_BIAS_BEFORE_NORM=True,
         NUM_HM_CONV=2, SEPARATE_HEAD_CFG=dict(HEAD_ORDER=["center", "center_z", "dim", "rot"], HEAD_DICT=head_dict),
         TARGET_ASSIGNER_CONFIG=dict(FEATURE_MAP_STRIDE=8, NUM_MAX_OBJS=500, GAUSSIAN_OVERLAP=0.1, MIN_RADIUS=2),
         LOSS_CONFIG=dict(LOSS_WEIGHTS=dict(cls_weight=1.0, loc_weight=0.25, code_weights=CODE_WEIGHTS)),
@@ -117,6 +116,14 @@ def pcdet_head(openpcdet, monkeypatch):
     head.point_cloud_range = torch.tensor(PCR, dtype=F64)
     head.voxel_size = torch.tensor(VOXEL, dtype=F64)
     return head
+
+
+@pytest.fixture
+def pcdet_head(openpcdet, monkeypatch):
+    monkeypatch.setattr(torch.Tensor, "cuda", lambda self, *a, **k: self)  # CPU only (as test_openpcdet_vod)
+    return _pcdet_head
+
+
 
 
 def _load_pcdet_weights(ours, pcdet_head):
@@ -133,10 +140,12 @@ def _load_pcdet_weights(ours, pcdet_head):
     ours.load_state_dict(sd, strict=True)
 
 
-def test_forward_equals_openpcdet_voxelnext_head(pcdet_head):
+@pytest.mark.parametrize("kernel_size", [3, 1])  # 3: VoxelNeXt's and the authors'; 1: this project's OpenPCDet yaml
+def test_forward_equals_openpcdet_voxelnext_head(pcdet_head, kernel_size):
     import spconv.pytorch as spconv
 
-    ours = _ours()
+    ours = _ours(kernel_size=kernel_size)
+    pcdet_head = pcdet_head(kernel_size)
     _load_pcdet_weights(ours, pcdet_head)
     coords, _ = _scene(1)
     feats = torch.randn(len(coords), C, generator=torch.Generator().manual_seed(2))
@@ -162,6 +171,7 @@ def _pcdet_targets(pcdet_head, coords, gts):
 
 
 def test_targets_and_loss_equal_openpcdet_in_float64(pcdet_head):
+    pcdet_head = pcdet_head()
     ours = _ours(code_weights=CODE_WEIGHTS[:6] + CODE_WEIGHTS[6:][::-1])  # ours weigh (sin, cos), OpenPCDet (cos, sin)
     coords, gts = _scene(3, grouped=True)
     t = _pcdet_targets(pcdet_head, coords, gts)
@@ -190,6 +200,7 @@ def test_targets_and_loss_equal_openpcdet_in_float64(pcdet_head):
 
 
 def test_decoded_boxes_equal_openpcdet_in_float64(pcdet_head):
+    pcdet_head = pcdet_head()
     from pcdet.models.model_utils.centernet_utils import decode_bbox_from_voxels_nuscenes
 
     ours = _ours()

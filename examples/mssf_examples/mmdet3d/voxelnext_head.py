@@ -75,6 +75,8 @@ class MSSFVoxelNeXtHead(BaseModule):
         point_cloud_range, voxel_size: the data preprocessor's grid.
         out_size_factor: stride of the sparse BEV (VoxelNeXt: 8).
         head_channels: the branches' hidden width (the authors' ``share_conv_channel``, 256).
+        kernel_size: of the branches' first submanifold convolution: 3 (the authors', VoxelNeXt's) or 1
+            (OpenPCDet's ``KERNEL_SIZE_HEAD: 1`` in this project's OpenPCDet config).
         cls_weight, loc_weight: loss weights (OpenPCDet's ``cls_weight`` / ``loc_weight``; the authors' 1 and 1).
         train_cfg: keys of :data:`TRAIN_CFG` (``train_cfg.pts`` of the model); ``code_weights`` in the order
             ``(dx, dy, z, log l, log w, log h, sin, cos)`` (OpenPCDet's configs end in ``cos, sin``).
@@ -82,7 +84,7 @@ class MSSFVoxelNeXtHead(BaseModule):
     """
 
     def __init__(self, in_channels: int, num_classes: int, point_cloud_range: Sequence[float],
-                 voxel_size: Sequence[float], out_size_factor: int = 8, head_channels: int = 256,
+                 voxel_size: Sequence[float], out_size_factor: int = 8, head_channels: int = 256, kernel_size: int = 3,
                  cls_weight: float = 1.0, loc_weight: float = 1.0, train_cfg: Optional[dict] = None,
                  test_cfg: Optional[dict] = None, init_cfg: Optional[dict] = None) -> None:
         super().__init__(init_cfg=init_cfg)
@@ -91,6 +93,7 @@ class MSSFVoxelNeXtHead(BaseModule):
         self.grid = bev_grid(point_cloud_range, voxel_size, int(out_size_factor))
         self.num_classes = int(num_classes)
         self.net = AuthorsVoxelNeXtHead(int(in_channels), self.grid, self.num_classes, head_channels=int(head_channels),
+                                        kernel_size=int(kernel_size),
                                         cls_weight=float(cls_weight), reg_weight=float(loc_weight),
                                         code_weights=self.train_settings["code_weights"],
                                         nms_pre=int(self.test_settings["max_num"]))
