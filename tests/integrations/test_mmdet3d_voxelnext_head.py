@@ -97,7 +97,6 @@ def _swap_rot(p):
 def _pcdet_head(kernel_size=3):
     import numpy as np
     from easydict import EasyDict
-
     from pcdet.models.dense_heads.voxelnext_head import VoxelNeXtHead
 
     head_dict = {n: {"out_channels": c, "num_conv": 2} for n, c in (("center", 2), ("center_z", 1), ("dim", 3),
