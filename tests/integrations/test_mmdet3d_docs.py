@@ -67,6 +67,13 @@ NOT_RUN = {
                               "--work-dir, run as printed by test_mmdet3d_tj4d.py",
     f"{ENTRY} train examples/configs/mmdet3d/pointpillars_tj4d_radar.py":
         _PAPER + "; test_mmdet3d_tj4d.py trains this config 2 iterations (--iters, --image-scale, --data-root)",
+    **{f"{ENTRY} train examples/configs/mmdet3d/{name}" + (f" {HTC}" if name.startswith("mssf") else "") + quick:
+       (_PAPER if not quick else "the full-width quick check of MSSF-V") + "; test_mmdet3d_voxelnext.py trains this "
+       "config 2 iterations at tiny widths (--iters, --image-scale, --data-root, the widths)"
+       for name, quick in (("mssf_voxelnext_vod.py", " --iters 2 --image-scale 320 200 --work-dir "
+                                                     "work_dirs/quick_check_voxelnext"),
+                           ("mssf_voxelnext_vod.py", ""), ("voxelnext_vod_radar.py", ""),
+                           ("mssf_voxelnext_tj4d.py", ""), ("voxelnext_tj4d_radar.py", ""))},
 }
 
 

@@ -46,6 +46,11 @@ def build(layout: str, in_channels: int, point_cloud_range: Sequence[float], vox
     if layout not in LAYOUTS:
         raise MSSFError(f"layout: expected one of {sorted(LAYOUTS)}, got {layout!r}")
     layout_kwargs = {"z_pad": int(kwargs.pop("z_pad"))} if "z_pad" in kwargs else {}  # the framework's, not a setting
+    if kwargs.pop("authors_layout", False):  # the MSSF authors' VoxelNeXt (their checkpoints), VoxelNeXt only
+        if layout != "VoxelResBackBone8xVoxelNeXt":
+            raise MSSFError("authors_layout: the authors' layout exists for 'VoxelResBackBone8xVoxelNeXt', "
+                            f"got layout={layout!r}")
+        layout_kwargs["authors_layout"] = True
     unknown = sorted(set(kwargs) - set(FUSION_KWARGS))
     if unknown:
         raise MSSFError(f"backbone settings: unknown {unknown}; expected among {FUSION_KWARGS}")
@@ -98,19 +103,29 @@ def run_voxelnext_layout(net: Any, voxel_features: Tensor, voxel_coords: Tensor,
     ``(b, y, x)`` at stride 8 on the ``bev_shape`` grid, as OpenPCDet's ``VoxelResBackBone8xVoxelNeXt``."""
     import spconv.pytorch as spconv
 
-    from mssf_blocks.checks.spconv_inputs import check_module_input
-    from mssf_blocks.integrations.spconv import quiet
-
     voxels = _input_voxels(net, voxel_features, voxel_coords, batch_size)
     out = net(voxels, fusion_inputs)
+    # the backbone's forward already ran conv_out and shared_conv (once, as OpenPCDet's and the authors' encoders)
     features, indices = out.sparse_bev
-    encoded = spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
-    if getattr(net, "shared_conv", None) is not None:
-        # (2-d (b, y, x) indices: the 3-d check does not apply; what shared_conv takes does)
-        check_module_input(features, net.shared_conv, "sparse_bev", "shared_conv")
-        with quiet():
-            encoded = net.shared_conv(encoded)
-    return out, encoded
+    return out, spconv.SparseConvTensor(features, indices.int(), list(net.bev_shape), int(batch_size))
+
+
+def openpcdet_voxelnext_tail(net: Any) -> None:
+    """Give the example VoxelNeXt backbone OpenPCDet's ``VoxelResBackBone8xVoxelNeXt`` tail (both frameworks' MSSF-V):
+    a (non-submanifold) 3 x 3 ``SparseConv2d`` over the merged BEV as ``conv_out``, then a 3 x 3 submanifold
+    ``shared_conv``. OpenPCDet's shared_conv has a bias before its BatchNorm, which the normalisation cancels; it
+    is left out because spconv's CPU kernels refuse biased convolutions in eval mode."""
+    import spconv.pytorch as spconv
+    from torch import nn
+
+    c, out = net.channels[3], list(net.conv_out)[0].out_channels
+    net.conv_out = spconv.SparseSequential(
+        spconv.SparseConv2d(c, out, 3, stride=1, padding=1, bias=False, indice_key="spconv_down2"),
+        nn.BatchNorm1d(out, eps=1e-3, momentum=0.01), nn.ReLU(),
+    )
+    net.shared_conv = spconv.SparseSequential(
+        spconv.SubMConv2d(out, out, 3, stride=1, padding=1, bias=False), nn.BatchNorm1d(out), nn.ReLU(True),
+    )
 
 
 def stage_spconv(out: Any) -> Dict[str, Any]:

@@ -48,12 +48,19 @@ class MSSFSparseEncoder(nn.Module):
         in_channels: voxel feature channels.
         sparse_shape: ``(D + 1, H, W)`` as in ``SparseEncoder`` configs (checked against the grid).
         point_cloud_range, voxel_size: the data preprocessor's ``voxel_layer`` values.
-        layout: ``"VoxelBackBone8x"`` (SECOND; mmdet3d's default ``SparseEncoder``) or
-            ``"VoxelResBackBone8x"`` (CenterPoint's residual layout).
+        layout: ``"VoxelBackBone8x"`` (SECOND; mmdet3d's default ``SparseEncoder``),
+            ``"VoxelResBackBone8x"`` (CenterPoint's residual layout) or ``"VoxelResBackBone8xVoxelNeXt"``
+            (MSSF-V: OpenPCDet's VoxelNeXt layout, six residual stages, stages 4-6 merged into a sparse BEV at
+            stride 8, ``conv_out`` and ``shared_conv``; ``forward`` then returns ``[SparseConvTensor]``, the sparse
+            BEV with 2-d indices ``(b, y, x)``, for a sparse head such as ``MSSFVoxelNeXtHead``, without
+            ``pts_backbone`` / ``pts_neck``; ``sparse_shape`` pads z by one cell as the others).
         num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
         msdff_value_projection, msdff_value_dim, seg_hidden, channels, out_channels: as the example backbones
             (``mssf_examples.models.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
         image_aug: ``"meta"`` or ``"none"``, see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
+        authors_layout: with the VoxelNeXt layout, the MSSF authors' ``SparseEncoderVoxelNeXtFuse`` (their fusion
+            modules' forward, a regular ``conv_out``, a biased ``shared_conv``) for their checkpoints
+            (``mssf_examples.mmdet3d.authors_mssf_v``); ``False``: OpenPCDet's VoxelNeXt.
         return_middle_feats: also return the stage outputs (as ``SparseEncoder``).
     """
 
@@ -76,6 +83,7 @@ class MSSFSparseEncoder(nn.Module):
         channels: Optional[Sequence[int]] = None,
         out_channels: Optional[int] = None,
         image_aug: str = "meta",
+        authors_layout: bool = False,
         return_middle_feats: bool = False,
     ) -> None:
         super().__init__()
@@ -84,8 +92,13 @@ class MSSFSparseEncoder(nn.Module):
             fusion_position=fusion_position, image_channels=image_channels, msdff_heads=msdff_heads,
             msdff_points=msdff_points, msdff_value_projection=msdff_value_projection,
             msdff_value_dim=msdff_value_dim, seg_hidden=seg_hidden,
-            channels=channels, out_channels=out_channels,
+            channels=channels, out_channels=out_channels, authors_layout=bool(authors_layout),
+            **self._layout_kwargs(layout),
         )
+        self.sparse_bev = layout == "VoxelResBackBone8xVoxelNeXt"
+        self.authors_layout = bool(authors_layout)
+        if self.sparse_bev and not self.authors_layout:
+            _backbones.openpcdet_voxelnext_tail(self.net)
         if [int(s) for s in sparse_shape] != list(self.net.input_shape):
             raise MSSFError(
                 f"sparse_shape: expected {list(self.net.input_shape)} (z + 1, y, x of point_cloud_range / voxel_size), "
@@ -97,6 +110,12 @@ class MSSFSparseEncoder(nn.Module):
         self.image_aug = image_aug
         self.return_middle_feats = bool(return_middle_feats)
         self.last_output = None  # the backbone output of the latest forward (for seg_loss)
+
+    @staticmethod
+    def _layout_kwargs(layout: str) -> dict:
+        # VoxelNeXt's grid is padded by one z cell as SparseEncoder's (sparse_shape z + 1); the dense layouts pad
+        # by default
+        return {"z_pad": 1} if layout == "VoxelResBackBone8xVoxelNeXt" else {}
 
     @property
     def num_fusion_blocks(self) -> int:
@@ -127,6 +146,10 @@ class MSSFSparseEncoder(nn.Module):
                              ("batch_input_metas", batch_input_metas)) if isinstance(v, (list, tuple))],
                             "number of samples", ("batch_size", batch_size))
             inputs = fusion_inputs_from_mmdet3d(points, img_features, batch_input_metas, image_aug=self.image_aug)
+        if self.sparse_bev:
+            out, encoded = _backbones.run_voxelnext_layout(self.net, voxel_features, coors, batch_size, inputs)
+            self.last_output = out if out.seg_logits is not None else None
+            return [encoded]
         out, encoded = _backbones.run_dense_layout(self.net, voxel_features, coors, batch_size, inputs)
         self.last_output = out if out.seg_logits is not None else None
         from mssf_blocks.integrations.spconv import dense

@@ -156,20 +156,7 @@ class MSSFVoxelResBackBone8xVoxelNeXt(_OpenPCDetFusionBackbone):
     def __init__(self, model_cfg: Any, input_channels: int, grid_size: Any, voxel_size: Any = None,
                  point_cloud_range: Any = None, **kwargs: Any) -> None:
         super().__init__(model_cfg, input_channels, grid_size, voxel_size, point_cloud_range, **kwargs)
-        # OpenPCDet's head of this layout: a (non-submanifold) 3 x 3 SparseConv2d over the merged BEV,
-        # then a 3 x 3 submanifold ``shared_conv`` (the example backbone's own conv_out is replaced).
-        # OpenPCDet's shared_conv has a bias before its BatchNorm, which the normalisation cancels; it is
-        # left out because spconv's CPU kernels refuse biased convolutions in eval mode.
-        import spconv.pytorch as spconv
-
-        c, out = self.net.channels[3], self.num_point_features
-        self.net.conv_out = spconv.SparseSequential(
-            spconv.SparseConv2d(c, out, 3, stride=1, padding=1, bias=False, indice_key="spconv_down2"),
-            nn.BatchNorm1d(out, eps=1e-3, momentum=0.01), nn.ReLU(),
-        )
-        self.net.shared_conv = spconv.SparseSequential(
-            spconv.SubMConv2d(out, out, 3, stride=1, padding=1, bias=False), nn.BatchNorm1d(out), nn.ReLU(True),
-        )
+        _backbones.openpcdet_voxelnext_tail(self.net)  # OpenPCDet's conv_out + shared_conv (the example's replaced)
 
 
 #: what to merge into ``pcdet.models.backbones_3d.__all__``

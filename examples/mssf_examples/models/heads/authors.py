@@ -170,19 +170,25 @@ class AuthorsVoxelNeXtHead(SparseCenterHead):
         grid: :class:`BEVGrid` of the voxels (VoD: 128 x 128 cells of 0.4 m).
         num_classes: ``K``.
         head_channels: the branches' hidden width (their ``share_conv_channel``, 256).
+        kernel_size: of the branches' first convolution: 3 (theirs, VoxelNeXt's) or 1 (OpenPCDet's
+            ``KERNEL_SIZE_HEAD: 1``).
         **kwargs: losses and decoding of :class:`SparseCenterHead`.
 
     Shape: as :class:`SparseCenterHead` (``forward(features (M, C), coords (M, 3) (b, y, x), batch_size)``).
     """
 
-    def __init__(self, in_channels: int, grid: BEVGrid, num_classes: int, head_channels: int = 256, **kwargs):
+    def __init__(self, in_channels: int, grid: BEVGrid, num_classes: int, head_channels: int = 256,
+                 kernel_size: int = 3, **kwargs):
+        if kernel_size not in (1, 3):
+            raise MSSFError(f"kernel_size: expected 3 (theirs, VoxelNeXt's) or 1, got {kernel_size!r}")
         super().__init__(in_channels, grid, num_classes, head_channels=head_channels, **kwargs)
+        self.kernel_size = int(kernel_size)
         self.shared = nn.Identity()  # theirs has none (the encoder's shared_conv precedes the head)
         factory = {k: kwargs[k] for k in ("device", "dtype") if kwargs.get(k) is not None}
         outputs = [("hm", num_classes)] + list(REGRESSION_BRANCHES)
         self.heads = nn.ModuleDict({
             name: nn.Sequential(  # containers only: the names of their SparseSequential
-                nn.Sequential(SubMConv2dSpconvLayout(in_channels, head_channels, 3),
+                nn.Sequential(SubMConv2dSpconvLayout(in_channels, head_channels, self.kernel_size),
                               nn.BatchNorm1d(head_channels, eps=1e-5, momentum=0.1), nn.ReLU()),
                 SubMConv2dSpconvLayout(head_channels, channels, 1))
             for name, channels in outputs}).to(**factory)
@@ -195,7 +201,7 @@ class AuthorsVoxelNeXtHead(SparseCenterHead):
     def forward(self, features: Tensor, coords: Tensor, batch_size: int) -> Dict[str, object]:
         """Per-voxel heatmap logits and regression, as :meth:`SparseCenterHead.forward`."""
         self._check_inputs(features, coords, batch_size)
-        neighbours = submanifold_neighbours(coords, self.grid.ny, self.grid.nx, 3)
+        neighbours = submanifold_neighbours(coords, self.grid.ny, self.grid.nx, self.kernel_size)
         out: Dict[str, object] = {}
         for name, branch in self.heads.items():
             conv, norm, act = branch[0]
