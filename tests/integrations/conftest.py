@@ -69,6 +69,9 @@ def _stub_torchvision() -> None:
             raise RuntimeError(f"{self.__name__}.{attr}: torchvision stand-in (not installed here)")
 
     tv = _Raising("torchvision")
+    # mmengine's Runner records the environment (collect_env reads torchvision.__version__ when the import works):
+    # without a version, every mmdet3d runner test after an OpenPCDet one in the same session would fail
+    tv.__version__ = "0.0.0+stand-in"
     tv.transforms = _Raising("torchvision.transforms")
     sys.modules["torchvision"] = tv
     sys.modules["torchvision.transforms"] = tv.transforms

@@ -77,6 +77,14 @@ def test_stand_ins_raise_when_used(openpcdet):
         roiaware_pool3d_utils.points_in_boxes_cpu(__import__("torch").zeros(1, 3), __import__("torch").zeros(1, 7))
 
 
+def test_an_mmengine_runner_environment_report_works_after_openpcdet(openpcdet):
+    """The session's torchvision stand-in (where torchvision does not import) must not break mmdet3d runner tests
+    that run after this fixture: mmengine's Runner reports the environment, torchvision's version included."""
+    mmengine = pytest.importorskip("mmengine.utils.dl_utils")
+    env = mmengine.collect_env()
+    assert "TorchVision" in env
+
+
 def test_voxelnext_wrapper_has_openpcdets_layout(openpcdet):
     """MSSFVoxelResBackBone8xVoxelNeXt (radar only, OpenPCDet's widths) against OpenPCDet's own
     VoxelResBackBone8xVoxelNeXt on the same voxels: the same sparse shape, the same active sites of every

@@ -91,6 +91,7 @@ def prepare_cpu(tools_dir) -> List[str]:
         for name in [m for m in sys.modules if m == "torchvision" or m.startswith("torchvision.")]:
             del sys.modules[name]
         tv = _StandIn("torchvision", "torchvision does not import here")
+        tv.__version__ = "0.0.0+stand-in"  # read by environment reports (mmengine's collect_env) in this process
         tv.transforms = _StandIn("torchvision.transforms", "torchvision does not import here")
         sys.modules.update({"torchvision": tv, "torchvision.transforms": tv.transforms})
         done.append("torchvision")
