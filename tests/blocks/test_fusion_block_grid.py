@@ -147,3 +147,15 @@ def test_the_readme_example_states_each_number_once():
     assert "QueryInit" not in calls
     assert sum(n for c in ("FusionBlock", "MSDFF", "VoxelGrid") for n in calls[c]) == 9
     assert "in_stride" not in code and "point_range_min=" not in code
+
+
+def test_non_finite_voxel_features_are_named_not_an_index_error():
+    # a NaN query gives NaN sampling locations; the sampling op's pixel plan once failed on the integer cell
+    # INT64_MIN they became ("index -9223372036854775808 is out of bounds"), which named nothing
+    voxels, inputs = make_scene(c=8)
+    torch.manual_seed(0)
+    block = FusionBlock(MSDFF(6, 8, num_heads=2, num_levels=2, num_points=2), GRID).eval()
+    features = voxels.features.clone()
+    features[0, 0] = float("nan")
+    with torch.no_grad(), pytest.raises(MSSFError, match=r"sampling locations: expected finite values, got NaN"):
+        block(dataclasses.replace(voxels, features=features), inputs)

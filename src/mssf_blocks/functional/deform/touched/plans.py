@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.plan_costs import (
     _BAG_BACKWARD,
     _BAG_COST,
@@ -53,7 +54,15 @@ def _read_pixels(c00: Tensor, num_images: int, h: int, w: int) -> Tensor:
     it is marked."""
     hp, wp = h + 4, w + 4
     mark = torch.zeros(num_images * hp * wp, dtype=torch.bool, device=c00.device)
-    mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
+    try:
+        mark.index_fill_(0, c00.reshape(-1), 1)  # (not True: a bool scalar matches no schema under jit.trace)
+    except (IndexError, RuntimeError):
+        # a NaN location becomes cell INT64_MIN (every valid cell is >= 0): say what is wrong, not the index
+        if bool((c00 < 0).any()):
+            raise MSSFError(
+                "sampling locations: expected finite values, got NaN: the queries (e.g. voxel features) or the "
+                "weights of the layers computing the sampling offsets are not finite") from None
+        raise
     mark = mark.view(num_images, hp, wp)
     return (mark[:, 2 : h + 2, 2 : w + 2] | mark[:, 2 : h + 2, 1 : w + 1]).logical_or_(
         mark[:, 1 : h + 1, 2 : w + 2] | mark[:, 1 : h + 1, 1 : w + 1])
