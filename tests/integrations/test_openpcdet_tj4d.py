@@ -111,7 +111,8 @@ def test_tj4d_configs_are_the_vod_ones_with_tj4d_data(tj4d):
         assert d.DATASET == "TJ4DDataset"
         if name in PILLARS:  # the paper's pillar range (a multiple of 0.16 m), a pillar as high as the range
             pcr = list(TJ4D.pillar_range)
-            assert d.POINT_CLOUD_RANGE == pcr and d.DATA_PROCESSOR[-1].VOXEL_SIZE == [*TJ4D.pillar_size, pcr[5] - pcr[2]]
+            assert d.POINT_CLOUD_RANGE == pcr
+            assert d.DATA_PROCESSOR[-1].VOXEL_SIZE == [*TJ4D.pillar_size, pcr[5] - pcr[2]]
             vod_d.DATA_PROCESSOR[-1].VOXEL_SIZE[2] = pcr[5] - pcr[2]
         else:
             assert d.POINT_CLOUD_RANGE == list(TJ4D.point_cloud_range)
@@ -224,7 +225,8 @@ def test_trains_and_evaluates_with_the_tj4d_protocol(tj4d, name, tmp_path):
         assert np.isfinite(loss) and ("loss_mssf_seg" in tb) == fusion
     if fusion:
         if name in PILLARS:  # the fusion stages of MSSFBaseBEVBackbone / the VoxelNeXt-2D backbone
-            grads = [p.grad for p in (model.backbone_2d if model.backbone_3d is None else model.backbone_3d).stages.parameters()]
+            backbone = model.backbone_2d if model.backbone_3d is None else model.backbone_3d
+            grads = [p.grad for p in backbone.stages.parameters()]
         else:
             grads = [p.grad for n, p in model.backbone_3d.named_parameters() if ".fusion." in n]
         assert grads and all(g is not None for g in grads)
