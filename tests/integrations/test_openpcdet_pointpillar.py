@@ -40,10 +40,11 @@ MMDET3D_MODEL = Path(__file__).resolve().parents[2] / "examples" / "configs" / "
     "mssf_pointpillars_vod.py"
 
 
-def small(name, ckpt):
+def small(name, ckpt, folder="vod_models"):
     """The shipped config, shrunk for the CPU (no setting the tests check is changed)."""
-    cfg = load(name)
-    cfg.DATA_CONFIG.DATA_PROCESSOR[-1].VOXEL_SIZE = [0.32, 0.32, 5]  # 160 x 160 pillars
+    cfg = load(name, folder)
+    vs = cfg.DATA_CONFIG.DATA_PROCESSOR[-1].VOXEL_SIZE
+    vs[:2] = [0.32, 0.32]  # VoD: 160 x 160 pillars (TJ4D: 216 x 248); z stays the whole range
     m = cfg.MODEL
     m.VFE.NUM_FILTERS = [16]
     m.MAP_TO_BEV.NUM_BEV_FEATURES = 16

@@ -4,10 +4,12 @@ A generated TJ4DRadSet tree (``tests/integrations/mmdet3d_vod_tree.write_tj4d_tr
 ``.png`` images, the four classes with a ``Truck`` in every frame; 2 training and 2 validation frames,
 304 x 484 images) is written under OpenPCDet's ``data/TJ4DRadSet``, its infos come from the documented
 ``python -m mssf_examples.openpcdet create_tj4d_infos`` (docs/frameworks.md's line, run as printed, as are
-its ``train.py`` / ``test.py`` lines with CPU sizes), and every TJ4D model config (three detector kinds,
-each with its radar-only twin, shrunk as test_openpcdet_vod.py shrinks them) trains two steps through
-OpenPCDet's ``train_one_epoch`` and evaluates through ``eval_one_epoch`` with the dataset's
-``evaluation()``. That evaluation is compared with the project's TJ4D evaluation
+its ``train.py`` / ``test.py`` lines with CPU sizes), and every TJ4D model config (five detector kinds: SECOND,
+VoxelNeXt, CenterPoint, PointPillars, VoxelNeXt-2D, each with its radar-only twin, shrunk as their VoD tests
+shrink them: ``openpcdet_models.shrink``) trains two steps through OpenPCDet's ``train_one_epoch`` and evaluates
+through ``eval_one_epoch`` with the dataset's ``evaluation()``. Each TJ4D file is its ``vod_models/`` twin but
+for the keys TJ4D needs (the pillar files checked against the mmdetection3d TJ4D MSSF-PP config too), and each
+MSSF file less its fusion is its radar-only twin. That evaluation is compared with the project's TJ4D evaluation
 (``evaluate(protocol="tj4d")``, the authors' ``eval_tj4d`` rules, checked against their code in
 tests/examples/evaluation) run on the label files and on detection files written from the same boxes.
 """
@@ -32,6 +34,7 @@ pytest.importorskip("spconv")
 
 sys.path.insert(0, str(Path(__file__).parent))
 from mmdet3d_vod_tree import write_tj4d_tree  # noqa: E402
+from openpcdet_models import PILLARS, TWINS, shrink  # noqa: E402
 from test_openpcdet_centerpoint import keep_all_boxes  # noqa: E402
 from test_openpcdet_vod import CONFIGS, _line, build, load, small, tools, train  # noqa: E402,F401  (tools: fixture)
 
@@ -39,7 +42,10 @@ from mssf_blocks import MSSFError  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 CLASSES = ["Car", "Pedestrian", "Cyclist", "Truck"]
-MODELS = ("mssf_second", "second_radar", "mssf_voxelnext", "voxelnext_radar", "mssf_centerpoint", "centerpoint_radar")
+MODELS = ("mssf_second", "second_radar", "mssf_voxelnext", "voxelnext_radar", "mssf_centerpoint", "centerpoint_radar",
+          *PILLARS)
+MMDET3D_PILLARS = Path(__file__).resolve().parents[2] / "examples" / "configs" / "mmdet3d" / "_base_" / "models" / \
+    "mssf_pointpillars_tj4d.py"
 REGIONS = ("range_0_50", "range_0_70", "range_all")
 
 
@@ -66,6 +72,8 @@ def documented_lines(word):
 
 
 def tj4d_small(name, ckpt):
+    if name in PILLARS:  # 0.32 m pillars: 216 x 248, PointPillars' three stride-2 blocks halve and double back
+        return shrink(name, ckpt, "tj4d_models")
     cfg = small(name, ckpt, folder="tj4d_models")
     # 176 x 160 voxels: SECOND's / CenterPoint's BEV at stride 8 must halve and double back to the same size
     # (80 m / 0.4 m / 8 = 25 would not; the shipped 0.05 m gives 1408 x 1600, 176 x 200 at stride 8)
@@ -86,8 +94,9 @@ def _without(cfg, drop):
 
 
 def test_tj4d_configs_are_the_vod_ones_with_tj4d_data(tj4d):
-    """Each tj4d_models/ config = its vod_models/ twin except the dataset config, the classes, the anchor sizes and
-    bottoms, the centre limits and EVAL_METRIC; the TJ4D values are the paper's (the presets of the examples)."""
+    """Each tj4d_models/ config = its vod_models/ twin except the dataset config, the classes, the anchor sizes (the
+    truck's anchor otherwise the car's), the centre limits and EVAL_METRIC, and for the pillar files the pillar
+    range and height; the TJ4D values are the paper's (the presets of the examples)."""
     from mssf_examples.models.heads.anchor_head import TJ4D_ANCHOR_SIZES
     from mssf_examples.models.presets import TJ4D
 
@@ -98,20 +107,77 @@ def test_tj4d_configs_are_the_vod_ones_with_tj4d_data(tj4d):
         cfg, vod = load(name, "tj4d_models"), load(name)
         assert _without(cfg, differs) == _without(vod, differs), name
         assert cfg.CLASS_NAMES == CLASSES == list(TJ4D.class_names)
-        d = cfg.DATA_CONFIG
-        assert d.DATASET == "TJ4DDataset" and d.POINT_CLOUD_RANGE == list(TJ4D.point_cloud_range)
-        assert d.DATA_PROCESSOR[-1].VOXEL_SIZE == list(TJ4D.voxel_size)
+        d, vod_d = cfg.DATA_CONFIG, copy.deepcopy(vod.DATA_CONFIG)
+        assert d.DATASET == "TJ4DDataset"
+        if name in PILLARS:  # the paper's pillar range (a multiple of 0.16 m), a pillar as high as the range
+            pcr = list(TJ4D.pillar_range)
+            assert d.POINT_CLOUD_RANGE == pcr
+            assert d.DATA_PROCESSOR[-1].VOXEL_SIZE == [*TJ4D.pillar_size, pcr[5] - pcr[2]]
+            vod_d.DATA_PROCESSOR[-1].VOXEL_SIZE[2] = pcr[5] - pcr[2]
+        else:
+            assert d.POINT_CLOUD_RANGE == list(TJ4D.point_cloud_range)
+            assert d.DATA_PROCESSOR[-1].VOXEL_SIZE == list(TJ4D.voxel_size)
         assert d.POINT_FEATURE_ENCODING.used_feature_list == ["x", "y", "z", "v_r", "power"]
         data_keys = ["_BASE_CONFIG_", "DATASET", "DATA_PATH", "POINT_CLOUD_RANGE", "IMAGE_FILE_EXTENSION", "INFO_PATH",
                      "POINT_FEATURE_ENCODING"]
-        assert _without(d, data_keys) == _without(vod.DATA_CONFIG, data_keys)
+        assert _without(d, data_keys) == _without(vod_d, data_keys), name
         head = cfg.MODEL.DENSE_HEAD
         if "ANCHOR_GENERATOR_CONFIG" in head:
             anchors = head.ANCHOR_GENERATOR_CONFIG
             assert [a["class_name"] for a in anchors] == CLASSES
             assert [tuple(a["anchor_sizes"][0]) for a in anchors] == list(TJ4D_ANCHOR_SIZES)
+            vod_anchors = vod.MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG
+            for a, v in zip(anchors, [*vod_anchors, vod_anchors[0]]):  # the rest as VoD's; the truck's as the car's
+                assert _without(a, ["class_name", "anchor_sizes"]) == _without(v, ["class_name", "anchor_sizes"]), name
         else:
             assert head.CLASS_NAMES_EACH_HEAD == [CLASSES]
+
+
+def test_tj4d_pillar_configs_are_the_mmdet3d_mssf_pp_ones(tj4d):
+    """MSSF-PP and its twin on TJ4D = the mmdetection3d TJ4D MSSF-PP model config (mssf_pointpillars_tj4d.py, read
+    by mmengine with its ``_base_``): pillar range and size, input features, anchor sizes, bottoms and rotations,
+    the assigners' IoU thresholds."""
+    config = pytest.importorskip("mmengine.config")
+    mm = config.Config.fromfile(str(MMDET3D_PILLARS)).model
+    enc, gen = mm.pts_middle_encoder, mm.pts_bbox_head.anchor_generator
+    assigners = mm.train_cfg.pts.assigner
+    for name in PILLARS:
+        cfg = load(name, "tj4d_models")
+        d = cfg.DATA_CONFIG
+        assert d.POINT_CLOUD_RANGE == list(enc.point_cloud_range) and d.DATA_PROCESSOR[-1].VOXEL_SIZE == enc.voxel_size
+        assert len(d.POINT_FEATURE_ENCODING.used_feature_list) == enc.in_channels == 5
+        if "voxelnext2d" in name:
+            continue  # (a centre head: no anchors)
+        anchors = cfg.MODEL.DENSE_HEAD.ANCHOR_GENERATOR_CONFIG
+        assert [a["anchor_sizes"][0] for a in anchors] == gen.sizes
+        assert [a["anchor_bottom_heights"][0] for a in anchors] == [r[2] for r in gen.ranges]
+        assert all(a["anchor_rotations"] == gen.rotations for a in anchors)
+        assert [(a["matched_threshold"], a["unmatched_threshold"]) for a in anchors] == [
+            (s.pos_iou_thr, s.neg_iou_thr) for s in assigners]
+
+
+def _pillar_twin(cfg):
+    """A pillar MSSF config as its radar-only twin reads: no image branch, no images read, no fusion key (MSSF-PP's
+    twin is OpenPCDet's own PointPillar and BaseBEVBackbone; VoxelNeXt-2D's keeps the backbone at 0 fusion blocks)."""
+    cfg = copy.deepcopy(cfg)
+    cfg.MODEL.pop("IMAGE_BRANCH")
+    cfg.DATA_CONFIG.GET_ITEM_LIST = ["points"]
+    if cfg.MODEL.NAME == "MSSFPointPillar":
+        b = cfg.MODEL.BACKBONE_2D
+        cfg.MODEL.NAME = "PointPillar"
+        cfg.MODEL.BACKBONE_2D = type(b)({k: b[k] for k in ("LAYER_NUMS", "LAYER_STRIDES", "NUM_FILTERS",
+                                                             "UPSAMPLE_STRIDES", "NUM_UPSAMPLE_FILTERS")},
+                                        NAME="BaseBEVBackbone")
+    else:
+        cfg.MODEL.BACKBONE_3D = type(cfg.MODEL.BACKBONE_3D)(NAME=cfg.MODEL.BACKBONE_3D.NAME, NUM_FUSION_BLOCKS=0)
+    return cfg
+
+
+@pytest.mark.parametrize("folder", ["vod_models", "tj4d_models"])
+@pytest.mark.parametrize("name", ["mssf_pointpillar", "mssf_voxelnext2d"])
+def test_pillar_fusion_removed_is_the_radar_only_twin_config(tj4d, name, folder):
+    """As test_openpcdet_centerpoint.py's twin check of the voxel configs (both folders), for the pillar ones."""
+    assert _pillar_twin(load(name, folder)) == load(TWINS[name], folder)
 
 
 def test_infos_and_dataset_read_8_float_points_png(tj4d):
@@ -152,13 +218,17 @@ def test_trains_and_evaluates_with_the_tj4d_protocol(tj4d, name, tmp_path):
     cfg = tj4d_small(name, tj4d.ckpt)
     _, loader, model = build(cfg)
     fusion = name.startswith("mssf")
-    assert (model.image_branch is not None) == fusion
+    assert (getattr(model, "image_branch", None) is not None) == fusion  # (pointpillar_radar: OpenPCDet's PointPillar)
     seen = train(cfg, model, loader, epochs=2)
     assert len(seen) == 2
     for loss, tb in seen:
         assert np.isfinite(loss) and ("loss_mssf_seg" in tb) == fusion
     if fusion:
-        grads = [p.grad for n, p in model.backbone_3d.named_parameters() if ".fusion." in n]
+        if name in PILLARS:  # the fusion stages of MSSFBaseBEVBackbone / the VoxelNeXt-2D backbone
+            backbone = model.backbone_2d if model.backbone_3d is None else model.backbone_3d
+            grads = [p.grad for p in backbone.stages.parameters()]
+        else:
+            grads = [p.grad for n, p in model.backbone_3d.named_parameters() if ".fusion." in n]
         assert grads and all(g is not None for g in grads)
     if "NMS_CONFIG" in cfg.MODEL.POST_PROCESSING:  # the anchor head: fewer of the untrained head's boxes into NMS
         cfg.MODEL.POST_PROCESSING.NMS_CONFIG.NMS_PRE_MAXSIZE = 256

@@ -35,10 +35,11 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF, TWIN = "mssf_voxelnext2d", "voxelnext2d_radar"
 
 
-def small(name, ckpt):
+def small(name, ckpt, folder="vod_models"):
     """The shipped config, shrunk for the CPU (no setting the tests check is changed)."""
-    cfg = load(name)
-    cfg.DATA_CONFIG.DATA_PROCESSOR[-1].VOXEL_SIZE = [0.32, 0.32, 5]  # 160 x 160 pillars
+    cfg = load(name, folder)
+    vs = cfg.DATA_CONFIG.DATA_PROCESSOR[-1].VOXEL_SIZE
+    vs[:2] = [0.32, 0.32]  # VoD: 160 x 160 pillars (TJ4D: 216 x 248); z stays the whole range
     m = cfg.MODEL
     if "IMAGE_BRANCH" in m:
         m.IMAGE_BRANCH.update(DEPTH=18, BASE_CHANNELS=8, FPN_CHANNELS=16, CHECKPOINT=str(ckpt))
