@@ -73,16 +73,7 @@ def test_losses_and_decoding_equal_mmdet3d_centerhead_with_zero_velocity():
         gts9.append(InstanceData(bboxes_3d=LiDARInstance3DBoxes(torch.cat([boxes, torch.zeros(n, 2)], 1), box_dim=9),
                                  labels_3d=labels))
     x = [torch.randn(2, 32, 16, 16, generator=g)]
-    ours.train(), ref.train()
-    got = ours.loss_by_feat(ours(x), gts7)
-    want = ref.loss_by_feat(ref(x), gts9)
-    assert set(got) == set(want) == {f"task{i}.{k}" for i in range(3) for k in ("loss_heatmap", "loss_bbox")}
-    for k in want:
-        torch.testing.assert_close(got[k], want[k], rtol=1e-6, atol=1e-7)
-    assert all(float(v) > 0 for v in got.values())
-    with pytest.raises(ValueError):  # stock CenterHead unpacks a velocity from every box
-        ref.loss_by_feat(ref(x), gts7)
-    ours.eval(), ref.eval()
+    ours.eval(), ref.eval()  # (decoding first: a training forward moves the BN statistics)
     metas = [dict(box_type_3d=LiDARInstance3DBoxes)] * 2
     with torch.no_grad():
         p_ours = ours.predict_by_feat(ours(x), metas)
@@ -92,6 +83,15 @@ def test_losses_and_decoding_equal_mmdet3d_centerhead_with_zero_velocity():
         torch.testing.assert_close(a.bboxes_3d.tensor, b.bboxes_3d.tensor[:, :7])
         torch.testing.assert_close(a.scores_3d, b.scores_3d)
         assert torch.equal(a.labels_3d, b.labels_3d)
+    ours.train(), ref.train()
+    got = ours.loss_by_feat(ours(x), gts7)
+    want = ref.loss_by_feat(ref(x), gts9)
+    assert set(got) == set(want) == {f"task{i}.{k}" for i in range(3) for k in ("loss_heatmap", "loss_bbox")}
+    for k in want:
+        torch.testing.assert_close(got[k], want[k], rtol=1e-6, atol=1e-7)
+    assert all(float(v) > 0 for v in got.values())
+    with pytest.raises(ValueError):  # stock CenterHead unpacks a velocity from every box
+        ref.loss_by_feat(ref(x), gts7)
 
 
 def test_refuses_a_velocity_branch_and_other_code_weights():
