@@ -29,7 +29,8 @@ from test_mmdet3d_train import box_loss_keys, recording_runners, run, small_cfg 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF, TWIN = "mssf_pointpillars_tj4d.py", "pointpillars_tj4d_radar.py"
 #: every TJ4D model and its radar-only twin (MSSF-PP's own run is the docs' quick check, test_docs_lines_run_as_printed)
-PAIRS = {MSSF: TWIN, "mssf_second_tj4d.py": "second_tj4d_radar.py", "mssf_centerpoint_tj4d.py": "centerpoint_tj4d_radar.py"}
+PAIRS = {MSSF: TWIN, "mssf_second_tj4d.py": "second_tj4d_radar.py",
+         "mssf_centerpoint_tj4d.py": "centerpoint_tj4d_radar.py"}
 VOXEL_RANGE = [0, -40, -4, 70.4, 40, 2]  # the paper's TJ4D range of the voxel models (SECOND, CenterPoint)
 CLASSES = ("Car", "Pedestrian", "Cyclist", "Truck")
 REGIONS = ("range_0_50", "range_0_70", "range_all")

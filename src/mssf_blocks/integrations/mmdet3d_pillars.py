@@ -108,7 +108,8 @@ class MSSFPillarEncoder(nn.Module):
         else:
             self.net = PointPillarsBackbone(
                 self.in_channels, grid, num_filters=tuple(num_filters),
-                num_upsample_filters=tuple(num_upsample_filters), num_fusion_blocks=int(num_fusion_blocks), fusion=fusion, fusion_position=fusion_position,
+                num_upsample_filters=tuple(num_upsample_filters), num_fusion_blocks=int(num_fusion_blocks),
+                fusion=fusion, fusion_position=fusion_position,
                 image_channels=levels, msdff_value_projection=msdff_value_projection, msdff_value_dim=msdff_value_dim,
                 **blocks)
         self.image_channels = None if image_channels is None else [int(c) for c in image_channels]
