@@ -24,12 +24,13 @@ def require_mmdet3d():
         pytest.skip(f"mmdet3d with mmcv's compiled ops not installed ({exc})")
 
 
-def write_tree(root: Path, train: int = 4, val: int = 2, image_size=(304, 484), seed: int = 7):
-    """``root/radar_5frames`` with ``train`` + ``val`` generated frames (jpg) and ``vod_infos_{train,val}.pkl``.
-    Returns the data root (``root/radar_5frames``)."""
+def write_tree(root: Path, train: int = 4, val: int = 2, image_size=(304, 484), seed: int = 7,
+               sensor: str = "radar_5frames"):
+    """``root/<sensor>`` with ``train`` + ``val`` generated frames (jpg) and ``vod_infos_{train,val}.pkl``.
+    Returns the data root (``root/<sensor>``)."""
     from mssf_examples.mmdet3d.generated import write_generated_vod
 
-    return write_generated_vod(root, train, val, image_size, seed)
+    return write_generated_vod(root, train, val, image_size, seed, sensor=sensor)
 
 
 def write_tj4d_tree(root: Path, train: int = 2, val: int = 2, image_size=(304, 484), seed: int = 11,

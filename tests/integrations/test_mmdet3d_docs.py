@@ -58,7 +58,16 @@ RUN_TJ4D = [
     f"{ENTRY} infos --dataset tj4d --root data/TJ4DRadSet",
     f"{ENTRY} train {_TJ4D} {HTC} --iters 2 --image-scale 320 200 --work-dir work_dirs/quick_check_tj4d",
 ]
+_AUTHORS = "examples/configs/mmdet3d/mssf_pointpillars_vod_authors.py"
+_CONVERTED = "checkpoints/mssf_pp_authors_mmdet3d.pth"
+#: run as printed by tests/integrations/test_mmdet3d_authors_pp.py (their checkpoint: random tensors under their
+#: key list; the test line with --image-scale 160 100 appended)
+RUN_AUTHORS = [
+    f"{ENTRY} convert-authors checkpoints/mssf_pp_authors.pth --config {_AUTHORS} --out {_CONVERTED}",
+    f"{ENTRY} test {_AUTHORS} {_CONVERTED}",
+]
 _PAPER = "the paper's 80 epochs (hours on a GPU)"
+_TRAINED = _PAPER + "; {} trains this config 2 iterations (--iters, --image-scale, --data-root)"
 #: not run, with the reason
 NOT_RUN = {
     f"{ENTRY} train {CONFIG} {HTC}": _PAPER + "; the quick check above is this line with --iters 2 --image-scale 320 200 "
@@ -74,6 +83,15 @@ NOT_RUN = {
                                                      "work_dirs/quick_check_voxelnext"),
                            ("mssf_voxelnext_vod.py", ""), ("voxelnext_vod_radar.py", ""),
                            ("mssf_voxelnext_tj4d.py", ""), ("voxelnext_tj4d_radar.py", ""))},
+    f"{ENTRY} train examples/configs/mmdet3d/mssf_second_tj4d.py {HTC}": _TRAINED.format("test_mmdet3d_tj4d.py"),
+    f"{ENTRY} train examples/configs/mmdet3d/mssf_centerpoint_tj4d.py {HTC}": _TRAINED.format("test_mmdet3d_tj4d.py"),
+    f"{ENTRY} train examples/configs/mmdet3d/mssf_centerpoint_vod.py {HTC}": _TRAINED.format("test_mmdet3d_train.py"),
+    f"{ENTRY} train examples/configs/mmdet3d/centerpoint_vod_radar.py": _TRAINED.format("test_mmdet3d_train.py"),
+    f"{ENTRY} infos --root data/view_of_delft --sensor radar":
+        "the page's tree holds radar_5frames only; test_mmdet3d_train.py writes a radar tree's infos with the same "
+        "function (create_vod_infos(root, 'radar'))",
+    f"{ENTRY} train examples/configs/mmdet3d/mssf_pointpillars_vod_single_scan.py {HTC}":
+        _TRAINED.format("test_mmdet3d_train.py") + " on a generated single-scan tree",
 }
 
 
@@ -95,9 +113,10 @@ def doc_commands():
 
 def test_every_command_is_classified():
     commands = doc_commands()
-    known = RUN | set(RUN_TJ4D) | set(SHORTENED) | set(NOT_RUN)
+    known = RUN | set(RUN_TJ4D) | set(RUN_AUTHORS) | set(SHORTENED) | set(NOT_RUN)
     unclassified = [c for c in commands if c not in known]
-    assert not unclassified, f"docs/frameworks.md: classify these in RUN, RUN_TJ4D, SHORTENED or NOT_RUN: {unclassified}"
+    assert not unclassified, ("docs/frameworks.md: classify these in RUN, RUN_TJ4D, RUN_AUTHORS, SHORTENED or NOT_RUN: "
+                              f"{unclassified}")
     stale = sorted(known - set(commands))
     assert not stale, f"classified commands no longer in docs/frameworks.md: {stale}"
     for cmd, (replace, reason) in SHORTENED.items():
@@ -115,8 +134,9 @@ def test_docs_commands_run(tmp_path, monkeypatch):
     require_mmdet3d()
     from mssf_examples.mmdet3d.cli import main
 
-    commands = [c for c in doc_commands() if c not in RUN_TJ4D]
-    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "train", "test", "train", "train", "train"], commands
+    commands = [c for c in doc_commands() if c not in RUN_TJ4D and c not in RUN_AUTHORS]
+    assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "train", "test", "train", "train", "train",
+                                                    "train", "train", "train", "train", "infos", "train"], commands
     write_tree(tmp_path / "data" / "view_of_delft")
     (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").unlink()  # the docs write it
     (tmp_path / "examples").symlink_to(REPO / "examples")

@@ -24,10 +24,14 @@ import torch
 sys.path.insert(0, str(Path(__file__).parent))
 from mmdet3d_vod_tree import evaluate_ground_truth, fake_htc_checkpoint, require_mmdet3d, write_tj4d_tree  # noqa: E402,E501
 from test_mmdet3d_docs import REPO, RUN_TJ4D  # noqa: E402
-from test_mmdet3d_train import recording_runners, run, small_cfg  # noqa: E402
+from test_mmdet3d_train import box_loss_keys, recording_runners, run, small_cfg  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF, TWIN = "mssf_pointpillars_tj4d.py", "pointpillars_tj4d_radar.py"
+#: every TJ4D model and its radar-only twin (MSSF-PP's own run is the docs' quick check, test_docs_lines_run_as_printed)
+PAIRS = {MSSF: TWIN, "mssf_second_tj4d.py": "second_tj4d_radar.py",
+         "mssf_centerpoint_tj4d.py": "centerpoint_tj4d_radar.py"}
+VOXEL_RANGE = [0, -40, -4, 70.4, 40, 2]  # the paper's TJ4D range of the voxel models (SECOND, CenterPoint)
 CLASSES = ("Car", "Pedestrian", "Cyclist", "Truck")
 REGIONS = ("range_0_50", "range_0_70", "range_all")
 KEYS = ("AP3D_R11", "AP3D_R40", "APBEV_R11", "APBEV_R40")
@@ -39,10 +43,11 @@ def data_root(tmp_path_factory):
     return write_tj4d_tree(tmp_path_factory.mktemp("tj4d"))
 
 
-def check_run(rec, fusion):
+def check_run(rec, fusion, head=None):
     assert len(rec.losses) == 2 and rec.batch_sizes == [2, 2]
+    keys = {"loss_cls", "loss_bbox", "loss_dir"} if head is None else box_loss_keys(head)
     for step in rec.losses:
-        assert {"loss_cls", "loss_bbox", "loss_dir"} <= set(step) and ("loss_seg" in step) == fusion, step
+        assert keys <= set(step) and ("loss_seg" in step) == fusion, step
         assert all(math.isfinite(v) for v in step.values()), step
     if fusion:
         assert rec.nonzero and all(rec.nonzero.values()), [n for n, ok in rec.nonzero.items() if not ok]
@@ -92,15 +97,27 @@ def test_infos(data_root):
     assert frame["tj4d"]["label_text"] == text and "vod" not in frame
 
 
-def test_radar_only_twin_trains_and_evaluates(data_root, tmp_path):
-    cfg = small_cfg(TWIN, data_root, tmp_path)
-    assert cfg.model.pts_middle_encoder.in_channels == 5 and cfg.model.pts_bbox_head.num_classes == 4
+@pytest.mark.parametrize("name", sorted(set(PAIRS) - {MSSF}) + sorted(PAIRS.values()))
+def test_config_trains_and_evaluates(name, data_root, tmp_path):
+    cfg = small_cfg(name, data_root, tmp_path)
+    head = cfg.model.pts_bbox_head
+    assert cfg.model.pts_middle_encoder.in_channels == 5
+    if head.type == "Anchor3DHead":
+        assert head.num_classes == 4
+    else:
+        assert [c for t in head.tasks for c in t.class_names] == list(CLASSES)
+    if "pointpillars" not in name:  # the voxel models' range, in the data pipeline and in the grid
+        assert cfg.model.pts_middle_encoder.point_cloud_range == VOXEL_RANGE
+        ranges = [s.point_cloud_range for d in ("train_dataloader", "val_dataloader") for s in cfg[d].dataset.pipeline
+                  if "point_cloud_range" in s]
+        assert len(ranges) == 3 and all(r == VOXEL_RANGE for r in ranges)
     _, rec = run(cfg)
-    check_run(rec, fusion=False)
+    check_run(rec, fusion=name in PAIRS, head=head)
 
 
-def test_fusion_removed_is_the_radar_only_twin(data_root, tmp_path):
-    cfg, twin = small_cfg(MSSF, data_root, tmp_path), small_cfg(TWIN, data_root, tmp_path)
+@pytest.mark.parametrize("name", sorted(PAIRS))
+def test_fusion_removed_is_the_radar_only_twin(name, data_root, tmp_path):
+    cfg, twin = small_cfg(name, data_root, tmp_path), small_cfg(PAIRS[name], data_root, tmp_path)
     cfg.model.img_backbone = None
     cfg.model.img_neck = None
     cfg.model.pts_middle_encoder.update(num_fusion_blocks=0, image_channels=None, seg_hidden=None)

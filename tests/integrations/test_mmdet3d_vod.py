@@ -4,7 +4,7 @@
   ``KittiDataset`` conversion to LiDAR boxes) given back as predictions scores exactly what the project's
   VoD evaluation gives the label files' own lines (read directly, no conversion): every AP, both regions;
   the same boxes moved 3 m score zero (the metric can fail).
-* overfitting one generated frame with MSSF-PointPillars lowers the total loss clearly.
+* overfitting one generated frame with MSSF-PointPillars and with MSSF-CenterPoint lowers the total loss clearly.
 * bad input: image-neck levels / channels vs ``image_channels``, fusion without an image branch, no box
   head, a pipeline without images or without ``lidar2img``, infos without calibration, a point dimension
   that differs from ``in_channels`` (build time or first iteration, naming the key).
@@ -73,10 +73,11 @@ def test_metric_matches_the_label_files(data_root, tmp_path):
     assert moved["VoD/entire_area/mAP/AP3D_R40"] == 0.0
 
 
-def test_overfit_one_frame_lowers_the_loss(data_root, tmp_path):
+@pytest.mark.parametrize("name", ["mssf_pointpillars_vod.py", "mssf_centerpoint_vod.py"])
+def test_overfit_one_frame_lowers_the_loss(name, data_root, tmp_path):
     from test_mmdet3d_train import run
 
-    cfg = small_cfg("mssf_pointpillars_vod.py", data_root, tmp_path, iters=10)
+    cfg = small_cfg(name, data_root, tmp_path, iters=10)
     cfg.train_dataloader.dataset.indices = 1  # one frame
     pipe = cfg.train_dataloader.dataset.pipeline  # the same frame every time: no point augmentation
     cfg.train_dataloader.dataset.pipeline = [s for s in pipe if s.type not in ("RandomFlip3D", "GlobalRotScaleTrans")]

@@ -3,7 +3,7 @@
 # Its radar-only twin: voxelnext_tj4d_radar.py (the same model less the fusion blocks and the image branch).
 _base_ = [
     "./_base_/models/mssf_voxelnext_tj4d.py",
-    "./_base_/datasets/tj4d_radar_camera_voxel.py",
+    "./_base_/datasets/tj4d_radar_voxel_camera.py",
     "./_base_/schedules/vod_onecycle.py",
     "./_base_/default_runtime.py",
 ]

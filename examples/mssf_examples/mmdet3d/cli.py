@@ -8,7 +8,9 @@
   checkpoint and logging bound to them; ``--image-checkpoint`` (:func:`set_image_checkpoint`) loads the image
   branch from an mmdet checkpoint (the paper's HTC R-50-FPN); a frozen image branch that nothing loads is
   refused before anything is built (:func:`check_image_weights_given`);
-* ``test CONFIG CHECKPOINT [same options less --resume, --iters and --image-checkpoint]``: ``Runner.test()``.
+* ``test CONFIG CHECKPOINT [same options less --resume, --iters and --image-checkpoint]``: ``Runner.test()``;
+* ``convert-authors THEIR_CHECKPOINT --config CONFIG --out FILE``: the MSSF authors' MSSF-PP checkpoint into the
+  config's model configured as theirs (:mod:`.authors_checkpoint`), with the mapped / ignored / missing report.
 
 Checkpoints are unpickled weights-only with exactly what mmengine 0.10's checkpoints hold allowed
 (:mod:`.checkpoints`): a file holding anything else is refused. What mmdet3d's ``tools/train.py`` /
@@ -34,6 +36,11 @@ def _parser() -> argparse.ArgumentParser:
     i.add_argument("--sensor", default="radar_5frames", help="VoD's radar folder (default radar_5frames)")
     i.add_argument("--splits", nargs="+", default=["train", "val"], help="split files (default train val)")
     i.add_argument("--out-dir", default=None, help="default <root>/<sensor> (VoD), <root> (TJ4DRadSet)")
+    a = sub.add_parser("convert-authors",
+                       help="the MSSF authors' MSSF-PP checkpoint into an mmdet3d config built as theirs")
+    a.add_argument("checkpoint", help="their .pth (EricLiuhhh/MSSF, MSSF-PP)")
+    a.add_argument("--config", required=True, help="a config configured as theirs (mssf_pointpillars_vod_authors.py)")
+    a.add_argument("--out", required=True, help="the converted checkpoint to write (read by test / load_from)")
     for name in ("train", "test"):
         s = sub.add_parser(name, help=f"{name} a config with mmengine's Runner")
         s.add_argument("config")
@@ -191,6 +198,10 @@ def main(argv: Optional[List[str]] = None) -> int:
         for split, path in written.items():
             print(f"{split}: {path}")
         return 0
+    if args.command == "convert-authors":
+        from .authors_checkpoint import run
+
+        return run(args.checkpoint, args.config, args.out)
     from mmengine.registry import init_default_scope
     from mmengine.runner import Runner
 

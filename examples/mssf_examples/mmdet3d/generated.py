@@ -17,10 +17,11 @@ SENSOR = "radar_5frames"
 
 
 def write_generated_vod(root, train: int = 4, val: int = 2, image_size: Tuple[int, int] = (304, 484),
-                        seed: int = 7) -> Path:
-    """Write ``train`` + ``val`` generated frames under ``root/radar_5frames`` and their info files.
+                        seed: int = 7, sensor: str = SENSOR) -> Path:
+    """Write ``train`` + ``val`` generated frames under ``root/<sensor>`` and their info files.
 
-    ``image_size`` is (H, W) of the written images. Returns the data root (``root/radar_5frames``).
+    ``image_size`` is (H, W) of the written images; ``sensor`` the radar folder (``radar_5frames``, or ``radar``
+    for the single-scan configs: the same 7-float files). Returns the data root (``root/<sensor>``).
     """
     from PIL import Image
 
@@ -32,12 +33,12 @@ def write_generated_vod(root, train: int = 4, val: int = 2, image_size: Tuple[in
     cfg = SceneConfig(image_size=image_size, point_cloud_range=(0.0, -25.6, -3.0, 51.2, 25.6, 2.0))
     scenes = {"train": [SyntheticDataset("train", train, cfg, seed=seed)[i] for i in range(train)],
               "val": [SyntheticDataset("val", val, cfg, seed=seed)[i] for i in range(val)]}
-    write_vod_tree(root, scenes, sensor=SENSOR)
-    for png in (root / SENSOR / "training" / "image_2").glob("*.png"):  # the release's images are jpg
+    write_vod_tree(root, scenes, sensor=sensor)
+    for png in (root / sensor / "training" / "image_2").glob("*.png"):  # the release's images are jpg
         Image.open(png).convert("RGB").save(png.with_suffix(".jpg"), quality=95)
         png.unlink()
-    create_vod_infos(root, SENSOR, ("train", "val"))
-    return root / SENSOR
+    create_vod_infos(root, sensor, ("train", "val"))
+    return root / sensor
 
 
 def write_generated_image_checkpoint(path, seed: int = 3) -> Path:

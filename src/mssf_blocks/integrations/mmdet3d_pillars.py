@@ -39,6 +39,14 @@ class MSSFPillarEncoder(nn.Module):
         msdff_value_projection, msdff_value_dim, seg_hidden: the fusion blocks and the semantic head
             (``num_fusion_blocks=0``: the radar-only PointPillars).
         image_aug: see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
+        layout: ``"paper"`` (default: ``PointPillarsBackbone``, the paper's fusion blocks inside the 2D blocks)
+            or ``"authors"``: the MSSF authors' MSSF-PP module structure
+            (``mssf_examples.models.backbones.AuthorsPointPillarsBackbone``: their ``PointPillarsScatterFuse`` and
+            ``SECONDFuse`` stages with their forward switches, ``blocks`` / ``deblocks`` named as theirs), into
+            which their released checkpoint loads (``python -m mssf_examples.mmdet3d convert-authors``). It is
+            always their two MSDFF stages with the semantic head: ``num_fusion_blocks=2``, ``fusion="msdff"``,
+            ``image_channels`` and ``seg_hidden`` given; ``msdff_value_projection`` / ``msdff_value_dim`` /
+            ``fusion_position`` are not read.
     """
 
     consumes_points = True
@@ -65,10 +73,13 @@ class MSSFPillarEncoder(nn.Module):
         msdff_value_dim: Union[int, str, None] = None,
         seg_hidden: Optional[Sequence[int]] = (256, 256),
         image_aug: str = "meta",
+        layout: str = "paper",
     ) -> None:
         super().__init__()
+        if layout not in ("paper", "authors"):
+            raise MSSFError(f"layout: expected 'paper' or 'authors', got {layout!r}")
         try:
-            from mssf_examples.models.backbones import PointPillarsBackbone
+            from mssf_examples.models.backbones import AuthorsPointPillarsBackbone, PointPillarsBackbone
             from mssf_blocks.voxel_grid import VoxelGrid
         except ImportError as exc:
             raise ImportError("MSSFPillarEncoder is built from mssf_examples.models.backbones: install the examples "
@@ -80,22 +91,34 @@ class MSSFPillarEncoder(nn.Module):
         if abs((pcr[5] - pcr[2]) - vs[2]) > 1e-6:
             raise MSSFError(f"voxel_size: a pillar spans the whole z range {pcr[5] - pcr[2]:g} m, got z size {vs[2]:g}")
         self.in_channels = int(in_channels)
-        self.net = PointPillarsBackbone(
-            self.in_channels, VoxelGrid(voxel_size=tuple(vs), point_cloud_range=tuple(pcr)), lift_z_size=float(lift_z_size),
-            pfn_channels=int(pfn_channels), layer_nums=tuple(layer_nums), layer_strides=tuple(layer_strides),
-            num_filters=tuple(num_filters), upsample_strides=tuple(upsample_strides),
-            num_upsample_filters=tuple(num_upsample_filters), num_fusion_blocks=int(num_fusion_blocks), fusion=fusion,
-            fusion_position=fusion_position, image_channels=None if image_channels is None else [int(c) for c in image_channels],
-            msdff_heads=int(msdff_heads), msdff_points=int(msdff_points), msdff_value_projection=msdff_value_projection,
-            seg_hidden=None if seg_hidden is None else tuple(int(c) for c in seg_hidden), msdff_value_dim=msdff_value_dim,
-        )
+        self.layout = layout
+        grid = VoxelGrid(voxel_size=tuple(vs), point_cloud_range=tuple(pcr))
+        levels = None if image_channels is None else [int(c) for c in image_channels]
+        seg = None if seg_hidden is None else tuple(int(c) for c in seg_hidden)
+        blocks = dict(lift_z_size=float(lift_z_size), pfn_channels=int(pfn_channels), layer_nums=tuple(layer_nums),
+                      layer_strides=tuple(layer_strides), upsample_strides=tuple(upsample_strides),
+                      msdff_heads=int(msdff_heads), msdff_points=int(msdff_points), seg_hidden=seg)
+        if layout == "authors":
+            if int(num_fusion_blocks) != 2 or fusion != "msdff" or levels is None or seg is None:
+                raise MSSFError(f"layout: 'authors' is their MSSF-PP (2 MSDFF stages with the semantic head), got "
+                                f"num_fusion_blocks={num_fusion_blocks}, fusion={fusion!r}, image_channels="
+                                f"{image_channels}, seg_hidden={seg_hidden}")
+            self.net = AuthorsPointPillarsBackbone(self.in_channels, grid, levels, out_channels=tuple(num_filters),
+                                                   upsample_channels=tuple(num_upsample_filters), **blocks)
+        else:
+            self.net = PointPillarsBackbone(
+                self.in_channels, grid, num_filters=tuple(num_filters),
+                num_upsample_filters=tuple(num_upsample_filters), num_fusion_blocks=int(num_fusion_blocks),
+                fusion=fusion, fusion_position=fusion_position,
+                image_channels=levels, msdff_value_projection=msdff_value_projection, msdff_value_dim=msdff_value_dim,
+                **blocks)
         self.image_channels = None if image_channels is None else [int(c) for c in image_channels]
         self.image_aug = image_aug
         self.last_output = None
 
     @property
     def num_fusion_blocks(self) -> int:
-        return self.net.num_fusion_blocks
+        return 2 if self.layout == "authors" else self.net.num_fusion_blocks
 
     def forward(self, points: Sequence[Tensor], img_features: Optional[Sequence[Tensor]] = None,
                 batch_input_metas: Optional[Sequence[Mapping]] = None, **kwargs: Any) -> List[Tensor]:

@@ -1,0 +1,13 @@
+# The radar-only twin of mssf_centerpoint_vod.py: the same detector with no fusion blocks, no semantic head and no
+# image branch, on the radar-only pipeline. Training both gives the paper's fusion gap.
+_base_ = [
+    "./_base_/models/mssf_centerpoint_vod.py",
+    "./_base_/datasets/vod_radar5.py",
+    "./_base_/schedules/vod_onecycle.py",
+    "./_base_/default_runtime.py",
+]
+model = dict(
+    img_backbone=None,
+    img_neck=None,
+    pts_middle_encoder=dict(num_fusion_blocks=0, image_channels=None, seg_hidden=None),
+)
