@@ -22,6 +22,7 @@ from mssf_blocks.functional import bilinear_sample
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.static_path import segment_slots
 from mssf_blocks.samplers import MSDFF, SFF
+from mssf_blocks.samplers import msdff as msdff_module
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -53,24 +54,39 @@ def _perturb(mod, seed=2):
 
 @pytest.mark.parametrize("b,v", [(1, 1), (2, 1), (2, 3)])
 @pytest.mark.parametrize("training", [False, True])
-@pytest.mark.parametrize("kind", ["sff", "msdff"])
-def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v):
+@pytest.mark.parametrize("kind", ["sff", "msdff", "msdff_onnx_form", "msdff_channels_last"])
+def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v, monkeypatch):
+    """MSDFF's static path samples the raw channels and projects per head (bag.sample_project_static);
+    "msdff_onnx_form" is what an ONNX export captures instead (1 x 1 Conv + GridSample per head),
+    "msdff_channels_last" the same static path on channels-last levels (its tables are free views)."""
     n = 40
     # float64: the comparison then sees formulation errors, not float32 rounding of near-zero gradients
     proj = _projection(n, b, v)
     proj = CentroidProjection(proj.uv.double(), proj.depth, proj.valid, proj.centroid, proj.has_points,
                               proj.batch_index)
+    inside = ((proj.uv >= 0) & (proj.uv <= 1)).all(-1)
+    # the cases hold both: projections outside the image, and voxels seen by no camera
+    assert bool((proj.valid & ~inside).any()) and bool((~proj.valid.any(1)).any())
     feats = _levels(b, v)
+    if kind == "msdff_channels_last":
+        feats = [f.detach().flatten(0, -4).contiguous(memory_format=torch.channels_last).view(f.shape)
+                 .requires_grad_() for f in feats]
+        assert feats[0].stride(-3) == 1
     query = torch.randn(n, 16, requires_grad=True, dtype=torch.float64)
     base = SFF([6, 6], 16) if kind == "sff" else MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3)
     _perturb(base.double()).train(training)
+    if kind == "msdff_onnx_form":
+        monkeypatch.setattr(msdff_module, "_exporting_onnx", lambda: True)
     results = []
     for static in (False, True):
         mod = copy.deepcopy(base)
         with static_path(static):
             assert use_static_path() is static
+            if kind != "sff":
+                want = {"msdff_onnx_form": "grid_conv"}.get(kind, "static_bag") if static else "sample_op"
+                assert mod._plan("cpu")[0] == want
             out = mod(feats, proj) if kind == "sff" else mod(query, feats, proj)
-        inputs = feats + ([query] if kind == "msdff" else [])
+        inputs = feats + ([query] if kind != "sff" else [])
         weight = torch.linspace(-1, 1, out.numel()).view_as(out)
         grads = torch.autograd.grad((out * weight).sum(), inputs + list(mod.parameters()))
         results.append((out, grads, mod.norm.running_mean.clone(), mod.norm.running_var.clone()))

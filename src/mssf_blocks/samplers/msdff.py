@@ -30,7 +30,7 @@ from mssf_blocks.samplers._msdff_pairs import Pairs, reduce_cameras, select_pair
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.plan_costs import compiled_training_uses_op, msdff_auto_method
-from mssf_blocks.functional.deform import grid, ms_deform_sample
+from mssf_blocks.functional.deform import bag, grid, ms_deform_sample
 from mssf_blocks.functional.deform.op import sample_project_unchecked
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
 
@@ -40,14 +40,19 @@ _METHODS = ("auto", "reference", "fast", "grid", "touched", "triton")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
+def _exporting_onnx() -> bool:
+    """An ONNX exporter (``torch.onnx.export``, dynamo or TorchScript) is capturing."""
+    onnx = getattr(torch, "onnx", None)
+    return onnx is not None and onnx.is_in_onnx_export()
+
+
 def _compiling_only() -> bool:
     """``torch.compile`` (dynamo) is capturing, not an exporter: the sampling op is one opaque node there
     (the device's backend, e.g. the CPU plans, instead of the static grid plan), while exports (torch.export,
-    ONNX, tracing) keep the grid plan of standard operators."""
+    ONNX, tracing) keep the static plans of standard operators."""
     if not torch_versions.is_compiling() or torch_versions.is_exporting():
         return False
-    onnx = getattr(torch, "onnx", None)
-    return not (onnx is not None and onnx.is_in_onnx_export())
+    return not _exporting_onnx()
 
 
 class MSDFF(nn.Module):
@@ -339,9 +344,16 @@ class MSDFF(nn.Module):
             # by measurement (plan_costs.COMPILED_TRAINING).
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
+            if method == "grid" and static:
+                # The static-shape path: sample the raw channels, then project per head (fixed-size
+                # embedding bags, a cost in the voxels); an ONNX exporter would turn embedding_bag into
+                # a Loop, so ONNX gets project-first with a 1 x 1 Conv and GridSample (what TensorRT
+                # parses; measured faster in onnxruntime than gathering the corners: docs/deployment.md).
+                method = "grid_conv" if _exporting_onnx() else "static_bag"
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
-        static = static or method in ("grid", "triton") or (method == "sample_op" and device_type != "cpu")
+        static = static or method in ("grid", "grid_conv", "static_bag", "triton") or (
+            method == "sample_op" and device_type != "cpu")
         return method, static
 
     def _sample(self, method: str, static: bool, levels: Sequence[Tensor], pairs: Pairs, dtype: torch.dtype) -> Tensor:
@@ -352,8 +364,10 @@ class MSDFF(nn.Module):
         w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
         b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
         raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-        if method == "grid" and static:  # the op's grid path, called directly (standard operators for exporters)
-            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads)
+        if method == "static_bag":  # the static-shape path (bag.sample_project_static)
+            return bag.sample_project_static(raw, image_index, locations, weights, w_heads, b_heads)
+        if method in ("grid", "grid_conv") and static:  # the op's grid path, called directly (standard operators)
+            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads, method == "grid_conv")
         if method in ("sample_op", "touched", "triton"):
             # The sampling op: the device's backend (functional/deform/op.py; CPU: per level the
             # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.

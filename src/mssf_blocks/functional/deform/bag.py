@@ -15,7 +15,7 @@ from torch.utils.checkpoint import checkpoint
 from mssf_blocks import torch_versions
 from mssf_blocks.functional.deform.touched.points import _pixel_coordinate
 
-__all__ = ["sample", "sample_project_chunked"]
+__all__ = ["sample", "sample_project_chunked", "sample_project_static"]
 
 
 def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
@@ -78,6 +78,8 @@ def sample(
         # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
         # along D); otherwise one layout copy of this level.
         table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
+        if table.stride(-1) != 1:  # (embedding_bag reads a strided table several times slower than a copy)
+            table = table.contiguous()
         part = torch_versions.embedding_bag(
             rows[lvl].view(m * q, p * 4), table, per_sample_weights=psw[lvl].view(m * q, p * 4), mode="sum"
         )  # (M * Q, D)
@@ -104,6 +106,27 @@ def _sample_project_level(
     if proj_bias is not None:
         out = out + mass[..., None] * proj_bias
     return out
+
+
+def sample_project_static(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
+                          proj_weight: Tensor, proj_bias: Tensor) -> Tensor:
+    """``(Q, M, d)``: the op's formula with static shapes and a cost in the queries, not the pixels.
+
+    The static-shape path's MSDFF sampling (graph capture, ``static_path()``): every query's
+    ``M * L * P * 4`` bilinear corners of the raw ``C``-channel levels ``(I, 1, C, H_l, W_l)`` reduced
+    by fixed-size embedding bags (one bag per (head, query) and level, weights ``bilinear * attention``:
+    no ``nonzero``, no data-dependent size, a query's image a row offset), then head ``m``'s rows of the
+    value projection ``proj_weight (M, d, C)``, plus ``proj_bias (M, d)`` times the in-image bilinear
+    weight mass. Exact: sampling is linear, so ``sum_k w_k (W x_k + b) = W (sum_k w_k x_k) + b sum_k w_k``
+    with the sums over the corners inside the map (zero padding: in the project-first formulation a
+    corner outside reads a zero *projected* pixel, bias included). Cost
+    ``O(Q * M * L * P * 4 * C + Q * M * C * d)``, plus one layout copy of every level that is not
+    channels-last (its ``(pixels, C)`` table; a free view otherwise).
+    """
+    sampled, mass = sample(levels, image_index, locations, weights, True)
+    # sampled is a (Q, M, C) view of head-major (M, Q, C) memory: the per-head bmm reads it in place.
+    out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (Q, M, d)
+    return out + mass[..., None] * proj_bias
 
 
 def sample_project_chunked(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
