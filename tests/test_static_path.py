@@ -243,3 +243,58 @@ def test_auto_plan_per_device_and_grid_method_equals_cpu_planner():
     grid = copy.deepcopy(auto)
     grid.method = "grid"  # the plan CUDA takes eagerly
     torch.testing.assert_close(grid(query, feats, proj), auto(query, feats, proj), atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("v", [1, 2])
+def test_static_msdff_bias_counts_only_the_in_image_weight_mass(v):
+    # Voxels projected far outside the image (valid, but every corner of every point outside): in the
+    # project-first formulation they read zero *projected* pixels, so value_proj.bias must not reach them;
+    # voxels inside read it times their in-image bilinear mass. Both paths, float64, against each other
+    # and against the bias-free property.
+    g = torch.Generator().manual_seed(5)
+    n = 24
+    uv = torch.rand(n, v, 2, generator=g, dtype=torch.float64)
+    far = torch.arange(n) % 3 == 0
+    uv[far] = 40.0  # offsets of a few pixels cannot bring these back into the image
+    valid = torch.ones(n, v, dtype=torch.bool)
+    valid[1::6] = False  # and a few voxels seen by no camera
+    proj = CentroidProjection(uv, valid.double(), valid, torch.zeros(n, 3), valid[:, 0], torch.zeros(n, dtype=torch.long))
+    feats = [f.detach() for f in _levels(1, v)]
+    query = torch.randn(n, 16, generator=g, dtype=torch.float64)
+    mod = _perturb(MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3, norm_layer=None).double()).eval()
+    shifted = copy.deepcopy(mod)
+    with torch.no_grad():
+        shifted.value_proj.bias.add_(3.0)
+    outs = {}
+    for static in (False, True):
+        with static_path(static), torch.no_grad():
+            outs[static] = (mod(query, feats, proj), shifted(query, feats, proj))
+    torch.testing.assert_close(outs[True][0], outs[False][0], atol=1e-10, rtol=1e-10)
+    torch.testing.assert_close(outs[True][1], outs[False][1], atol=1e-10, rtol=1e-10)
+    for static in (False, True):
+        base, moved = outs[static]
+        outside = far & valid.any(1)
+        torch.testing.assert_close(moved[outside], base[outside], atol=1e-12, rtol=0)  # no bias outside
+        inside = ~far & valid.any(1)
+        assert bool(((moved[inside] - base[inside]).abs().amax(1) > 1e-3).all())  # the bias reaches the others
+        assert bool((base[~valid.any(1)] == 0).all())  # unseen voxels: exact zeros
+
+
+def test_static_msdff_cost_grows_with_the_voxels_not_the_pixels():
+    # The static path's multiply-adds (FlopCounterMode counts the GEMMs / convolutions) do not depend on the
+    # image size; project-first (method="grid") grows with the pixels. Independent: the count of the other
+    # formulation on the same inputs.
+    from torch.utils.flop_counter import FlopCounterMode
+
+    def flops(mod, size):
+        feats = [torch.randn(1, 8, size, size), torch.randn(1, 8, size // 2, size // 2)]
+        proj = _projection(30, 1, 1)
+        with static_path(), FlopCounterMode(display=False) as counter, torch.no_grad():
+            mod(torch.randn(30, 16), feats, proj)
+        return counter.get_total_flops()
+
+    static = MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2).eval()
+    grid = copy.deepcopy(static)
+    grid.method = "grid"
+    assert flops(static, 16) == flops(static, 64) > 0
+    assert flops(grid, 64) > 4 * flops(grid, 16) > 0

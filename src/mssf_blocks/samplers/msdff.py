@@ -327,7 +327,8 @@ class MSDFF(nn.Module):
         if pairs.seen is not None:  # (the seen voxels' rows only)
             f_img = _linear_bn_rows(self.output_proj, self.norm, attended, pairs.seen, n)
         else:
-            f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
+            # (a sum, not any(): ONNX exports any() as ReduceMax, whose opset 18 -> 17 conversion fails)
+            f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.sum(dim=1) > 0, static)
         if self.output_dropout:
             f_img = F.dropout(f_img, self.output_dropout, self.training)
         return query.to(f_img.dtype) + f_img if self.add_query else f_img
