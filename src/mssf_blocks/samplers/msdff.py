@@ -345,11 +345,12 @@ class MSDFF(nn.Module):
             # by measurement (plan_costs.COMPILED_TRAINING).
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
-            if method == "grid" and static:
+            if method == "grid" and static and not _compiling_only():
                 # The static-shape path: sample the raw channels, then project per head (fixed-size
                 # embedding bags, a cost in the voxels); an ONNX exporter would turn embedding_bag into
                 # a Loop, so ONNX gets project-first with a 1 x 1 Conv and GridSample (what TensorRT
                 # parses; measured faster in onnxruntime than gathering the corners: docs/deployment.md).
+                # (torch.compile keeps the grid plan where COMPILED_TRAINING asks for it: measured so.)
                 method = "grid_conv" if _exporting_onnx() else "static_bag"
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
