@@ -147,13 +147,13 @@ def bench_msdff(cfg, voxels, repeats, tmp):
     for n in voxels:
         for layout in ("channels-last", "NCHW"):
             args = msdff_inputs(cfg, n, layout == "channels-last", seed=n)
-            paths = {"eager": lambda: graph(*args), "exported": lambda: exported(*args)}
 
-            def static():
+            def static(args=args):
                 with static_path():
                     return graph(*args)
 
-            paths = {"eager": paths["eager"], "static": static, "exported": paths["exported"]}
+            paths = {"eager": lambda args=args: graph(*args), "static": static,
+                     "exported": lambda args=args: exported(*args)}
             with torch.no_grad():
                 outputs = {k: fn() for k, fn in paths.items()}
                 times = interleaved(paths, repeats)

@@ -258,7 +258,8 @@ def test_static_msdff_bias_counts_only_the_in_image_weight_mass(v):
     uv[far] = 40.0  # offsets of a few pixels cannot bring these back into the image
     valid = torch.ones(n, v, dtype=torch.bool)
     valid[1::6] = False  # and a few voxels seen by no camera
-    proj = CentroidProjection(uv, valid.double(), valid, torch.zeros(n, 3), valid[:, 0], torch.zeros(n, dtype=torch.long))
+    bi = torch.zeros(n, dtype=torch.long)
+    proj = CentroidProjection(uv, valid.double(), valid, torch.zeros(n, 3), valid[:, 0], bi)
     feats = [f.detach() for f in _levels(1, v)]
     query = torch.randn(n, 16, generator=g, dtype=torch.float64)
     mod = _perturb(MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3, norm_layer=None).double()).eval()

@@ -15,8 +15,8 @@ REPO = Path(__file__).resolve().parents[2]
 def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
     pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
-    env = dict(os.environ, OMP_NUM_THREADS="1",
-               PYTHONPATH=os.pathsep.join([str(REPO / "src"), str(REPO / "examples"), os.environ.get("PYTHONPATH", "")]))
+    path = [str(REPO / "src"), str(REPO / "examples"), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(path))
     out = tmp_path / "rows.json"
     r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "static_path.py"), "--smoke", "--json", str(out)],
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)

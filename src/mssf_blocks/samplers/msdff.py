@@ -98,8 +98,11 @@ class MSDFF(nn.Module):
             pixels' raw channels and project per head; cost
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
             ``docs/fusion.md``) on the CPU, the sampling op's backend on CUDA; under ``torch.compile``
-            the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``),
-            ``"grid"`` while a graph is exported (``torch.export``, ONNX, tracing).
+            the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``);
+            on the static-shape path (``torch.export``, tracing, ``static_path()``) the raw channels of
+            every corner in fixed-size embedding bags, projected per head after (cost
+            ``O(N * M * L * P * 4 * C)``, none in the pixels), and under an ONNX export ``"grid"`` with
+            the projection as a 1 x 1 convolution (ONNX ``Conv`` + ``GridSample``).
             ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
             host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
             and keeps its own). ``"fast"`` / ``"reference"``: the literal order of

@@ -1,10 +1,12 @@
 """The grid path of the sampling op: project every pixel, then one ``F.grid_sample`` per level.
 
-Static shapes (no ``nonzero``, no ``.item()``): the path of graph capture (``torch.compile``,
-``torch.export``, ONNX ``GridSample``, opset 16+), of devices without a backend of their own, and the
-op's fallback on CUDA. Every query is sampled in every image of the batch and keeps its own image's
-result (a mask, no gather of per-image query lists): cost and memory grow with the number of images
-``I = B * V``, the same as a per-image loop for ``I = 1``, ``I`` times it otherwise. Inputs unchecked.
+Static shapes (no ``nonzero``, no ``.item()``): MSDFF's path under an ONNX export (``Conv`` +
+``GridSample``, opset 16+; other graph captures take ``bag.sample_project_static``), the static plan of
+``torch.compile`` where ``plan_costs.COMPILED_TRAINING`` asks for it, the path of devices without a
+backend of their own, and the op's fallback on CUDA. Every query is sampled in every image of the
+batch and keeps its own image's result (a mask, no gather of per-image query lists): cost and memory
+grow with the number of images ``I = B * V``, the same as a per-image loop for ``I = 1``, ``I`` times it
+otherwise. Inputs unchecked.
 """
 
 from __future__ import annotations
@@ -85,7 +87,8 @@ def project_levels_conv(levels: List[Tensor], proj_weight: Tensor, proj_bias: Te
     """:func:`project_levels` as a 1 x 1 convolution of the ``(I, C, H_l, W_l)`` maps: ``(I, M, d, H_l, W_l)``
     contiguous views of the ``(I, M * d, H_l, W_l)`` output. The form for ONNX (one ``Conv`` on the NCHW
     input and a free reshape for ``GridSample``, where the linear form adds a ``Transpose`` of every level
-    and a ``MatMul``: measured 1.8x slower in onnxruntime on one core, ``benchmarks/static_path.py``)."""
+    and a ``MatMul``: 1.6-1.8x slower in onnxruntime, one core, MSDFF at the paper's width on a VoD image,
+    N = 2,500 / 8,000; docs/deployment.md)."""
     m, d, c = proj_weight.shape
     return [F.conv2d(lvl[:, 0], proj_weight.reshape(m * d, c, 1, 1), proj_bias.reshape(m * d))
             .unflatten(1, (m, d)) for lvl in levels]
