@@ -9,7 +9,8 @@ thread (``torch.set_num_threads(1)``; onnxruntime with one intra-op and one inte
   with fixed-size embedding bags and projects per head, ``bag.sample_project_static``);
 * ``exported``: ``torch.onnx.export(dynamo=True)`` of the module (voxel count a dynamic axis; MSDFF's ONNX
   form is project-first with a 1 x 1 ``Conv`` and ``GridSample``, see ``docs/deployment.md``) run in
-  onnxruntime on the CPU.
+  onnxruntime on the CPU, given NCHW copies of the levels (ONNX tensors have no strides; the copy is
+  made before the timing).
 
 Cases. MSDFF at the paper's width (256 image channels, ``value_proj`` 256 -> 256, 8 heads, 4 levels,
 4 points; 64 voxel channels) on a View-of-Delft image (1216 x 1936, FPN strides 4, 8, 16, 32: levels
@@ -147,13 +148,14 @@ def bench_msdff(cfg, voxels, repeats, tmp):
     for n in voxels:
         for layout in ("channels-last", "NCHW"):
             args = msdff_inputs(cfg, n, layout == "channels-last", seed=n)
+            nchw = args[:4] + ([lv.contiguous() for lv in args[4]],)  # (an ONNX graph's layout; copied untimed)
 
             def static(args=args):
                 with static_path():
                     return graph(*args)
 
             paths = {"eager": lambda args=args: graph(*args), "static": static,
-                     "exported": lambda args=args: exported(*args)}
+                     "exported": lambda nchw=nchw: exported(*nchw)}
             with torch.no_grad():
                 outputs = {k: fn() for k, fn in paths.items()}
                 times = interleaved(paths, repeats)

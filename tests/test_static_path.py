@@ -23,6 +23,7 @@ from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.static_path import segment_slots
 from mssf_blocks.samplers import MSDFF, SFF
 from mssf_blocks.samplers import msdff as msdff_module
+from mssf_blocks.functional.deform import bag as deform_bag
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -54,11 +55,13 @@ def _perturb(mod, seed=2):
 
 @pytest.mark.parametrize("b,v", [(1, 1), (2, 1), (2, 3)])
 @pytest.mark.parametrize("training", [False, True])
-@pytest.mark.parametrize("kind", ["sff", "msdff", "msdff_onnx_form", "msdff_channels_last"])
+@pytest.mark.parametrize("kind", ["sff", "msdff", "msdff_raw_rows", "msdff_projected_levels", "msdff_onnx_form",
+                                  "msdff_channels_last"])
 def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v, monkeypatch):
-    """MSDFF's static path samples the raw channels and projects per head (bag.sample_project_static);
-    "msdff_onnx_form" is what an ONNX export captures instead (1 x 1 Conv + GridSample per head),
-    "msdff_channels_last" the same static path on channels-last levels (its tables are free views)."""
+    """MSDFF's static path (bag.sample_project_static) per level bags the raw channels and projects per head
+    after ("msdff_raw_rows", forced; "msdff_channels_last": the same on channels-last levels, whose tables
+    are free views) or projects every pixel first ("msdff_projected_levels", forced); "msdff": its own
+    choice; "msdff_onnx_form" is what an ONNX export captures instead (1 x 1 Conv + GridSample per head)."""
     n = 40
     # float64: the comparison then sees formulation errors, not float32 rounding of near-zero gradients
     proj = _projection(n, b, v)
@@ -77,6 +80,8 @@ def test_static_path_equals_eager_forward_backward_and_running_stats(kind, train
     _perturb(base.double()).train(training)
     if kind == "msdff_onnx_form":
         monkeypatch.setattr(msdff_module, "_exporting_onnx", lambda: True)
+    if kind in ("msdff_raw_rows", "msdff_channels_last", "msdff_projected_levels"):
+        monkeypatch.setattr(deform_bag, "_dense_pays", lambda *args: kind == "msdff_projected_levels")
     results = []
     for static in (False, True):
         mod = copy.deepcopy(base)
@@ -282,7 +287,7 @@ def test_static_msdff_bias_counts_only_the_in_image_weight_mass(v):
 
 
 def test_static_msdff_cost_grows_with_the_voxels_not_the_pixels():
-    # The static path's multiply-adds (FlopCounterMode counts the GEMMs / convolutions) do not depend on the
+    # The static path's multiply-adds (FlopCounterMode counts the GEMMs / convolutions) do not grow with the
     # image size; project-first (method="grid") grows with the pixels. Independent: the count of the other
     # formulation on the same inputs.
     from torch.utils.flop_counter import FlopCounterMode
@@ -297,5 +302,7 @@ def test_static_msdff_cost_grows_with_the_voxels_not_the_pixels():
     static = MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2).eval()
     grid = copy.deepcopy(static)
     grid.method = "grid"
-    assert flops(static, 16) == flops(static, 64) > 0
-    assert flops(grid, 64) > 4 * flops(grid, 16) > 0
+    # (levels of 16 x 16 pixels and more: the planner bags their raw rows; it projects only levels whose
+    # every pixel costs less than the queries' raw corners, bag._dense_pays)
+    assert flops(static, 32) == flops(static, 128) > 0
+    assert flops(grid, 128) > 4 * flops(grid, 32) > 0
