@@ -302,7 +302,7 @@ def test_static_msdff_cost_grows_with_the_voxels_not_the_pixels():
     static = MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2).eval()
     grid = copy.deepcopy(static)
     grid.method = "grid"
-    # (levels of 16 x 16 pixels and more: the planner bags their raw rows; it projects only levels whose
+    # (levels of 32 x 32 pixels and more: the planner bags their raw rows; it projects only levels whose
     # every pixel costs less than the queries' raw corners, bag._dense_pays)
-    assert flops(static, 32) == flops(static, 128) > 0
-    assert flops(grid, 128) > 4 * flops(grid, 32) > 0
+    assert flops(static, 64) == flops(static, 256) > 0
+    assert flops(grid, 256) > 4 * flops(grid, 64) > 0
