@@ -42,8 +42,7 @@ _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 def _exporting_onnx() -> bool:
     """An ONNX exporter (``torch.onnx.export``, dynamo or TorchScript) is capturing."""
-    onnx = getattr(torch, "onnx", None)
-    return onnx is not None and onnx.is_in_onnx_export()
+    return getattr(torch, "onnx", None) is not None and torch.onnx.is_in_onnx_export()
 
 
 def _compiling_only() -> bool:
@@ -99,10 +98,9 @@ class MSDFF(nn.Module):
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
             ``docs/fusion.md``) on the CPU, the sampling op's backend on CUDA; under ``torch.compile``
             the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``);
-            on the static-shape path (``torch.export``, tracing, ``static_path()``) the raw channels of
-            every corner in fixed-size embedding bags, projected per head after (cost
-            ``O(N * M * L * P * 4 * C)``, none in the pixels), and under an ONNX export ``"grid"`` with
-            the projection as a 1 x 1 convolution (ONNX ``Conv`` + ``GridSample``).
+            on the static-shape path (``torch.export``, tracing, ``static_path()``) per level the raw channels
+            of every corner in fixed-size embedding bags, projected per head after (no cost in the pixels),
+            and under an ONNX export ``"grid"`` with a 1 x 1 convolution (``Conv`` + ``GridSample``).
             ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
             host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
             and keeps its own). ``"fast"`` / ``"reference"``: the literal order of
@@ -330,7 +328,7 @@ class MSDFF(nn.Module):
         if pairs.seen is not None:  # (the seen voxels' rows only)
             f_img = _linear_bn_rows(self.output_proj, self.norm, attended, pairs.seen, n)
         else:
-            # (a sum, not any(): ONNX exports any() as ReduceMax, whose opset 18 -> 17 conversion fails)
+            # (a sum: ONNX exports any() as ReduceMax, which its opset 18 -> 17 conversion cannot adapt)
             f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.sum(dim=1) > 0, static)
         if self.output_dropout:
             f_img = F.dropout(f_img, self.output_dropout, self.training)
@@ -348,12 +346,10 @@ class MSDFF(nn.Module):
             # by measurement (plan_costs.COMPILED_TRAINING).
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
-            if method == "grid" and static and not _compiling_only():
-                # The static-shape path: sample the raw channels, then project per head (fixed-size
-                # embedding bags, a cost in the voxels); an ONNX exporter would turn embedding_bag into
-                # a Loop, so ONNX gets project-first with a 1 x 1 Conv and GridSample (what TensorRT
-                # parses; measured faster in onnxruntime than gathering the corners: docs/deployment.md).
-                # (torch.compile keeps the grid plan where COMPILED_TRAINING asks for it: measured so.)
+            if method == "grid" and static and not _compiling_only():  # (compile: COMPILED_TRAINING's grid)
+                # Static shapes: raw channels in fixed-size bags, projected per head (a cost in the voxels);
+                # ONNX would get embedding_bag as a Loop: project-first there, Conv + GridSample, measured
+                # faster in onnxruntime than gathering the corners (docs/deployment.md).
                 method = "grid_conv" if _exporting_onnx() else "static_bag"
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
