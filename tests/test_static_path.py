@@ -306,3 +306,5 @@ def test_static_msdff_cost_grows_with_the_voxels_not_the_pixels():
     # every pixel costs less than the queries' raw corners, bag._dense_pays)
     assert flops(static, 64) == flops(static, 256) > 0
     assert flops(grid, 256) > 4 * flops(grid, 64) > 0
+    with static_path():  # measured on the CPU only: other devices keep the grid plan (a cheap GEMM on a GPU)
+        assert static._plan("cpu") == ("static_bag", True) and static._plan("cuda") == ("grid", True)

@@ -98,8 +98,8 @@ class MSDFF(nn.Module):
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
             ``docs/fusion.md``) on the CPU, the sampling op's backend on CUDA; under ``torch.compile``
             the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``);
-            on the static-shape path (``torch.export``, tracing, ``static_path()``) per level the raw channels
-            of every corner in fixed-size embedding bags, projected per head after (no cost in the pixels),
+            on the static-shape path (``torch.export``, tracing, ``static_path()``) on the CPU per level the raw
+            channels of every corner in fixed-size bags, projected per head after (no cost in the pixels),
             and under an ONNX export ``"grid"`` with a 1 x 1 convolution (``Conv`` + ``GridSample``).
             ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
             host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
@@ -347,10 +347,10 @@ class MSDFF(nn.Module):
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
             if method == "grid" and static and not _compiling_only():  # (compile: COMPILED_TRAINING's grid)
-                # Static shapes: raw channels in fixed-size bags, projected per head (a cost in the voxels);
-                # ONNX would get embedding_bag as a Loop: project-first there, Conv + GridSample, measured
-                # faster in onnxruntime than gathering the corners (docs/deployment.md).
-                method = "grid_conv" if _exporting_onnx() else "static_bag"
+                # Static shapes: raw channels in fixed-size bags, projected per head (a cost in the voxels; measured
+                # on the CPU, off it the grid plan's GEMM is cheap: plan_costs); ONNX would get embedding_bag as a
+                # Loop: Conv + GridSample, faster in onnxruntime than gathered corners (docs/deployment.md).
+                method = "grid_conv" if _exporting_onnx() else "static_bag" if device_type == "cpu" else "grid"
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
         static = static or method in ("grid", "grid_conv", "static_bag", "triton") or (
