@@ -140,3 +140,51 @@ def test_onnx_export_of_fusion_block_runs_in_onnxruntime(tmp_path):
         want = block(v, i).features.detach()
         assert out[0].shape == (n, 16)
         assert float((torch.from_numpy(out[0]) - want).abs().max()) <= 1e-4
+
+
+# Operators of the TensorRT ONNX parser (onnx-tensorrt's operator support list) that the static-shape path
+# may emit; no Loop / Sequence ops, no custom domains.
+TENSORRT_OPS = {
+    "Abs", "Add", "And", "ArgMax", "BatchNormalization", "Cast", "Clip", "Concat", "Constant", "ConstantOfShape",
+    "Conv", "CumSum", "Div", "Einsum", "Equal", "Exp", "Expand", "Floor", "Gather", "GatherElements", "GatherND",
+    "Gemm", "Greater", "GreaterOrEqual", "GridSample", "Identity", "Less", "LessOrEqual", "MatMul", "Max", "Min",
+    "Mul", "Neg", "Not", "Or", "Pow", "Range", "Reciprocal", "ReduceMax", "ReduceMean", "ReduceSum", "Relu",
+    "ReduceMin", "Reshape", "ScatterElements", "ScatterND", "Shape", "Sigmoid", "Slice", "Softmax", "Split", "Sqrt", "Squeeze",
+    "Sub", "Tile", "TopK", "Transpose", "Unsqueeze", "Where",
+}
+
+
+@pytest.mark.skipif(NO_ONNX_DYNAMO is not None, reason=str(NO_ONNX_DYNAMO))
+@pytest.mark.parametrize("name,opset", [("MSDFF", 17), ("MSDFF", 18), ("FusionBlock", 17), ("FusionBlock", 18)])
+def test_onnx_export_of_msdff_has_tensorrt_operators_and_matches_onnxruntime(name, opset, tmp_path):
+    # The static-shape MSDFF under ONNX (samplers/msdff.py: a 1 x 1 Conv and GridSample per head, no
+    # embedding_bag Loop), the voxel count a dynamic axis, checked in onnxruntime at two other counts
+    # against the eager module (the default CPU plans, an independent path).
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    import onnx
+
+    mod, make_args, dynamic = _case(name)
+    mod.eval()
+    with torch.no_grad():
+        program = torch.onnx.export(mod, make_args(*_scene(COUNTS[0], 0)), dynamic_shapes=dynamic, dynamo=True,
+                                    opset_version=opset, verbose=False)
+    path = tmp_path / f"{name}.onnx"
+    program.save(str(path))
+    model = onnx.load(str(path))
+    assert model.opset_import[0].version == opset
+    ops = {node.op_type for node in model.graph.node}
+    assert ops <= TENSORRT_OPS, sorted(ops - TENSORRT_OPS)
+    assert {"Conv", "GridSample"} <= ops and not model.functions
+    assert all(node.domain in ("", "ai.onnx") for node in model.graph.node)
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    for n in COUNTS[1:]:
+        args = make_args(*_scene(n, n))
+        flat = _leaves(args)
+        assert len(flat) == len(names)
+        out = session.run(None, {k: t.numpy() for k, t in zip(names, flat)})
+        with torch.no_grad():
+            want = _leaves(mod(*args))[0]
+        assert out[0].shape[0] == n
+        assert float((torch.from_numpy(out[0]) - want).abs().max()) <= 1e-4

@@ -22,6 +22,8 @@ from mssf_blocks.functional import bilinear_sample
 from mssf_blocks.functional.geometry import voxel_centroids
 from mssf_blocks.static_path import segment_slots
 from mssf_blocks.samplers import MSDFF, SFF
+from mssf_blocks.samplers import msdff as msdff_module
+from mssf_blocks.functional.deform import bag as deform_bag
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -53,24 +55,43 @@ def _perturb(mod, seed=2):
 
 @pytest.mark.parametrize("b,v", [(1, 1), (2, 1), (2, 3)])
 @pytest.mark.parametrize("training", [False, True])
-@pytest.mark.parametrize("kind", ["sff", "msdff"])
-def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v):
+@pytest.mark.parametrize("kind", ["sff", "msdff", "msdff_raw_rows", "msdff_projected_levels", "msdff_onnx_form",
+                                  "msdff_channels_last"])
+def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v, monkeypatch):
+    """MSDFF's static path (bag.sample_project_static) per level bags the raw channels and projects per head
+    after ("msdff_raw_rows", forced; "msdff_channels_last": the same on channels-last levels, whose tables
+    are free views) or projects every pixel first ("msdff_projected_levels", forced); "msdff": its own
+    choice; "msdff_onnx_form" is what an ONNX export captures instead (1 x 1 Conv + GridSample per head)."""
     n = 40
     # float64: the comparison then sees formulation errors, not float32 rounding of near-zero gradients
     proj = _projection(n, b, v)
     proj = CentroidProjection(proj.uv.double(), proj.depth, proj.valid, proj.centroid, proj.has_points,
                               proj.batch_index)
+    inside = ((proj.uv >= 0) & (proj.uv <= 1)).all(-1)
+    # the cases hold both: projections outside the image, and voxels seen by no camera
+    assert bool((proj.valid & ~inside).any()) and bool((~proj.valid.any(1)).any())
     feats = _levels(b, v)
+    if kind == "msdff_channels_last":
+        feats = [f.detach().flatten(0, -4).contiguous(memory_format=torch.channels_last).view(f.shape)
+                 .requires_grad_() for f in feats]
+        assert feats[0].stride(-3) == 1
     query = torch.randn(n, 16, requires_grad=True, dtype=torch.float64)
     base = SFF([6, 6], 16) if kind == "sff" else MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3)
     _perturb(base.double()).train(training)
+    if kind == "msdff_onnx_form":
+        monkeypatch.setattr(msdff_module, "_exporting_onnx", lambda: True)
+    if kind in ("msdff_raw_rows", "msdff_channels_last", "msdff_projected_levels"):
+        monkeypatch.setattr(deform_bag, "_dense_pays", lambda *args: kind == "msdff_projected_levels")
     results = []
     for static in (False, True):
         mod = copy.deepcopy(base)
         with static_path(static):
             assert use_static_path() is static
+            if kind != "sff":
+                want = {"msdff_onnx_form": "grid_conv"}.get(kind, "static_bag") if static else "sample_op"
+                assert mod._plan("cpu")[0] == want
             out = mod(feats, proj) if kind == "sff" else mod(query, feats, proj)
-        inputs = feats + ([query] if kind == "msdff" else [])
+        inputs = feats + ([query] if kind != "sff" else [])
         weight = torch.linspace(-1, 1, out.numel()).view_as(out)
         grads = torch.autograd.grad((out * weight).sum(), inputs + list(mod.parameters()))
         results.append((out, grads, mod.norm.running_mean.clone(), mod.norm.running_var.clone()))
@@ -227,3 +248,63 @@ def test_auto_plan_per_device_and_grid_method_equals_cpu_planner():
     grid = copy.deepcopy(auto)
     grid.method = "grid"  # the plan CUDA takes eagerly
     torch.testing.assert_close(grid(query, feats, proj), auto(query, feats, proj), atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("v", [1, 2])
+def test_static_msdff_bias_counts_only_the_in_image_weight_mass(v):
+    # Voxels projected far outside the image (valid, but every corner of every point outside): in the
+    # project-first formulation they read zero *projected* pixels, so value_proj.bias must not reach them;
+    # voxels inside read it times their in-image bilinear mass. Both paths, float64, against each other
+    # and against the bias-free property.
+    g = torch.Generator().manual_seed(5)
+    n = 24
+    uv = torch.rand(n, v, 2, generator=g, dtype=torch.float64)
+    far = torch.arange(n) % 3 == 0
+    uv[far] = 40.0  # offsets of a few pixels cannot bring these back into the image
+    valid = torch.ones(n, v, dtype=torch.bool)
+    valid[1::6] = False  # and a few voxels seen by no camera
+    bi = torch.zeros(n, dtype=torch.long)
+    proj = CentroidProjection(uv, valid.double(), valid, torch.zeros(n, 3), valid[:, 0], bi)
+    feats = [f.detach() for f in _levels(1, v)]
+    query = torch.randn(n, 16, generator=g, dtype=torch.float64)
+    mod = _perturb(MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3, norm_layer=None).double()).eval()
+    shifted = copy.deepcopy(mod)
+    with torch.no_grad():
+        shifted.value_proj.bias.add_(3.0)
+    outs = {}
+    for static in (False, True):
+        with static_path(static), torch.no_grad():
+            outs[static] = (mod(query, feats, proj), shifted(query, feats, proj))
+    torch.testing.assert_close(outs[True][0], outs[False][0], atol=1e-10, rtol=1e-10)
+    torch.testing.assert_close(outs[True][1], outs[False][1], atol=1e-10, rtol=1e-10)
+    for static in (False, True):
+        base, moved = outs[static]
+        outside = far & valid.any(1)
+        torch.testing.assert_close(moved[outside], base[outside], atol=1e-12, rtol=0)  # no bias outside
+        inside = ~far & valid.any(1)
+        assert bool(((moved[inside] - base[inside]).abs().amax(1) > 1e-3).all())  # the bias reaches the others
+        assert bool((base[~valid.any(1)] == 0).all())  # unseen voxels: exact zeros
+
+
+def test_static_msdff_cost_grows_with_the_voxels_not_the_pixels():
+    # The static path's multiply-adds (FlopCounterMode counts the GEMMs / convolutions) do not grow with the
+    # image size; project-first (method="grid") grows with the pixels. Independent: the count of the other
+    # formulation on the same inputs.
+    from torch.utils.flop_counter import FlopCounterMode
+
+    def flops(mod, size):
+        feats = [torch.randn(1, 8, size, size), torch.randn(1, 8, size // 2, size // 2)]
+        proj = _projection(30, 1, 1)
+        with static_path(), FlopCounterMode(display=False) as counter, torch.no_grad():
+            mod(torch.randn(30, 16), feats, proj)
+        return counter.get_total_flops()
+
+    static = MSDFF(8, 16, num_heads=2, num_levels=2, num_points=2).eval()
+    grid = copy.deepcopy(static)
+    grid.method = "grid"
+    # (levels of 32 x 32 pixels and more: the planner bags their raw rows; it projects only levels whose
+    # every pixel costs less than the queries' raw corners, bag._dense_pays)
+    assert flops(static, 64) == flops(static, 256) > 0
+    assert flops(grid, 256) > 4 * flops(grid, 64) > 0
+    with static_path():  # measured on the CPU only: other devices keep the grid plan (a cheap GEMM on a GPU)
+        assert static._plan("cpu") == ("static_bag", True) and static._plan("cuda") == ("grid", True)

@@ -11,8 +11,11 @@ on input sizes only (``grid_sample``, masks, sorts). :func:`static_path` forces 
 This module is the whole static-shape path: the switch (:func:`static_path`, :func:`use_static_path`),
 the static formulations of the data-dependent steps (below), and the pytree registration that lets the
 library's dataclasses be graph inputs and outputs (:func:`register_pytree`; ``docs/deployment.md``).
-The multi-scale deformable sampling's static form is the sampling op's grid backend
-(``functional/deform/grid.py``, :func:`~mssf_blocks.functional.deform.grid.grid_sample_static`).
+MSDFF's static sampling on the CPU samples the raw channels of every bilinear corner in fixed-size
+embedding bags and projects per head (``functional/deform/bag.py``, ``sample_project_static``: a cost in
+the voxels, not the pixels); on other devices and under an ONNX export (where ``embedding_bag`` would
+become a ``Loop``) it is the sampling op's grid backend (``functional/deform/grid.py``: every pixel
+projected, under ONNX by a 1 x 1 ``Conv``, then ``GridSample`` per head).
 """
 
 from __future__ import annotations

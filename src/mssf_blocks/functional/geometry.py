@@ -334,6 +334,9 @@ def project_points(
         size = torch.tensor([w, h], dtype=dtype, device=points.device)
         uv = (pixel + 0.5) / size
         uv = torch.where(ok_depth[..., None], uv, torch.full_like(uv, -1.0))
-        valid = ok_depth & (uv >= 0).all(dim=-1) & (uv <= 1).all(dim=-1)
+        # (u and v compared one by one, not all(dim=-1): ONNX exports all() as ReduceMin, whose opset
+        # 18 -> 17 conversion fails)
+        u_img, v_img = uv[..., 0], uv[..., 1]
+        valid = ok_depth & (u_img >= 0) & (v_img >= 0) & (u_img <= 1) & (v_img <= 1)
         uv, depth, pixel = uv.to(out_dtype), depth.to(out_dtype), pixel.to(out_dtype)
     return Projection(uv=uv, depth=depth, valid=valid, pixel=pixel)

@@ -30,7 +30,7 @@ from mssf_blocks.samplers._msdff_pairs import Pairs, reduce_cameras, select_pair
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.plan_costs import compiled_training_uses_op, msdff_auto_method
-from mssf_blocks.functional.deform import grid, ms_deform_sample
+from mssf_blocks.functional.deform import bag, grid, ms_deform_sample
 from mssf_blocks.functional.deform.op import sample_project_unchecked
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
 
@@ -40,14 +40,18 @@ _METHODS = ("auto", "reference", "fast", "grid", "touched", "triton")
 _VALUE_PROJECTIONS = ("after_sampling", "before_sampling")
 
 
+def _exporting_onnx() -> bool:
+    """An ONNX exporter (``torch.onnx.export``, dynamo or TorchScript) is capturing."""
+    return getattr(torch, "onnx", None) is not None and torch.onnx.is_in_onnx_export()
+
+
 def _compiling_only() -> bool:
     """``torch.compile`` (dynamo) is capturing, not an exporter: the sampling op is one opaque node there
     (the device's backend, e.g. the CPU plans, instead of the static grid plan), while exports (torch.export,
-    ONNX, tracing) keep the grid plan of standard operators."""
+    ONNX, tracing) keep the static plans of standard operators."""
     if not torch_versions.is_compiling() or torch_versions.is_exporting():
         return False
-    onnx = getattr(torch, "onnx", None)
-    return not (onnx is not None and onnx.is_in_onnx_export())
+    return not _exporting_onnx()
 
 
 class MSDFF(nn.Module):
@@ -93,8 +97,10 @@ class MSDFF(nn.Module):
             pixels' raw channels and project per head; cost
             ``O(min(pixels_l * D_v, U_l * (D_v + G), U_l * G + N * M * P * 4 * B) * C)``, see
             ``docs/fusion.md``) on the CPU, the sampling op's backend on CUDA; under ``torch.compile``
-            the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``),
-            ``"grid"`` while a graph is exported (``torch.export``, ONNX, tracing).
+            the sampling op (one opaque node; with gradients per ``plan_costs.COMPILED_TRAINING``);
+            on the static-shape path (``torch.export``, tracing, ``static_path()``) on the CPU per level the raw
+            channels of every corner in fixed-size bags, projected per head after (no cost in the pixels),
+            and under an ONNX export ``"grid"`` with a 1 x 1 convolution (``Conv`` + ``GridSample``).
             ``"grid"``: project every pixel, then ``F.grid_sample`` per head with static shapes (no
             host synchronisation, exportable; every query is sampled in each of the ``B * V`` images
             and keeps its own). ``"fast"`` / ``"reference"``: the literal order of
@@ -322,7 +328,8 @@ class MSDFF(nn.Module):
         if pairs.seen is not None:  # (the seen voxels' rows only)
             f_img = _linear_bn_rows(self.output_proj, self.norm, attended, pairs.seen, n)
         else:
-            f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.any(dim=1), static)
+            # (a sum: ONNX exports any() as ReduceMax, which its opset 18 -> 17 conversion cannot adapt)
+            f_img = _linear_bn_visible(self.output_proj, self.norm, attended, valid.sum(dim=1) > 0, static)
         if self.output_dropout:
             f_img = F.dropout(f_img, self.output_dropout, self.training)
         return query.to(f_img.dtype) + f_img if self.add_query else f_img
@@ -339,9 +346,15 @@ class MSDFF(nn.Module):
             # by measurement (plan_costs.COMPILED_TRAINING).
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
+            if method == "grid" and static and not _compiling_only():  # (compile: COMPILED_TRAINING's grid)
+                # Static shapes: raw channels in fixed-size bags, projected per head (a cost in the voxels; measured
+                # on the CPU, off it the grid plan's GEMM is cheap: plan_costs); ONNX would get embedding_bag as a
+                # Loop: Conv + GridSample, faster in onnxruntime than gathered corners (docs/deployment.md).
+                method = "grid_conv" if _exporting_onnx() else "static_bag" if device_type == "cpu" else "grid"
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
-        static = static or method in ("grid", "triton") or (method == "sample_op" and device_type != "cpu")
+        static = static or method in ("grid", "grid_conv", "static_bag", "triton") or (
+            method == "sample_op" and device_type != "cpu")
         return method, static
 
     def _sample(self, method: str, static: bool, levels: Sequence[Tensor], pairs: Pairs, dtype: torch.dtype) -> Tensor:
@@ -352,8 +365,10 @@ class MSDFF(nn.Module):
         w_heads = self.value_proj.weight.to(dtype).view(m, self.head_dim, c)
         b_heads = self.value_proj.bias.to(dtype).view(m, self.head_dim)
         raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
-        if method == "grid" and static:  # the op's grid path, called directly (standard operators for exporters)
-            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads)
+        if method == "static_bag":  # the static-shape path (bag.sample_project_static)
+            return bag.sample_project_static(raw, image_index, locations, weights, w_heads, b_heads)
+        if method in ("grid", "grid_conv") and static:  # the op's grid path, called directly (standard operators)
+            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads, method == "grid_conv")
         if method in ("sample_op", "touched", "triton"):
             # The sampling op: the device's backend (functional/deform/op.py; CPU: per level the
             # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.

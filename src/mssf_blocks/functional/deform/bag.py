@@ -9,13 +9,16 @@ from __future__ import annotations
 from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from mssf_blocks import torch_versions
+from mssf_blocks.functional.deform.touched.order import _inverse
 from mssf_blocks.functional.deform.touched.points import _pixel_coordinate
+from mssf_blocks.functional.plan_costs import _STATIC_BAG_COST
 
-__all__ = ["sample", "sample_project_chunked"]
+__all__ = ["STATIC_PLAN_QUERIES", "sample", "sample_project_chunked", "sample_project_static"]
 
 
 def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
@@ -78,6 +81,8 @@ def sample(
         # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
         # along D); otherwise one layout copy of this level.
         table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
+        if table.stride(-1) != 1:  # (embedding_bag reads a strided table several times slower than a copy)
+            table = table.contiguous()
         part = torch_versions.embedding_bag(
             rows[lvl].view(m * q, p * 4), table, per_sample_weights=psw[lvl].view(m * q, p * 4), mode="sum"
         )  # (M * Q, D)
@@ -104,6 +109,82 @@ def _sample_project_level(
     if proj_bias is not None:
         out = out + mass[..., None] * proj_bias
     return out
+
+
+# The static path plans its levels for this many queries when the count is symbolic (torch.export with a
+# dynamic voxel count): a radar frame has 10^3-10^4 voxels; the plan changes the cost, never the result.
+STATIC_PLAN_QUERIES = 2500
+
+
+def _dense_pays(level: Tensor, q: int, m: int, p: int, d: int) -> bool:
+    """Whether projecting every pixel of ``level (I, 1, C, H, W)`` and bagging ``d`` channels per head costs
+    less than bagging the ``C`` raw channels of every corner (in GEMM multiply-adds, ``plan_costs``)."""
+    c = level.shape[2]
+    pixels = level.shape[0] * level.shape[-2] * level.shape[-1]
+    corners = (q if isinstance(q, int) else STATIC_PLAN_QUERIES) * m * p * 4
+    return pixels * c * m * d + corners * d * _STATIC_BAG_COST < corners * c * _STATIC_BAG_COST
+
+
+def _project_level(level: Tensor, proj_weight: Tensor, proj_bias: Tensor) -> Tensor:
+    """``level (I, 1, C, H, W)`` projected per head: an ``(I, M, d, H, W)`` view of ``(I, M, H, W, d)`` memory,
+    the row table embedding_bag reads in place."""
+    m, d, c = proj_weight.shape
+    i, _, _, h, w = level.shape
+    out = F.linear(level[:, 0].permute(0, 2, 3, 1), proj_weight.reshape(m * d, c), proj_bias.reshape(m * d))
+    return out.view(i, h, w, m, d).permute(0, 3, 1, 2, 4).contiguous().permute(0, 1, 4, 2, 3)
+
+
+def _row_order(image_index: Tensor, locations: Tensor, sizes: Sequence[Tuple[int, int]]) -> Tensor:
+    """``(Q,)`` permutation of the queries by image, then by bands of 8 pixel rows of the finest level, then
+    along ``u`` (of their first sampling location): neighbouring queries read neighbouring rows. (The
+    touched plans' Hilbert order, ``touched/order.py``, reads a cached table, which ``torch.jit.trace``
+    records as a different constant on every call.)"""
+    h, w = max(sizes, key=lambda hw: hw[0] * hw[1])
+    ref = locations[:, 0, 0, 0].detach().clamp(0.0, 1.0)
+    band = (ref[:, 1] * (h / 8.0)).floor()
+    return torch.argsort((image_index.to(ref.dtype) * (h / 8.0 + 1.0) + band) * 2.0 + ref[:, 0])
+
+
+def sample_project_static(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
+                          proj_weight: Tensor, proj_bias: Tensor) -> Tensor:
+    """``(Q, M, d)``: the op's formula with static shapes and a cost in the queries, not the pixels.
+
+    The static-shape path's MSDFF sampling (graph capture, ``static_path()``): fixed-size embedding bags
+    (one per (head, query) and level, weights ``bilinear * attention``: no ``nonzero``, no data-dependent
+    size, a query's image a row offset) over, per level, the cheaper of two exact tables (the touched
+    plans' cost model, ``plan_costs``; planned for ``STATIC_PLAN_QUERIES`` queries when their count is
+    symbolic):
+
+    * the raw ``C``-channel rows of the level ``(I, 1, C, H_l, W_l)`` (a free view of channels-last
+      memory, one layout copy otherwise), then head ``m``'s rows of the value projection
+      ``proj_weight (M, d, C)`` plus ``proj_bias (M, d)`` times the in-image bilinear weight mass.
+      Exact: sampling is linear, ``sum_k w_k (W x_k + b) = W (sum_k w_k x_k) + b sum_k w_k`` with the
+      sums over the corners inside the map (zero padding: in the project-first formulation a corner
+      outside reads a zero *projected* pixel, bias included). Cost ``O(Q * M * P * 4 * C)``;
+    * every pixel projected (``O(H_l * W_l * C * M * d)``, a small level), ``d`` channels per head bagged.
+
+    The queries are taken in image order (:func:`_row_order`): neighbouring bags read neighbouring rows;
+    each bag's sum is the same in any order.
+    """
+    q, m, _, p, _ = locations.shape
+    d = proj_weight.shape[1]
+    sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
+    order = _row_order(image_index, locations, sizes)
+    image_index, locations, weights = image_index[order], locations[order], weights[order]
+    dense = [_dense_pays(lvl, q, m, p, d) for lvl in levels]
+    out = None
+    raw = [i for i, dn in enumerate(dense) if not dn]
+    if raw:
+        sampled, mass = sample([levels[i] for i in raw], image_index, locations[:, :, raw], weights[:, :, raw], True)
+        # sampled is a (Q, M, C) view of head-major (M, Q, C) memory: the per-head bmm reads it in place.
+        out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (Q, M, d)
+        out = out + mass[..., None] * proj_bias
+    projected = [i for i, dn in enumerate(dense) if dn]
+    if projected:
+        values = [_project_level(levels[i], proj_weight, proj_bias) for i in projected]
+        part = sample(values, image_index, locations[:, :, projected], weights[:, :, projected], False)
+        out = part if out is None else out + part
+    return out[_inverse(order)]
 
 
 def sample_project_chunked(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,

@@ -1,10 +1,12 @@
 """The grid path of the sampling op: project every pixel, then one ``F.grid_sample`` per level.
 
-Static shapes (no ``nonzero``, no ``.item()``): the path of graph capture (``torch.compile``,
-``torch.export``, ONNX ``GridSample``, opset 16+), of devices without a backend of their own, and the
-op's fallback on CUDA. Every query is sampled in every image of the batch and keeps its own image's
-result (a mask, no gather of per-image query lists): cost and memory grow with the number of images
-``I = B * V``, the same as a per-image loop for ``I = 1``, ``I`` times it otherwise. Inputs unchecked.
+Static shapes (no ``nonzero``, no ``.item()``): MSDFF's path under an ONNX export (``Conv`` +
+``GridSample``, opset 16+; other graph captures take ``bag.sample_project_static``), the static plan of
+``torch.compile`` where ``plan_costs.COMPILED_TRAINING`` asks for it, the path of devices without a
+backend of their own, and the op's fallback on CUDA. Every query is sampled in every image of the
+batch and keeps its own image's result (a mask, no gather of per-image query lists): cost and memory
+grow with the number of images ``I = B * V``, the same as a per-image loop for ``I = 1``, ``I`` times it
+otherwise. Inputs unchecked.
 """
 
 from __future__ import annotations
@@ -81,7 +83,20 @@ def project_levels(levels: List[Tensor], proj_weight: Tensor, proj_bias: Tensor)
             .unflatten(-1, (m, d)).permute(0, 3, 4, 1, 2) for lvl in levels]
 
 
+def project_levels_conv(levels: List[Tensor], proj_weight: Tensor, proj_bias: Tensor) -> List[Tensor]:
+    """:func:`project_levels` as a 1 x 1 convolution of the ``(I, C, H_l, W_l)`` maps: ``(I, M, d, H_l, W_l)``
+    contiguous views of the ``(I, M * d, H_l, W_l)`` output. The form for ONNX (one ``Conv`` on the NCHW
+    input and a free reshape for ``GridSample``, where the linear form adds a ``Transpose`` of every level
+    and a ``MatMul``: 1.6-1.8x slower in onnxruntime, one core, MSDFF at the paper's width on a VoD image,
+    N = 2,500 / 8,000; docs/deployment.md)."""
+    m, d, c = proj_weight.shape
+    return [F.conv2d(lvl[:, 0], proj_weight.reshape(m * d, c, 1, 1), proj_bias.reshape(m * d))
+            .unflatten(1, (m, d)) for lvl in levels]
+
+
 def sample_project(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
-                   proj_weight: Tensor, proj_bias: Tensor) -> Tensor:
-    """``(Q, M, d)``: the op's formula by the grid path (:func:`project_levels`, :func:`grid_sample_static`)."""
-    return grid_sample_static(project_levels(levels, proj_weight, proj_bias), image_index, locations, weights)
+                   proj_weight: Tensor, proj_bias: Tensor, conv: bool = False) -> Tensor:
+    """``(Q, M, d)``: the op's formula by the grid path (:func:`project_levels`, or with ``conv``
+    :func:`project_levels_conv`, then :func:`grid_sample_static`)."""
+    project = project_levels_conv if conv else project_levels
+    return grid_sample_static(project(levels, proj_weight, proj_bias), image_index, locations, weights)

@@ -1,0 +1,31 @@
+"""benchmarks/static_path.py --smoke: the script runs end to end (MSDFF and the detector, eager / static /
+onnxruntime) and its three paths agree, so that the benchmark cannot rot. No timing is asserted."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    path = [str(REPO / "src"), str(REPO / "examples"), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(path))
+    out = tmp_path / "rows.json"
+    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "static_path.py"), "--smoke", "--json", str(out)],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    rows = json.loads(out.read_text())
+    cases = [row["case"] for row in rows]
+    assert sum(c.startswith("MSDFF N=") for c in cases) == 4 and cases[-1].startswith("MSSF-PointPillars")
+    for row in rows:
+        for path in ("static", "exported"):
+            assert row[f"{path} ms"] > 0
+            assert float(row[f"{path} max diff"]) <= 1e-4, row  # the same function, three ways
+    assert "| case | eager ms | static ms | exported ms |" in r.stdout
