@@ -33,6 +33,7 @@ from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.deform import ms_deform_sample, ms_deform_sample_reference  # noqa: F401 (their earlier home)
 from mssf_blocks.functional.deform import touched
+from mssf_blocks.functional.deform.gather_op import bilinear_gather, compiled_gather
 from mssf_blocks.functional.deform.grid import grid_sample_static
 from mssf_blocks.functional.plan_costs import bilinear_auto_method
 
@@ -109,6 +110,9 @@ def bilinear_sample(
 
     if method == "auto":
         method = bilinear_auto_method(image.device.type, use_static_path())
+        if compiled_gather(image.device.type):  # torch.compile on the CPU: the gather as one opaque op
+            rows = [bilinear_gather(image[:, cam : cam + 1], batch_index, uv[:, cam]) for cam in range(v)]
+            return rows[0].unsqueeze(1) if v == 1 else torch.stack(rows, 1)  # (N, V, C) (gather_op.py)
     if method == "grid":
         # Static shapes (compile / export): one grid_sample per camera over all points, no n == 0 branch.
         ones = uv.new_ones(n, 1, 1, 1)
