@@ -29,7 +29,7 @@ from mssf_blocks import torch_versions
 from mssf_blocks.functional.deform import kept, touched
 from mssf_blocks.functional.deform.op import _autograd_on
 
-__all__ = ["compiled_gather", "bilinear_gather"]
+__all__ = ["bilinear_gather", "compiled_gather"]
 
 
 def compiled_gather(device_type: str) -> bool:
