@@ -102,15 +102,17 @@ def _print_breakdown(name: str, train: bool, compile_s: float) -> None:
 
 def _interleaved(fns, repeats: int):
     """Median wall time of each of ``fns`` after one warm-up call each, the calls interleaved round by
-    round (on a shared machine a drift of the load then weighs on every one alike)."""
+    round (on a shared machine a drift of the load then weighs on every one alike), each round starting
+    one call later (the call after the static path's, which frees large buffers, is not always the same)."""
     for fn in fns:
         fn()
     times = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, t in zip(fns, times):
+    for r in range(repeats):
+        for i in range(len(fns)):
+            k = (r + i) % len(fns)
             t0 = time.perf_counter()
-            fn()
-            t.append(time.perf_counter() - t0)
+            fns[k]()
+            times[k].append(time.perf_counter() - t0)
     return [statistics.median(t) for t in times]
 
 
