@@ -1,7 +1,9 @@
 """``torch.compile`` of the fusion blocks: compile time, recompiles across voxel counts, speed vs eager.
 
 For SFF, MSDFF and a FusionBlock (MSDFF + QueryInit, centroids and projection included) on one frame of
-a 384 x 640 image with four 64-channel FPN levels (strides 8-64), forward in eval mode under
+a 384 x 640 image with four 64-channel FPN levels (strides 8-64), and for README.md's drop-in example
+(``README``: ``FusionBlock(MSDFF(256, 32), grid, query_init=True)`` at its widths and geometry, two samples of
+a 320 x 512 image, 256-channel levels at strides 4-32: ``_readme_block.py``), forward in eval mode under
 ``torch.no_grad`` (deployment) and forward + backward in training mode:
 
 * ``compile_s``: the first call of ``torch.compile(module, fullgraph=True, dynamic=True)`` (inductor
@@ -13,11 +15,14 @@ a 384 x 640 image with four 64-channel FPN levels (strides 8-64), forward in eva
   64 and 80, equal to the channels and to the finest level's width;
 * ``compiled_ms`` / ``eager_ms`` / ``static_ms``: the median steady-state call of the compiled module,
   of the eager module (the default CPU plans) and of the eager static-shape path (``static_path()``,
-  the formulation the compiled graph contains), the three interleaved call by call, and the ratio
-  eager / compiled.
+  the static-shape formulation exporters capture), the three interleaved call by call, and the ratio
+  eager / compiled, at the middle voxel count or at each of ``--timed``.
 
-Run: ``python benchmarks/compile.py [--threads 1] [--backend inductor] [--cases MSDFF SFF "FusionBlock(MSDFF)"]
-[--json out.json]`` (default: MSDFF only). The machine
+A first call's time depends on inductor's on-disk cache (``TORCHINDUCTOR_CACHE_DIR``): run the script twice
+for the warm figure.
+
+Run: ``python benchmarks/compile.py [--threads 1] [--backend inductor] [--cases MSDFF SFF "FusionBlock(MSDFF)" README]
+[--timed 2000 8000] [--json out.json]`` (default: MSDFF only). The machine
 this was written on is shared: the figures in docs/performance.md are a single run.
 """
 
@@ -33,6 +38,7 @@ import time
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import _readme_block  # noqa: E402
 from _common import print_table, write_json  # noqa: E402
 
 from mssf_blocks import MSDFF, SFF, FusionBlock, FusionInputs, QueryInit, SparseVoxels, static_path  # noqa: E402
@@ -76,7 +82,10 @@ def _cases():
                         query_init=QueryInit(C_VOX, C_IMG, C_VOX, RANGE))
         return m, lambda mod, vox, inp, proj: mod(vox, inp).features
 
-    return {"SFF": sff, "MSDFF": msdff, "FusionBlock(MSDFF)": block}
+    def readme():
+        return _readme_block.build(), lambda mod, vox, inp, proj: mod(vox, inp).features
+
+    return {"SFF": sff, "MSDFF": msdff, "FusionBlock(MSDFF)": block, "README": readme}
 
 
 def _print_breakdown(name: str, train: bool, compile_s: float) -> None:
@@ -93,15 +102,17 @@ def _print_breakdown(name: str, train: bool, compile_s: float) -> None:
 
 def _interleaved(fns, repeats: int):
     """Median wall time of each of ``fns`` after one warm-up call each, the calls interleaved round by
-    round (on a shared machine a drift of the load then weighs on every one alike)."""
+    round (on a shared machine a drift of the load then weighs on every one alike), each round starting
+    one call later (the call after the static path's, which frees large buffers, is not always the same)."""
     for fn in fns:
         fn()
     times = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, t in zip(fns, times):
+    for r in range(repeats):
+        for i in range(len(fns)):
+            k = (r + i) % len(fns)
             t0 = time.perf_counter()
-            fn()
-            t.append(time.perf_counter() - t0)
+            fns[k]()
+            times[k].append(time.perf_counter() - t0)
     return [statistics.median(t) for t in times]
 
 
@@ -124,8 +135,11 @@ def main() -> None:
     # size of the first call's inputs shares its symbol, and a later count that differs recompiles
     ap.add_argument("--voxels", type=int, nargs="+", default=[2000, 2600, 3300, 4100, 5000, 64, 80])
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--timed", type=int, nargs="+", default=None,
+                    help="voxel counts timed (compiled, eager, static interleaved); default: the middle of --voxels")
     ap.add_argument("--cases", nargs="+", default=["MSDFF"],
-                    help="of SFF, MSDFF, 'FusionBlock(MSDFF)' (each costs two inductor compiles, ~5 min each here)")
+                    help="of SFF, MSDFF, 'FusionBlock(MSDFF)', README (README.md's example at its widths); each "
+                         "costs two inductor compiles, ~5 min each at load average 10")
     ap.add_argument("--json", default=None)
     ap.add_argument("--specialize-floats", action="store_true",
                     help="torch._dynamo.config.specialize_float = True: Python float inputs (voxel sizes, the point "
@@ -138,11 +152,13 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     if args.specialize_floats:
         torch._dynamo.config.specialize_float = True
-    frames = [_frame(n, seed=i) for i, n in enumerate(args.voxels)]
     rows = []
     for name, build in _cases().items():
         if args.cases and name not in args.cases:
             continue
+        make = _readme_block.frame if name == "README" else _frame
+        frames = [make(n, seed=i) for i, n in enumerate(args.voxels)]
+        timed = [make(n, seed=100 + i) for i, n in enumerate(args.timed)] if args.timed else [frames[len(frames) // 2]]
         for train in (False, True):
             torch.manual_seed(0)
             base, run = build()
@@ -169,23 +185,24 @@ def main() -> None:
                 _call(compiled, mod, f, train)
                 new_sizes.append(time.perf_counter() - t0)
             new_sizes.sort()
-            mid = frames[len(frames) // 2]
             eager_mod = copy.deepcopy(base)
+            for mid in timed:
+                def static_call(mid=mid):
+                    with static_path():
+                        return _call(run, eager_mod, mid, train)
 
-            def static_call():
-                with static_path():
-                    return _call(run, eager_mod, mid, train)
-
-            comp, eager, static = _interleaved([lambda: _call(compiled, mod, mid, train),
-                                                lambda: _call(run, eager_mod, mid, train), static_call], args.repeats)
-            rows.append({
-                "module": name, "mode": "fwd+bwd train" if train else "fwd eval", "N": mid[0].num_voxels,
-                "compile_s": round(compile_s, 1), "new_sizes_s": round(new_sizes[len(new_sizes) // 2], 3),
-                "compiled_ms": round(1e3 * comp, 1), "eager_ms": round(1e3 * eager, 1),
-                "static_ms": round(1e3 * static, 1), "eager/compiled": round(eager / comp, 2),
-                "first_graphs": first_graphs, "recompiles": len(graphs) - first_graphs, "voxel_counts": len(frames),
-            })
-            print(rows[-1], flush=True)
+                comp, eager, static = _interleaved([lambda mid=mid: _call(compiled, mod, mid, train),
+                                                    lambda mid=mid: _call(run, eager_mod, mid, train), static_call],
+                                                   args.repeats)
+                rows.append({
+                    "module": name, "mode": "fwd+bwd train" if train else "fwd eval", "N": mid[0].num_voxels,
+                    "compile_s": round(compile_s, 1), "new_sizes_s": round(new_sizes[len(new_sizes) // 2], 3),
+                    "compiled_ms": round(1e3 * comp, 1), "eager_ms": round(1e3 * eager, 1),
+                    "static_ms": round(1e3 * static, 1), "eager/compiled": round(eager / comp, 2),
+                    "first_graphs": first_graphs, "recompiles": len(graphs) - first_graphs,
+                    "voxel_counts": len(frames) + len(args.timed or []), "load": round(os.getloadavg()[0], 1),
+                })
+                print(rows[-1], flush=True)
     print_table(rows, list(rows[0]) if rows else [])
     if args.json:
         write_json(args.json, {"threads": args.threads, "backend": args.backend, "torch": torch.__version__,

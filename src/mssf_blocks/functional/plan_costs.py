@@ -64,7 +64,8 @@ _FILL_COST = 0.1
 # while a graph is captured (torch.compile / export / ONNX: sizes must not depend on data), MSDFF
 # projects first and samples with grid_sample ("grid") and bilinear_sample uses grid_sample ("grid").
 # The CPU keeps the measured planner ("touched") and the gather ("gather", 2-6x faster than grid_sample
-# on one core, benchmarks/msdff.py).
+# on one core, benchmarks/msdff.py). Under torch.compile (not export) on the CPU, both stay as opaque ops:
+# MSDFF's sampling op (samplers/msdff.py) and the gather (functional/deform/gather_op.py).
 _MSDFF_AUTO = {"cpu": "touched"}
 _BILINEAR_AUTO = {"cpu": "gather"}
 _STATIC = "grid"  # the plan of every other device and of graph capture

@@ -8,8 +8,9 @@ the pixel coordinate on a level of width ``W_l`` is ``x = u * W_l - 0.5`` (pixel
 
 :func:`bilinear_sample` costs O(points), not O(pixels): on the CPU it gathers the distinct corner
 pixels of its points once and bags them (the CPU plans of the sampling op,
-``functional/deform/touched``); while a graph is captured and off the CPU it runs the op's grid path
-(``functional/deform/grid.py``). Multi-scale deformable sampling (MSDFF) is ``functional/deform``
+``functional/deform/touched``), under ``torch.compile`` too (as one opaque op,
+``functional/deform/gather_op.py``); while an exporter captures a graph and off the CPU it runs the op's
+grid path (``functional/deform/grid.py``). Multi-scale deformable sampling (MSDFF) is ``functional/deform``
 (``ms_deform_sample`` is re-exported here, its earlier home).
 """
 
@@ -33,6 +34,7 @@ from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
 from mssf_blocks.functional.deform import ms_deform_sample, ms_deform_sample_reference  # noqa: F401 (their earlier home)
 from mssf_blocks.functional.deform import touched
+from mssf_blocks.functional.deform.gather_op import bilinear_gather, compiled_gather
 from mssf_blocks.functional.deform.grid import grid_sample_static
 from mssf_blocks.functional.plan_costs import bilinear_auto_method
 
@@ -64,9 +66,10 @@ def bilinear_sample(
             or ``uv``, and may hold any ``uv`` (even NaN).
         method: ``"gather"`` (distinct corner pixels gathered once, ``embedding_bag``; data-dependent
             sizes), ``"grid"`` (``F.grid_sample``, static shapes: every point is sampled in each of the
-            ``B`` images and keeps its own) or ``"auto"``: ``"gather"`` on the CPU (2-6x faster there),
-            ``"grid"`` on other devices and while a graph is captured (``torch.compile``, export,
-            tracing; ``functional/plan_costs.py``). Equal results.
+            ``B`` images and keeps its own) or ``"auto"``: ``"gather"`` on the CPU (2-6x faster there;
+            under ``torch.compile`` as one opaque op, ``functional/deform/gather_op.py``), ``"grid"`` on
+            other devices and while an exporter captures a graph (export, ONNX, tracing;
+            ``functional/plan_costs.py``). Equal results.
 
     Returns:
         ``(N, V, C)`` sampled features.
@@ -109,6 +112,9 @@ def bilinear_sample(
 
     if method == "auto":
         method = bilinear_auto_method(image.device.type, use_static_path())
+        if compiled_gather(image.device.type):  # torch.compile on the CPU: the gather as one opaque op
+            rows = [bilinear_gather(image[:, cam : cam + 1], batch_index, uv[:, cam]) for cam in range(v)]
+            return rows[0].unsqueeze(1) if v == 1 else torch.stack(rows, 1)  # (N, V, C) (gather_op.py)
     if method == "grid":
         # Static shapes (compile / export): one grid_sample per camera over all points, no n == 0 branch.
         ones = uv.new_ones(n, 1, 1, 1)
