@@ -136,7 +136,8 @@ def test_docs_commands_run(tmp_path, monkeypatch):
 
     commands = [c for c in doc_commands() if c not in RUN_TJ4D and c not in RUN_AUTHORS]
     assert [shlex.split(c)[3] for c in commands] == ["infos", "train", "train", "test", "train", "train", "train",
-                                                    "train", "train", "train", "train", "infos", "train"], commands
+                                                    "train", "train", "train", "train", "infos", "train",
+                                                    "train", "train", "train", "train", "train"], commands
     write_tree(tmp_path / "data" / "view_of_delft")
     (tmp_path / "data" / "view_of_delft" / "radar_5frames" / "vod_infos_train.pkl").unlink()  # the docs write it
     (tmp_path / "examples").symlink_to(REPO / "examples")
