@@ -33,4 +33,5 @@ def test_roofline_benchmark_quick_runs_and_counts_its_reads(tmp_path):
         assert len(row["bound plan"].split("/")) == 4
         # the bound is the larger of its gather and FMA times
         assert row["roofline bound ms"] == max(row["bound gather ms"], row["bound FMA ms"])
+        assert abs(row["reference / bound"] * row["roofline bound ms"] - row["reference ms"]) < 1e-6 * row["reference ms"]
     assert "| N | C | voxels | eager ms | reference ms | reference / eager |" in r.stdout
