@@ -31,8 +31,9 @@ robust to the other processes of a shared machine), median of ``--repeats`` call
    ``max(gather time, FMA time)`` at the measured ceilings (perfect overlap): a level read "raw" (R) has every
    corner read a 256-channel row and needs ``value_proj`` on the N queries (once for all raw levels), a level
    read "touched" (T) has every corner read a 32-channel row and ``value_proj`` on its ``U_l`` touched pixels.
-   The gather rate is the fastest ``embedding_bag`` rate measured (the ascending one), so that the bound is a
-   bound for reads without reuse (neighbouring points share corners: a path reusing rows in cache can beat
+   The gather rate is the fastest ``embedding_bag`` rate measured at that width (on the host measured: the
+   ascending one at 256 channels, the random P2-sized one at 32), so that the bound is a bound for reads
+   without reuse (neighbouring points share corners: a path reusing rows in cache can beat
    it). The fractions: corner reads / s over the random-row ceiling and over the best rate, at 32 channels
    (the cheapest row any plan reads) and 256; the minimum FLOPs / s over the best GEMM rate.
 
