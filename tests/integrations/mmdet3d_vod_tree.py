@@ -118,3 +118,22 @@ def fake_htc_checkpoint() -> Path:
 
         _FAKE_HTC.append(write_generated_image_checkpoint(folder / "htc_r50_fpn.pth"))
     return _FAKE_HTC[0]
+
+
+def ci_widths(cfg):
+    """The dense 2D part of a SECOND-backbone model (mmdet3d's ``SECOND`` + ``SECONDFPN`` and the box head) at CI
+    widths: one layer of 32 channels per block, a 64-channel BEV, a 16-channel shared conv in a centre head. On
+    TJ4DRadSet's 200 x 176 BEV map the shipped widths (5 layers of 128 / 256, a 512-channel BEV) took 30-56 s a
+    cell on the 2-core CI machine; the sparse encoder, the fusion blocks, the heads' settings and the data path
+    stay as shipped. Models without ``pts_backbone`` (MSSF-PP, MSSF-V) are returned unchanged."""
+    m = cfg.model
+    if m.get("pts_backbone") is None or m.pts_backbone.get("type") != "SECOND":
+        return cfg
+    m.pts_backbone.update(layer_nums=[1, 1], out_channels=[32, 32])
+    m.pts_neck.update(in_channels=[32, 32], out_channels=[32, 32])
+    head = m.pts_bbox_head
+    if head.type == "Anchor3DHead":
+        head.update(in_channels=64, feat_channels=64)
+    else:  # the centre heads
+        head.update(in_channels=64, share_conv_channel=16)
+    return cfg

@@ -22,7 +22,8 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import evaluate_ground_truth, fake_htc_checkpoint, require_mmdet3d, write_tj4d_tree  # noqa: E402,E501
+from mmdet3d_vod_tree import (  # noqa: E402
+    ci_widths, evaluate_ground_truth, fake_htc_checkpoint, require_mmdet3d, write_tj4d_tree)
 from test_mmdet3d_docs import REPO, RUN_TJ4D  # noqa: E402
 from test_mmdet3d_train import box_loss_keys, recording_runners, run, small_cfg  # noqa: E402
 
@@ -99,7 +100,7 @@ def test_infos(data_root):
 
 @pytest.mark.parametrize("name", sorted(set(PAIRS) - {MSSF}) + sorted(PAIRS.values()))
 def test_config_trains_and_evaluates(name, data_root, tmp_path):
-    cfg = small_cfg(name, data_root, tmp_path)
+    cfg = ci_widths(small_cfg(name, data_root, tmp_path))  # SECOND / CenterPoint: the 2D part at CI widths
     head = cfg.model.pts_bbox_head
     assert cfg.model.pts_middle_encoder.in_channels == 5
     if head.type == "Anchor3DHead":

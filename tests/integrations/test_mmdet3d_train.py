@@ -23,7 +23,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import CONFIGS, fake_htc_checkpoint, require_mmdet3d, write_tree  # noqa: E402
+from mmdet3d_vod_tree import CONFIGS, ci_widths, fake_htc_checkpoint, require_mmdet3d, write_tree  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF = ["mssf_pointpillars_vod.py", "mssf_second_vod.py", "mssf_centerpoint_vod.py"]
@@ -180,6 +180,8 @@ def check_vod_run(runner, rec, fusion):
 @pytest.mark.parametrize("name", ["mssf_second_vod.py", "mssf_centerpoint_vod.py"] + sorted(TWINS.values()))
 def test_config_trains_and_evaluates(name, data_root, tmp_path):
     cfg = small_cfg(name, data_root, tmp_path)
+    if "centerpoint" in name:  # the 2D part at CI widths (ci_widths); SECOND's cells keep the shipped ones
+        ci_widths(cfg)
     assert cfg.train_dataloader.batch_size == 4 and cfg.train_dataloader.num_workers == 4  # as shipped
     runner, rec = run(cfg)
     check_vod_run(runner, rec, fusion=name in MSSF)

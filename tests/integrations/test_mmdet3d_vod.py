@@ -21,7 +21,7 @@ import pytest
 import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
-from mmdet3d_vod_tree import evaluate_ground_truth, require_mmdet3d, val_dataset, write_tree  # noqa: E402
+from mmdet3d_vod_tree import ci_widths, evaluate_ground_truth, require_mmdet3d, val_dataset, write_tree  # noqa: E402
 from test_mmdet3d_train import small_cfg  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -77,7 +77,7 @@ def test_metric_matches_the_label_files(data_root, tmp_path):
 def test_overfit_one_frame_lowers_the_loss(name, data_root, tmp_path):
     from test_mmdet3d_train import run
 
-    cfg = small_cfg(name, data_root, tmp_path, iters=10)
+    cfg = ci_widths(small_cfg(name, data_root, tmp_path, iters=10))  # (CenterPoint: the 2D part at CI widths)
     cfg.train_dataloader.dataset.indices = 1  # one frame
     pipe = cfg.train_dataloader.dataset.pipeline  # the same frame every time: no point augmentation
     cfg.train_dataloader.dataset.pipeline = [s for s in pipe if s.type not in ("RandomFlip3D", "GlobalRotScaleTrans")]
