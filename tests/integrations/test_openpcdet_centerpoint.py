@@ -25,7 +25,7 @@ import torch
 pytest.importorskip("spconv")
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_openpcdet_vod import CONFIGS, build, load, small, tools, train  # noqa: E402,F401  (tools: the module fixture)
+from test_openpcdet_vod import CONFIGS, build, load, overfit, small, tools, train  # noqa: E402,F401  (tools: the module fixture)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 #: the MSSF configs and their radar-only twins
@@ -86,14 +86,7 @@ def test_centerpoint_radar_twin_trains_without_images(tools):
 
 def test_mssf_centerpoint_overfit_lowers_the_loss(tools):
     torch.manual_seed(0)
-    cfg = small("mssf_centerpoint", tools.ckpt)
-    cfg.DATA_CONFIG.DATA_AUGMENTOR.DISABLE_AUG_LIST = ["random_world_flip", "random_world_rotation", "random_world_scaling"]
-    cfg.MODEL.BACKBONE_3D.AUG_ORDER = []
-    cfg.OPTIMIZATION.update(LR=0.003, PCT_START=0.3)
-    _, loader, model = build(cfg)
-    seen = train(cfg, model, loader, epochs=6)
-    first = np.mean([loss for loss, _ in seen[:2]])
-    last = np.mean([loss for loss, _ in seen[-2:]])
+    first, last = overfit(small("mssf_centerpoint", tools.ckpt))
     assert last < 0.6 * first, (first, last)
 
 

@@ -31,7 +31,7 @@ import test_openpcdet_vod as vod  # noqa: E402
 
 from mssf_blocks import MSSFError  # noqa: E402
 
-build, load, train = vod.build, vod.load, vod.train
+build, load, overfit, train = vod.build, vod.load, vod.overfit, vod.train
 tools = vod.tools  # the generated VoD tree (module scope: this module gets its own, ~2-6 s)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -143,14 +143,7 @@ def test_trains_through_openpcdet_then_evaluates_with_the_vod_protocol(tools, tm
 
 def test_overfit_lowers_the_loss(tools):
     torch.manual_seed(0)
-    cfg = small(MSSF, tools.ckpt)
-    cfg.DATA_CONFIG.DATA_AUGMENTOR.DISABLE_AUG_LIST = ["random_world_flip", "random_world_rotation", "random_world_scaling"]
-    cfg.MODEL.BACKBONE_2D.AUG_ORDER = []
-    cfg.OPTIMIZATION.update(LR=0.003, PCT_START=0.3)
-    _, loader, model = build(cfg)
-    seen = train(cfg, model, loader, epochs=6)
-    first = np.mean([loss for loss, _ in seen[:2]])
-    last = np.mean([loss for loss, _ in seen[-2:]])
+    first, last = overfit(small(MSSF, tools.ckpt), "BACKBONE_2D")
     assert last < 0.6 * first, (first, last)
 
 
