@@ -4,7 +4,11 @@
 test_authors_checkpoint.py's ``their_mssf_v_shapes``; no download), filled with seeded values, converts with every
 tensor mapped or ignored for a reason and nothing missing, and loads with ``strict=True``; the values land where the
 name rules say (their heatmap classes permuted to the config's order), and mmdet3d's ``test_step`` runs the loaded
-model on a generated VoD frame (the authors' encoder, five FPN levels, their head) to ``LiDARInstance3DBoxes``."""
+model on a generated VoD frame (the authors' encoder, five FPN levels, their head) to ``LiDARInstance3DBoxes``.
+
+The encoder's two spellings of "built as the authors'": ``layout="authors"`` (the config's, the word of
+``MSSFPillarEncoder`` too) and the older ``layout="VoxelResBackBone8xVoxelNeXt", authors_layout=True`` build the same
+module (state-dict keys, outputs on the same weights and batch); a contradiction between them is refused, named."""
 
 from __future__ import annotations
 
@@ -44,8 +48,10 @@ def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config(tmp_path
     from mssf_blocks.errors import MSSFError
 
     cfg = Config.fromfile(str(CONFIGS / "mssf_voxelnext_vod_authors.py"))
+    assert cfg.model.pts_middle_encoder.layout == "authors" and "authors_layout" not in cfg.model.pts_middle_encoder
     init_default_scope("mmdet3d")
     model = MODELS.build(cfg.model)
+    assert model.pts_middle_encoder.layout == "authors" and model.pts_middle_encoder.authors_layout
     ckpt = _finite(random_checkpoint(their_mssf_v_shapes(), seed=3))
     theirs = ckpt["state_dict"]
     sd, report = convert_authors_mssf_v(ckpt, model, cfg.class_names)
@@ -66,7 +72,8 @@ def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config(tmp_path
     assert torch.equal(own["pts_bbox_head.net.heads.hm.1.bias"], bias[[2, 0, 1]])
     # the paper's config (OpenPCDet's VoxelNeXt tail, four FPN levels) is not theirs: refused, naming the switch
     paper = MODELS.build(Config.fromfile(str(CONFIGS / "mssf_voxelnext_vod.py")).model)
-    with pytest.raises(MSSFError, match="authors_layout=True"):
+    with pytest.raises(MSSFError, match="layout='authors'.*got pts_middle_encoder=MSSFSparseEncoder, "
+                                        "layout='VoxelResBackBone8xVoxelNeXt'"):
         convert_authors_mssf_v(ckpt, paper, cfg.class_names)
     # the loaded model through mmdet3d's own test step, on a generated VoD frame
     from mmdet3d.structures import LiDARInstance3DBoxes
@@ -81,3 +88,66 @@ def test_their_mssf_v_checkpoint_loads_strictly_into_the_authors_config(tmp_path
     pred = out.pred_instances_3d
     assert isinstance(pred.bboxes_3d, LiDARInstance3DBoxes) and len(pred.scores_3d) == len(pred.labels_3d)
     assert model.pts_middle_encoder.net.shared_conv[0].bias is not None  # their biased shared_conv ran
+
+
+# the encoder on its own, at test widths, with fusion (their two MSDFF blocks and the semantic head) on the batch that
+# test_mmdet3d_plugin builds as mmdet3d does (voxelization, metainfo, two 8-channel image levels)
+_GRID = dict(sparse_shape=[41, 64, 64], point_cloud_range=[0, -25.6, -3, 51.2, 25.6, 2], voxel_size=[0.8, 0.8, 0.125])
+_SMALL = dict(num_fusion_blocks=2, image_channels=[8, 8], msdff_heads=2, msdff_points=2, seg_hidden=[16],
+              channels=[8, 8, 8, 16, 16, 16, 16], out_channels=16)
+
+
+def _encoder(seed, **layout):
+    pytest.importorskip("spconv")
+    from mssf_blocks.integrations.mmdet3d_plugin import MSSFSparseEncoder
+
+    torch.manual_seed(seed)
+    return MSSFSparseEncoder(7, **_GRID, **_SMALL, **layout)
+
+
+def test_layout_authors_and_authors_layout_build_the_same_encoder():
+    from test_mmdet3d_plugin import make_batch
+
+    new = _encoder(0, layout="authors")
+    old = _encoder(1, layout="VoxelResBackBone8xVoxelNeXt", authors_layout=True)
+    both = _encoder(2, layout="authors", authors_layout=True)  # redundant, not contradictory
+    paper = _encoder(3, layout="VoxelResBackBone8xVoxelNeXt")  # OpenPCDet's tail: another module
+    assert list(new.state_dict()) == list(old.state_dict()) == list(both.state_dict())
+    assert list(new.state_dict()) != list(paper.state_dict())  # (the key comparison can tell layouts apart)
+    assert "net.shared_conv.0.bias" in new.state_dict() and "net.shared_conv.0.bias" not in paper.state_dict()
+    for enc in (new, old, both):
+        assert enc.layout == "authors" and enc.authors_layout is True and enc.net.authors_layout
+        assert enc.sparse_bev and enc.sparse_shape == [41, 64, 64]
+    assert paper.layout == "VoxelResBackBone8xVoxelNeXt" and paper.authors_layout is False
+    # the same weights, the same batch: the same sparse BEV, bit for bit (built from other seeds, so equality is
+    # the weights' doing, not the seeds')
+    weights_differ = any(not torch.equal(a, b) for a, b in zip(new.state_dict().values(), old.state_dict().values())
+                       if a.is_floating_point() and a.numel() > 1)
+    assert weights_differ
+    old.load_state_dict(new.state_dict(), strict=True)
+    voxel_features, coors, points, img_feats, metas = make_batch()
+    img_feats = [f.detach() for f in img_feats]
+    outs = []
+    for enc in (new, old):
+        enc.eval()
+        with torch.no_grad():
+            (bev,) = enc(voxel_features, coors, 2, points=points, img_features=img_feats, batch_input_metas=metas)
+        outs.append(bev)
+    a, b = outs
+    assert a.features.shape[0] > 0 and a.features.shape[1] == 16 and list(a.spatial_shape) == [8, 8]
+    assert torch.equal(a.indices, b.indices) and torch.equal(a.features, b.features)
+    assert a.features.abs().sum() > 0
+
+
+@pytest.mark.parametrize("layout,authors_layout,match", [
+    ("VoxelBackBone8x", True, "authors_layout: True means layout='authors'.*got layout='VoxelBackBone8x'"),
+    ("VoxelResBackBone8x", True, "authors_layout: True means layout='authors'.*got layout='VoxelResBackBone8x'"),
+    ("authors", False, "authors_layout: expected True or unset with layout='authors'.*got False"),
+    ("Authors", None, r"layout: expected one of \[.*'authors'\], got 'Authors'"),
+])
+def test_contradicting_spellings_are_refused_by_name(layout, authors_layout, match):
+    from mssf_blocks.errors import MSSFError
+    from mssf_blocks.integrations.mmdet3d_plugin import MSSFSparseEncoder
+
+    with pytest.raises(MSSFError, match=match):
+        MSSFSparseEncoder(7, **_GRID, **_SMALL, layout=layout, authors_layout=authors_layout)

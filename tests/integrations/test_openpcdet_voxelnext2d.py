@@ -24,12 +24,10 @@ import torch
 pytest.importorskip("spconv")
 
 sys.path.insert(0, str(Path(__file__).parent))
-import test_openpcdet_vod as vod  # noqa: E402
+# test_openpcdet_vod's loops and its tools fixture (the generated VoD tree; module scope: this module gets its own)
+from openpcdet_models import build, load, overfit, tools, train  # noqa: E402,F401  (tools: fixture)
 
 from mssf_blocks import MSSFError  # noqa: E402
-
-build, load, overfit, train = vod.build, vod.load, vod.overfit, vod.train
-tools = vod.tools  # the generated VoD tree (module scope: this module gets its own, ~2-6 s)
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 MSSF, TWIN = "mssf_voxelnext2d", "voxelnext2d_radar"

@@ -1,6 +1,7 @@
 """The MSSF authors' released MSSF-V checkpoint (``EricLiuhhh/MSSF``, an mmdetection3d checkpoint of their
 ``VoxelNeXtFuse``) into the mmdet3d MSSF-V built as theirs (``examples/configs/mmdet3d/mssf_voxelnext_vod_authors.py``:
-``MSSFSparseEncoder(authors_layout=True)``, five FPN levels, ``MSSFVoxelNeXtHead``).
+``MSSFSparseEncoder(layout="authors")``, five FPN levels, ``MSSFVoxelNeXtHead``; the older spelling
+``authors_layout=True`` builds the same encoder).
 
 :func:`convert_authors_mssf_v` runs the examples' converter
 (:func:`mssf_examples.models.authors_checkpoint.convert_authors`, ``layout="mssf_v"``, the one set of name rules)
@@ -69,9 +70,15 @@ def convert_authors_mssf_v(theirs: Mapping[str, Tensor], model: nn.Module,
         MSSFError: the model is not built as theirs, or a tensor of theirs maps nowhere / has another shape.
     """
     enc = getattr(model, "pts_middle_encoder", None)
-    if not getattr(enc, "authors_layout", False) or getattr(model, "img_backbone", None) is None:
-        raise MSSFError("model: expected the MSSF-V built as the authors' (pts_middle_encoder.authors_layout=True, "
-                        "with the image branch: examples/configs/mmdet3d/mssf_voxelnext_vod_authors.py)")
+    # MSSFSparseEncoder.authors_layout is True for both spellings (layout="authors", the older authors_layout=True);
+    # their MSSF-PP encoder, MSSFPillarEncoder(layout="authors"), has no such attribute and is refused
+    has_images = getattr(model, "img_backbone", None) is not None
+    if not getattr(enc, "authors_layout", False) or not has_images:
+        raise MSSFError("model: expected the MSSF-V built as the authors' (pts_middle_encoder=dict(type="
+                        "'MSSFSparseEncoder', layout='authors', ...) with the image branch: "
+                        "examples/configs/mmdet3d/mssf_voxelnext_vod_authors.py), got pts_middle_encoder="
+                        f"{type(enc).__name__}, layout={getattr(enc, 'layout', None)!r}, "
+                        f"{'with' if has_images else 'without'} img_backbone")
     view = _ExampleNames(model, class_names)
     sd, report = convert_authors(theirs, view, layout="mssf_v", stage_channels=AUTHORS_STAGE_CHANNELS)
     target = model.state_dict()

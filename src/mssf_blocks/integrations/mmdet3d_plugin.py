@@ -33,6 +33,26 @@ from mssf_blocks.integrations.mmdet3d_pillars import MSSFPillarEncoder
 __all__ = ["MSSFSparseEncoder", "MSSFPillarEncoder", "register_mmdet3d_modules", "MMDET3D_MODULES"]
 
 
+# the ``layout`` of the MSSF authors' encoder (their MSSF-V), the word of ``MSSFPillarEncoder`` for their MSSF-PP
+_AUTHORS = "authors"
+_VOXELNEXT = "VoxelResBackBone8xVoxelNeXt"  # the only layout of theirs that is sparse: their MSSF-V's stages
+
+
+def _resolve_layout(layout: str, authors_layout: Optional[bool]) -> Tuple[str, bool]:
+    """``(layout of the example backbone, whether it is the authors' encoder)`` from the two spellings."""
+    if layout == _AUTHORS:
+        if authors_layout is not None and not authors_layout:
+            raise MSSFError(f"authors_layout: expected True or unset with layout={_AUTHORS!r} (the same switch), "
+                            f"got {authors_layout!r}")
+        return _VOXELNEXT, True
+    if layout not in _backbones.LAYOUTS:
+        raise MSSFError(f"layout: expected one of {sorted(_backbones.LAYOUTS) + [_AUTHORS]}, got {layout!r}")
+    if authors_layout and layout != _VOXELNEXT:
+        raise MSSFError(f"authors_layout: True means layout={_AUTHORS!r} (the authors' VoxelNeXt encoder); expected "
+                        f"layout={_AUTHORS!r} or {_VOXELNEXT!r} with it, got layout={layout!r}")
+    return layout, bool(authors_layout)
+
+
 class MSSFSparseEncoder(nn.Module):
     """mmdet3d middle encoder (``SparseEncoder`` contract) running an MSSF fusion backbone.
 
@@ -53,15 +73,24 @@ class MSSFSparseEncoder(nn.Module):
             (MSSF-V: OpenPCDet's VoxelNeXt layout, six residual stages, stages 4-6 merged into a sparse BEV at
             stride 8, ``conv_out`` and ``shared_conv``; ``forward`` then returns ``[SparseConvTensor]``, the sparse
             BEV with 2-d indices ``(b, y, x)``, for a sparse head such as ``MSSFVoxelNeXtHead``, without
-            ``pts_backbone`` / ``pts_neck``; ``sparse_shape`` pads z by one cell as the others).
+            ``pts_backbone`` / ``pts_neck``; ``sparse_shape`` pads z by one cell as the others), or ``"authors"``:
+            the MSSF authors' MSSF-V encoder, ``SparseEncoderVoxelNeXtFuse`` (the VoxelNeXt stages with their
+            fusion modules' forward, a regular ``conv_out``, a biased ``shared_conv``), into which their released
+            checkpoint loads (``mssf_examples.mmdet3d.authors_mssf_v``); the same word as
+            ``MSSFPillarEncoder(layout="authors")`` for their MSSF-PP.
         num_fusion_blocks, fusion, fusion_position, image_channels, msdff_heads, msdff_points,
         msdff_value_projection, msdff_value_dim, seg_hidden, channels, out_channels: as the example backbones
             (``mssf_examples.models.backbones.SparseFusionBackbone``); ``seg_hidden=None`` means no semantic head.
         image_aug: ``"meta"`` or ``"none"``, see :func:`~mssf_blocks.integrations.mmdet3d.camera_from_meta`.
-        authors_layout: with the VoxelNeXt layout, the MSSF authors' ``SparseEncoderVoxelNeXtFuse`` (their fusion
-            modules' forward, a regular ``conv_out``, a biased ``shared_conv``) for their checkpoints
-            (``mssf_examples.mmdet3d.authors_mssf_v``); ``False``: OpenPCDet's VoxelNeXt.
+        authors_layout: the older spelling of ``layout="authors"``, kept for existing configs: ``True`` with
+            ``layout="VoxelResBackBone8xVoxelNeXt"`` (or ``"authors"``) builds the same module, with the same
+            state-dict keys; ``True`` with another layout, or ``False`` with ``"authors"``, is refused.
+            ``None`` / ``False`` otherwise: the layout as named (OpenPCDet's VoxelNeXt tail for the VoxelNeXt one).
         return_middle_feats: also return the stage outputs (as ``SparseEncoder``).
+
+    Attributes:
+        layout: the layout built, ``"authors"`` for either spelling of the authors' encoder.
+        authors_layout: whether it is the authors' encoder (``True`` for either spelling).
     """
 
     def __init__(
@@ -83,20 +112,22 @@ class MSSFSparseEncoder(nn.Module):
         channels: Optional[Sequence[int]] = None,
         out_channels: Optional[int] = None,
         image_aug: str = "meta",
-        authors_layout: bool = False,
+        authors_layout: Optional[bool] = None,
         return_middle_feats: bool = False,
     ) -> None:
         super().__init__()
+        net_layout, authors = _resolve_layout(layout, authors_layout)
         self.net = _backbones.build(
-            layout, in_channels, point_cloud_range, voxel_size, num_fusion_blocks=num_fusion_blocks, fusion=fusion,
+            net_layout, in_channels, point_cloud_range, voxel_size, num_fusion_blocks=num_fusion_blocks, fusion=fusion,
             fusion_position=fusion_position, image_channels=image_channels, msdff_heads=msdff_heads,
             msdff_points=msdff_points, msdff_value_projection=msdff_value_projection,
             msdff_value_dim=msdff_value_dim, seg_hidden=seg_hidden,
-            channels=channels, out_channels=out_channels, authors_layout=bool(authors_layout),
-            **self._layout_kwargs(layout),
+            channels=channels, out_channels=out_channels, authors_layout=authors,
+            **self._layout_kwargs(net_layout),
         )
-        self.sparse_bev = layout == "VoxelResBackBone8xVoxelNeXt"
-        self.authors_layout = bool(authors_layout)
+        self.layout = _AUTHORS if authors else net_layout
+        self.sparse_bev = net_layout == _VOXELNEXT
+        self.authors_layout = authors
         if self.sparse_bev and not self.authors_layout:
             _backbones.openpcdet_voxelnext_tail(self.net)
         if [int(s) for s in sparse_shape] != list(self.net.input_shape):
@@ -115,7 +146,7 @@ class MSSFSparseEncoder(nn.Module):
     def _layout_kwargs(layout: str) -> dict:
         # VoxelNeXt's grid is padded by one z cell as SparseEncoder's (sparse_shape z + 1); the dense layouts pad
         # by default
-        return {"z_pad": 1} if layout == "VoxelResBackBone8xVoxelNeXt" else {}
+        return {"z_pad": 1} if layout == _VOXELNEXT else {}
 
     @property
     def num_fusion_blocks(self) -> int:
