@@ -131,7 +131,24 @@ def ratios_row(label, times, outputs, base="eager"):
     return row
 
 
-def bench_msdff(cfg, voxels, repeats, tmp):
+def floors_row(label, eager_ms, run_static, repeats):
+    """The floors of ``_static_floors`` at this case (channels-last levels), against eager."""
+    from _static_floors import capture_static_sampling, onnx_floor, torch_floor
+
+    args = capture_static_sampling(run_static)
+    with torch.no_grad():
+        static_total = statistics.median(interleaved({"static": run_static}, repeats)["static"])
+    tf, of = torch_floor(args, repeats), onnx_floor(args, repeats)
+    static_floor = static_total - tf["sampling"] + tf["floor"]
+    return {"case": label, "eager ms": eager_ms, "static ms": static_total * 1e3,
+            "static floor ms": static_floor * 1e3, "static floor / eager": static_floor * 1e3 / eager_ms,
+            "ONNX floor ms": of["floor"] * 1e3, "ONNX floor / eager": of["floor"] * 1e3 / eager_ms,
+            "static levels (raw / projected) ms": " ".join(f"{r * 1e3:.1f}/{p * 1e3:.1f}" for r, p in tf["levels"]),
+            "ONNX levels (Conv / Gather / GridSample) ms": " ".join(
+                "/".join(f"{t * 1e3:.1f}" for t in lv) for lv in of["levels"])}
+
+
+def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
     torch.manual_seed(0)
     msdff = MSDFF(cfg["channels"], cfg["voxel_channels"], num_heads=cfg["heads"], num_levels=len(cfg["strides"]),
                   num_points=cfg["points"]).eval()
@@ -160,10 +177,12 @@ def bench_msdff(cfg, voxels, repeats, tmp):
                 outputs = {k: fn() for k, fn in paths.items()}
                 times = interleaved(paths, repeats)
             rows.append(ratios_row(f"MSDFF N={n} {layout}", times, outputs))
+            if floors is not None and layout == "channels-last":
+                floors.append(floors_row(f"MSDFF N={n} {layout}", rows[-1]["eager ms"], static, repeats))
     return rows
 
 
-def bench_detector(smoke: bool, points: int, repeats: int, tmp):
+def bench_detector(smoke: bool, points: int, repeats: int, tmp, blocks: int = 2):
     from mssf_examples.data.batch import RadarCameraBatch
     from mssf_examples.models.detectors import build_detector
     from mssf_examples.models.export import PointPillarsGraph, graph_dynamic_shapes, graph_inputs
@@ -173,8 +192,8 @@ def bench_detector(smoke: bool, points: int, repeats: int, tmp):
 
     preset = TINY if smoke else VOD
     torch.manual_seed(0)
-    det = build_detector("pointpillars", preset, num_fusion_blocks=1 if smoke else 2, fusion="msdff",
-                         image_features="precomputed").eval()
+    det = build_detector("pointpillars", preset, num_fusion_blocks=min(blocks, 1) if smoke else blocks,
+                         fusion="msdff", image_features="precomputed").eval()
     if smoke:  # a generated scene of the tiny preset, with random precomputed levels
         from export_onnx import generated_scene  # examples/export_onnx.py
 
@@ -203,6 +222,8 @@ def bench_detector(smoke: bool, points: int, repeats: int, tmp):
         times = interleaved(paths, repeats)
     voxels = [int(c.shape[0]) for c in inputs[5]]
     label = "tiny preset" if smoke else "VoD"
+    if not blocks:  # the radar-only twin: what the exported graph costs without any fusion
+        return [ratios_row(f"radar-only PointPillars (the twin) {label}, {points} points", times, outputs)]
     return [ratios_row(f"MSSF-PointPillars {label}, {points} points, lift voxels {voxels}", times, outputs)]
 
 
@@ -212,6 +233,7 @@ def main(argv=None) -> int:
     ap.add_argument("--voxels", type=int, nargs="+", default=[2500, 8000])
     ap.add_argument("--points", type=int, default=2500, help="radar points of the detector's frame")
     ap.add_argument("--no-detector", action="store_true")
+    ap.add_argument("--no-floors", action="store_true", help="skip the floors (benchmarks/_static_floors.py)")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes, one round: checks that the script runs")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
@@ -219,15 +241,20 @@ def main(argv=None) -> int:
     cfg = SMOKE if args.smoke else PAPER
     voxels = [40, 70] if args.smoke else args.voxels
     repeats = 1 if args.smoke else args.repeats
+    floors = None if args.no_floors else []
     with tempfile.TemporaryDirectory() as tmp:
-        rows = bench_msdff(cfg, voxels, repeats, tmp)
+        rows = bench_msdff(cfg, voxels, repeats, tmp, floors)
         if not args.no_detector:
-            rows += bench_detector(args.smoke, 200 if args.smoke else args.points, repeats, tmp)
+            for blocks in (2, 0):
+                rows += bench_detector(args.smoke, 200 if args.smoke else args.points, repeats, tmp, blocks)
     columns = ["case", "eager ms", "static ms", "exported ms", "static / eager", "static rounds",
                "exported / eager", "exported rounds", "static max diff", "exported max diff"]
     print_table(rows, columns)
+    if floors:
+        print("\nFloors of any exact static-shape sampling (benchmarks/_static_floors.py), channels-last levels:")
+        print_table(floors, list(floors[0]))
     if args.json:
-        write_json(args.json, rows)
+        write_json(args.json, rows + (floors or []))
     return 0
 
 

@@ -22,8 +22,19 @@ def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
                        cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
     rows = json.loads(out.read_text())
+    floors = [row for row in rows if "static floor ms" in row]
+    rows = [row for row in rows if "static floor ms" not in row]
     cases = [row["case"] for row in rows]
-    assert sum(c.startswith("MSDFF N=") for c in cases) == 4 and cases[-1].startswith("MSSF-PointPillars")
+    assert sum(c.startswith("MSDFF N=") for c in cases) == 4
+    assert cases[-2].startswith("MSSF-PointPillars") and cases[-1].startswith("radar-only PointPillars")
+    # the floors (benchmarks/_static_floors.py; their ONNX graphs check their own sums): one per channels-last case,
+    # four levels each, every time positive, the static floor no more than the static path it bounds plus noise
+    assert [f["case"] for f in floors] == ["MSDFF N=40 channels-last", "MSDFF N=70 channels-last"]
+    for f in floors:
+        assert f["ONNX floor ms"] > 0 and f["static floor ms"] > 0
+        assert len(f["static levels (raw / projected) ms"].split()) == 2  # (the smoke configuration's 2 levels)
+        assert len(f["ONNX levels (Conv / Gather / GridSample) ms"].split()) == 2
+    assert "Floors of any exact static-shape sampling" in r.stdout
     for row in rows:
         for path in ("static", "exported"):
             assert row[f"{path} ms"] > 0
