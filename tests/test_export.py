@@ -155,18 +155,32 @@ TENSORRT_OPS = {
 
 
 @pytest.mark.skipif(NO_ONNX_DYNAMO is not None, reason=str(NO_ONNX_DYNAMO))
-@pytest.mark.parametrize("name,opset", [("MSDFF", 17), ("MSDFF", 18), ("FusionBlock", 17), ("FusionBlock", 18)])
-def test_onnx_export_of_msdff_has_tensorrt_operators_and_matches_onnxruntime(name, opset, tmp_path):
-    # The static-shape MSDFF under ONNX (samplers/msdff.py: a 1 x 1 Conv and GridSample per head, no
-    # embedding_bag Loop), the voxel count a dynamic axis, checked in onnxruntime at two other counts
-    # against the eager module (the default CPU plans, an independent path).
+@pytest.mark.parametrize("name,opset,form", [("MSDFF", 17, "planned"), ("MSDFF", 18, "planned"),
+                                            ("FusionBlock", 17, "planned"), ("FusionBlock", 18, "planned"),
+                                            ("MSDFF", 18, "raw"), ("MSDFF", 17, "mixed")])
+def test_onnx_export_of_msdff_has_tensorrt_operators_and_matches_onnxruntime(name, opset, form, tmp_path, monkeypatch):
+    # The static-shape MSDFF under ONNX (grid.sample_project_onnx: per level a 1 x 1 Conv and GridSample per
+    # head, or a GridSample of the raw level projected after with a MatMul; no embedding_bag Loop), the voxel
+    # count a dynamic axis, checked in onnxruntime at two other counts against the eager module (the default
+    # CPU plans, an independent path). "planned": the plan's choice at these sizes; "raw": every level
+    # sample-first; "mixed": the finer level sample-first, the coarser project-first.
     ort = pytest.importorskip("onnxruntime")
     pytest.importorskip("onnxscript")
     import onnx
 
+    from mssf_blocks.functional.deform import grid as deform_grid
+
+    if form != "planned":
+        widths = {lvl.shape[-1] for lvl in _scene(COUNTS[0], 0)[1].image_features}
+        monkeypatch.setattr(deform_grid, "_raw_pays",
+                            lambda level, *a: form == "raw" or level.shape[-1] == max(widths))
+
     mod, make_args, dynamic = _case(name)
     mod.eval()
     with torch.no_grad():
+        for sub in mod.modules():  # (value_proj's bias starts at zero: a bias term dropped would go unseen)
+            if isinstance(sub, MSDFF):
+                sub.value_proj.bias.normal_(generator=torch.Generator().manual_seed(5))
         program = torch.onnx.export(mod, make_args(*_scene(COUNTS[0], 0)), dynamic_shapes=dynamic, dynamo=True,
                                     opset_version=opset, verbose=False)
     path = tmp_path / f"{name}.onnx"
@@ -175,7 +189,8 @@ def test_onnx_export_of_msdff_has_tensorrt_operators_and_matches_onnxruntime(nam
     assert model.opset_import[0].version == opset
     ops = {node.op_type for node in model.graph.node}
     assert ops <= TENSORRT_OPS, sorted(ops - TENSORRT_OPS)
-    assert {"Conv", "GridSample"} <= ops and not model.functions
+    assert "GridSample" in ops and not model.functions
+    assert ("Conv" in ops) is (form != "raw")  # (the planned form at these sizes: every level project-first)
     assert all(node.domain in ("", "ai.onnx") for node in model.graph.node)
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     names = [i.name for i in session.get_inputs()]

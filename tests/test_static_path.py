@@ -24,6 +24,7 @@ from mssf_blocks.static_path import segment_slots
 from mssf_blocks.samplers import MSDFF, SFF
 from mssf_blocks.samplers import msdff as msdff_module
 from mssf_blocks.functional.deform import bag as deform_bag
+from mssf_blocks.functional.deform import grid as deform_grid
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -56,12 +57,15 @@ def _perturb(mod, seed=2):
 @pytest.mark.parametrize("b,v", [(1, 1), (2, 1), (2, 3)])
 @pytest.mark.parametrize("training", [False, True])
 @pytest.mark.parametrize("kind", ["sff", "msdff", "msdff_raw_rows", "msdff_projected_levels", "msdff_onnx_form",
-                                  "msdff_channels_last"])
+                                  "msdff_onnx_raw_levels", "msdff_onnx_mixed", "msdff_channels_last"])
 def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v, monkeypatch):
     """MSDFF's static path (bag.sample_project_static) per level bags the raw channels and projects per head
     after ("msdff_raw_rows", forced; "msdff_channels_last": the same on channels-last levels, whose tables
     are free views) or projects every pixel first ("msdff_projected_levels", forced); "msdff": its own
-    choice; "msdff_onnx_form" is what an ONNX export captures instead (1 x 1 Conv + GridSample per head)."""
+    choice; "msdff_onnx_form" is what an ONNX export captures instead (grid.sample_project_onnx, its own choice per
+    level), "msdff_onnx_raw_levels" its raw-level form forced (GridSample of the raw channels, projected after,
+    the bias times a ones map's samples), "msdff_onnx_mixed" one level of each form (1 x 1 Conv + GridSample per
+    head on the other)."""
     n = 40
     # float64: the comparison then sees formulation errors, not float32 rounding of near-zero gradients
     proj = _projection(n, b, v)
@@ -78,8 +82,11 @@ def test_static_path_equals_eager_forward_backward_and_running_stats(kind, train
     query = torch.randn(n, 16, requires_grad=True, dtype=torch.float64)
     base = SFF([6, 6], 16) if kind == "sff" else MSDFF(6, 16, num_heads=2, num_levels=2, num_points=3)
     _perturb(base.double()).train(training)
-    if kind == "msdff_onnx_form":
+    if kind.startswith("msdff_onnx"):
         monkeypatch.setattr(msdff_module, "_exporting_onnx", lambda: True)
+    if kind in ("msdff_onnx_raw_levels", "msdff_onnx_mixed"):
+        # (the mixed case: the 10 x 14 level raw, the 5 x 7 level projected first)
+        monkeypatch.setattr(deform_grid, "_raw_pays", lambda level, *a: kind.endswith("raw_levels") or level.shape[-1] == 14)
     if kind in ("msdff_raw_rows", "msdff_channels_last", "msdff_projected_levels"):
         monkeypatch.setattr(deform_bag, "_dense_pays", lambda *args: kind == "msdff_projected_levels")
     results = []
@@ -88,7 +95,7 @@ def test_static_path_equals_eager_forward_backward_and_running_stats(kind, train
         with static_path(static):
             assert use_static_path() is static
             if kind != "sff":
-                want = {"msdff_onnx_form": "grid_conv"}.get(kind, "static_bag") if static else "sample_op"
+                want = ("grid_conv" if kind.startswith("msdff_onnx") else "static_bag") if static else "sample_op"
                 assert mod._plan("cpu")[0] == want
             out = mod(feats, proj) if kind == "sff" else mod(query, feats, proj)
         inputs = feats + ([query] if kind != "sff" else [])

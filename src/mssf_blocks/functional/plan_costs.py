@@ -99,6 +99,27 @@ TRITON_MIN_VERSION = (3, 0)
 COMPILED_TRAINING = {"cpu": "op"}
 
 
+# ---------------------------------------------------------------------------------------------------
+# MSDFF's sampling in an ONNX graph, per device of the exported tensors
+# ---------------------------------------------------------------------------------------------------
+# "per_level" (functional/deform/grid.py, sample_project_onnx): per level the cheaper of projecting every
+# pixel (a 1 x 1 Conv, then GridSample of d channels per head) and one GridSample of the raw C channels at
+# every point of every head, projected per head after (MatMul). In onnxruntime on one core the raw
+# GridSample costs about _ONNX_GRID_RAW_COST Conv multiply-adds per sampled channel, its weighting and
+# sums included (2.4-3.7 ns against 0.034 ns; measured per level by `python benchmarks/static_path.py`,
+# its floors table: MSDFF at the paper's width on a VoD image, N = 2,500 / 8,000, an AMD EPYC 2-vCPU
+# guest, onnxruntime 1.32 CPU provider, 2026-12-05). A graph serves every voxel count: it is planned for
+# bag.STATIC_PLAN_QUERIES. "project" (every other device: on a GPU the projection is one cheap GEMM, and
+# TensorRT fuses Conv): project every pixel of every level.
+ONNX_SAMPLING = {"cpu": "per_level"}
+_ONNX_GRID_RAW_COST = 150.0
+
+
+def onnx_sampling_per_level(device_type: str) -> bool:
+    """Whether MSDFF's ONNX form on ``device_type`` chooses per level (``ONNX_SAMPLING``; else project-first)."""
+    return ONNX_SAMPLING.get(device_type, "project") == "per_level"
+
+
 def msdff_auto_method(device_type: str, static: bool) -> str:
     """MSDFF's plan for ``method="auto"`` on ``device_type`` (``"touched"`` or ``"grid"``)."""
     return _STATIC if static else _MSDFF_AUTO.get(device_type, _STATIC)

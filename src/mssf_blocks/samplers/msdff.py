@@ -29,7 +29,7 @@ from mssf_blocks.checks.image_features import _check_projection, check_image_fea
 from mssf_blocks.samplers._msdff_pairs import Pairs, reduce_cameras, select_pairs
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional.plan_costs import compiled_training_uses_op, msdff_auto_method
+from mssf_blocks.functional.plan_costs import compiled_training_uses_op, msdff_auto_method, onnx_sampling_per_level
 from mssf_blocks.functional.deform import bag, grid, ms_deform_sample
 from mssf_blocks.functional.deform.op import sample_project_unchecked
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
@@ -367,8 +367,11 @@ class MSDFF(nn.Module):
         raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
         if method == "static_bag":  # the static-shape path (bag.sample_project_static)
             return bag.sample_project_static(raw, image_index, locations, weights, w_heads, b_heads)
-        if method in ("grid", "grid_conv") and static:  # the op's grid path, called directly (standard operators)
-            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads, method == "grid_conv")
+        if method == "grid_conv" and static:  # the ONNX form (per level on the CPU: plan_costs.ONNX_SAMPLING)
+            return grid.sample_project_onnx(raw, image_index, locations, weights, w_heads, b_heads,
+                                            onnx_sampling_per_level(levels[0].device.type))
+        if method == "grid" and static:  # the op's grid path, called directly (standard operators)
+            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads)
         if method in ("sample_op", "touched", "triton"):
             # The sampling op: the device's backend (functional/deform/op.py; CPU: per level the
             # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.

@@ -1,7 +1,8 @@
 """The grid path of the sampling op: project every pixel, then one ``F.grid_sample`` per level.
 
 Static shapes (no ``nonzero``, no ``.item()``): MSDFF's path under an ONNX export (``Conv`` +
-``GridSample``, opset 16+; other graph captures take ``bag.sample_project_static``), the static plan of
+``GridSample``, opset 16+, or per level the raw level's ``GridSample`` projected after:
+:func:`sample_project_onnx`; other graph captures take ``bag.sample_project_static``), the static plan of
 ``torch.compile`` where ``plan_costs.COMPILED_TRAINING`` asks for it, the path of devices without a
 backend of their own, and the op's fallback on CUDA. Every query is sampled in every image of the
 batch and keeps its own image's result (a mask, no gather of per-image query lists): cost and memory
@@ -17,7 +18,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["grid_sample_static", "project_levels", "sample_project"]
+from mssf_blocks.functional.deform.bag import STATIC_PLAN_QUERIES
+from mssf_blocks.functional.plan_costs import _ONNX_GRID_RAW_COST
+
+__all__ = ["grid_sample_static", "project_levels", "sample_project", "sample_project_onnx"]
 
 
 def _select_image(per_image: Tensor, image_index: Tensor) -> Tensor:
@@ -90,13 +94,67 @@ def project_levels_conv(levels: List[Tensor], proj_weight: Tensor, proj_bias: Te
     and a ``MatMul``: 1.6-1.8x slower in onnxruntime, one core, MSDFF at the paper's width on a VoD image,
     N = 2,500 / 8,000; docs/deployment.md)."""
     m, d, c = proj_weight.shape
-    return [F.conv2d(lvl[:, 0], proj_weight.reshape(m * d, c, 1, 1), proj_bias.reshape(m * d))
-            .unflatten(1, (m, d)) for lvl in levels]
+    return [F.conv2d(lvl.flatten(0, 1), proj_weight.reshape(m * d, c, 1, 1), proj_bias.reshape(m * d))
+            .unflatten(1, (m, d)) for lvl in levels]  # (flatten: a Reshape in ONNX, [:, 0] a Gather copying the level)
 
 
 def sample_project(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
-                   proj_weight: Tensor, proj_bias: Tensor, conv: bool = False) -> Tensor:
-    """``(Q, M, d)``: the op's formula by the grid path (:func:`project_levels`, or with ``conv``
-    :func:`project_levels_conv`, then :func:`grid_sample_static`)."""
-    project = project_levels_conv if conv else project_levels
-    return grid_sample_static(project(levels, proj_weight, proj_bias), image_index, locations, weights)
+                   proj_weight: Tensor, proj_bias: Tensor) -> Tensor:
+    """``(Q, M, d)``: the op's formula by the grid path (:func:`project_levels`, then :func:`grid_sample_static`)."""
+    return grid_sample_static(project_levels(levels, proj_weight, proj_bias), image_index, locations, weights)
+
+
+def _raw_pays(level: Tensor, q, m: int, p: int, d: int) -> bool:
+    """Whether, in onnxruntime, sampling the ``C`` raw channels of ``level (I, 1, C, H, W)`` at every point of
+    every head costs less than projecting every pixel (``C x M * d``) and sampling ``d`` channels per head
+    (``plan_costs._ONNX_GRID_RAW_COST``; planned for ``STATIC_PLAN_QUERIES`` queries when ``q`` is symbolic)."""
+    num_images, _, c, h, w = level.shape
+    points = num_images * (q if isinstance(q, int) else STATIC_PLAN_QUERIES) * m * p  # (every query in every image)
+    return points * c * _ONNX_GRID_RAW_COST < num_images * h * w * c * m * d
+
+
+def _sample_first(level: Tensor, image_index: Tensor, locations: Tensor, weights: Tensor, proj_weight: Tensor,
+                  proj_bias: Tensor) -> Tensor:
+    """``(Q, M, d)`` of one level ``(I, 1, C, H, W)`` (``locations (Q, M, 1, P, 2)``, ``weights (Q, M, 1, P)``):
+    one ``GridSample`` of the raw channels at every point of every head (head-major columns), head ``m``'s
+    rows of the projection applied to its points (a batched ``MatMul``: ``M * d`` of the ``C x C`` per point,
+    cheaper in onnxruntime than weighting the ``C``-channel samples), then the attention-weighted sum over
+    the points, and the bias times the in-image bilinear weight mass (a ``GridSample`` of a ones map)."""
+    num_images, _, c, h, w = level.shape
+    q, m, _, p, _ = locations.shape
+    d = proj_weight.shape[1]
+    maps = level.flatten(0, 1)  # (I, C, H, W): a Reshape in ONNX (``[:, 0]`` would be a Gather copying the level)
+    grid = (2.0 * locations[:, :, 0] - 1.0).transpose(0, 1).reshape(1, m, q * p, 2).expand(num_images, m, q * p, 2)
+    wt = weights[:, :, 0].transpose(0, 1).reshape(1, m, q, p)
+    sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="zeros", align_corners=False)  # (I, C, M, QP)
+    heads = torch.matmul(proj_weight, sampled.transpose(1, 2))  # (I, M, d, Q * P)
+    heads = (heads.view(num_images, m, d, q, p) * wt.unsqueeze(2)).sum(-1)  # (I, M, d, Q)
+    ones = maps.new_ones(num_images, 1, h, w)
+    inside = F.grid_sample(ones, grid, mode="bilinear", padding_mode="zeros", align_corners=False)  # (I, 1, M, QP)
+    mass = (inside.view(num_images, m, q, p) * wt).sum(-1)  # (I, M, Q)
+    heads = heads + mass.unsqueeze(2) * proj_bias.view(1, m, d, 1)
+    return _select_image(heads.permute(0, 3, 1, 2), image_index)
+
+
+def sample_project_onnx(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
+                        proj_weight: Tensor, proj_bias: Tensor, per_level: bool = True) -> Tensor:
+    """``(Q, M, d)``: the op's formula as MSDFF's ONNX graph takes it (``GridSample``, ``Conv``, ``MatMul`` and
+    elementwise operators, which TensorRT parses; no embedding bag, which ONNX writes as a ``Loop``).
+
+    Per level (with ``per_level``; else every level project-first) the cheaper in onnxruntime
+    (:func:`_raw_pays`) of project-first (a 1 x 1 ``Conv`` over every pixel, ``GridSample`` of ``d`` channels
+    per head) and sample-first (:func:`_sample_first`: the raw level sampled at every point, projected per
+    head after). Sampling is linear, so both are exact; the bias enters sample-first times the in-image
+    weight mass, as a projected pixel outside the map reads zero, bias included.
+    """
+    q, m, _, p, _ = locations.shape
+    d = proj_weight.shape[1]
+    out: Optional[Tensor] = None
+    for i, level in enumerate(levels):
+        loc, wt = locations[:, :, i : i + 1], weights[:, :, i : i + 1]
+        if per_level and _raw_pays(level, q, m, p, d):
+            part = _sample_first(level, image_index, loc, wt, proj_weight, proj_bias)
+        else:
+            part = grid_sample_static(project_levels_conv([level], proj_weight, proj_bias), image_index, loc, wt)
+        out = part if out is None else out + part
+    return out
