@@ -104,13 +104,17 @@ COMPILED_TRAINING = {"cpu": "op"}
 # ---------------------------------------------------------------------------------------------------
 # "per_level" (functional/deform/grid.py, sample_project_onnx): per level the cheaper of projecting every
 # pixel (a 1 x 1 Conv, then GridSample of d channels per head) and one GridSample of the raw C channels at
-# every point of every head, projected per head after (MatMul). In onnxruntime on one core the raw
-# GridSample costs about _ONNX_GRID_RAW_COST Conv multiply-adds per sampled channel, its weighting and
-# sums included (2.4-3.7 ns against 0.034 ns; measured per level by `python benchmarks/static_path.py`,
-# its floors table: MSDFF at the paper's width on a VoD image, N = 2,500 / 8,000, an AMD EPYC 2-vCPU
-# guest, onnxruntime 1.32 CPU provider, 2026-12-05). A graph serves every voxel count: it is planned for
-# bag.STATIC_PLAN_QUERIES. "project" (every other device: on a GPU the projection is one cheap GEMM, and
-# TensorRT fuses Conv): project every pixel of every level.
+# every point of every head, projected per head after (MatMul). In onnxruntime on one core the raw form
+# costs about _ONNX_GRID_RAW_COST Conv multiply-adds per sampled channel: GridSample's 2.4-3.7 ns per
+# channel against 0.034 ns per Conv multiply-add (the floors table of `python benchmarks/static_path.py`:
+# MSDFF at the paper's width on a VoD image, N = 2,500 / 8,000, an AMD EPYC 2-vCPU guest, onnxruntime
+# 1.32 CPU provider, 2026-12-05), plus its transposes and the per-head MatMul: with 150 the two forms of
+# P2 (304 x 484) break even at about 7,800 voxels, of P3 (152 x 242) at about 2,000. Measured in the whole
+# MSDFF (the same host and benchmark): raw P2 and P3 (the constant at 100) 262 / 840 ms at 2,500 / 8,000
+# voxels, raw P2 only (150) 279 / 663 ms, every level project-first 534 / 644 ms (with a copy of every level,
+# since removed: about 137 ms on P2). A graph
+# serves every voxel count: it is planned for bag.STATIC_PLAN_QUERIES. "project" (every other device: on
+# a GPU the projection is one cheap GEMM): project every pixel of every level first.
 ONNX_SAMPLING = {"cpu": "per_level"}
 _ONNX_GRID_RAW_COST = 150.0
 
