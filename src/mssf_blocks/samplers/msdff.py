@@ -29,7 +29,7 @@ from mssf_blocks.checks.image_features import _check_projection, check_image_fea
 from mssf_blocks.samplers._msdff_pairs import Pairs, reduce_cameras, select_pairs
 from mssf_blocks.static_path import use_static_path
 from mssf_blocks.errors import MSSFError
-from mssf_blocks.functional.plan_costs import compiled_training_uses_op, msdff_auto_method, onnx_sampling_per_level
+from mssf_blocks.functional.plan_costs import compiled_training_uses_op, msdff_auto_method
 from mssf_blocks.functional.deform import bag, grid, ms_deform_sample
 from mssf_blocks.functional.deform.op import sample_project_unchecked
 from mssf_blocks.geometry.voxel_centroid_projector import CentroidProjection
@@ -347,9 +347,8 @@ class MSDFF(nn.Module):
             opaque = _compiling_only() and (not torch.is_grad_enabled() or compiled_training_uses_op(device_type))
             method = "sample_op" if method == "grid" and (not static or opaque) else method
             if method == "grid" and static and not _compiling_only():  # (compile: COMPILED_TRAINING's grid)
-                # Static shapes: raw channels in fixed-size bags, projected per head (a cost in the voxels; measured
-                # on the CPU, off it the grid plan's GEMM is cheap: plan_costs); ONNX would get embedding_bag as a
-                # Loop: Conv + GridSample, faster in onnxruntime than gathered corners (docs/deployment.md).
+                # Static shapes: raw channels in fixed-size bags, projected per head (CPU; off it the grid plan's GEMM
+                # is cheap: plan_costs); ONNX writes embedding_bag as a Loop: GridSample forms (docs/deployment.md).
                 method = "grid_conv" if _exporting_onnx() else "static_bag" if device_type == "cpu" else "grid"
         # (the grid and Triton paths never synchronise with the device: on a GPU the op takes every
         # (voxel, camera) pair, the invalid ones reading zeros, rather than gathering the valid ones)
@@ -367,11 +366,9 @@ class MSDFF(nn.Module):
         raw = [lvl.reshape(b * v, 1, c, lvl.shape[-2], lvl.shape[-1]) for lvl in levels]  # Mv = 1 views
         if method == "static_bag":  # the static-shape path (bag.sample_project_static)
             return bag.sample_project_static(raw, image_index, locations, weights, w_heads, b_heads)
-        if method == "grid_conv" and static:  # the ONNX form (per level on the CPU: plan_costs.ONNX_SAMPLING)
-            return grid.sample_project_onnx(raw, image_index, locations, weights, w_heads, b_heads,
-                                            onnx_sampling_per_level(levels[0].device.type))
-        if method == "grid" and static:  # the op's grid path, called directly (standard operators)
-            return grid.sample_project(raw, image_index, locations, weights, w_heads, b_heads)
+        if method in ("grid", "grid_conv") and static:  # the op's grid path / the ONNX form: standard operators
+            fn = grid.sample_project_onnx if method == "grid_conv" else grid.sample_project
+            return fn(raw, image_index, locations, weights, w_heads, b_heads)
         if method in ("sample_op", "touched", "triton"):
             # The sampling op: the device's backend (functional/deform/op.py; CPU: per level the
             # cheapest exact "touched" plan, CUDA: the Triton kernels or the grid path) or the forced one.

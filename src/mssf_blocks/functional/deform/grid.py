@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from mssf_blocks.functional.deform.bag import STATIC_PLAN_QUERIES
-from mssf_blocks.functional.plan_costs import _ONNX_GRID_RAW_COST
+from mssf_blocks.functional.plan_costs import _ONNX_GRID_RAW_COST, onnx_sampling_per_level
 
 __all__ = ["grid_sample_static", "project_levels", "sample_project", "sample_project_onnx"]
 
@@ -137,11 +137,12 @@ def _sample_first(level: Tensor, image_index: Tensor, locations: Tensor, weights
 
 
 def sample_project_onnx(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
-                        proj_weight: Tensor, proj_bias: Tensor, per_level: bool = True) -> Tensor:
+                        proj_weight: Tensor, proj_bias: Tensor, per_level: Optional[bool] = None) -> Tensor:
     """``(Q, M, d)``: the op's formula as MSDFF's ONNX graph takes it (``GridSample``, ``Conv``, ``MatMul`` and
     elementwise operators, which TensorRT parses; no embedding bag, which ONNX writes as a ``Loop``).
 
-    Per level (with ``per_level``; else every level project-first) the cheaper in onnxruntime
+    Per level (with ``per_level``, by default ``plan_costs.ONNX_SAMPLING`` of the levels' device; else every
+    level project-first) the cheaper in onnxruntime
     (:func:`_raw_pays`) of project-first (a 1 x 1 ``Conv`` over every pixel, ``GridSample`` of ``d`` channels
     per head) and sample-first (:func:`_sample_first`: the raw level sampled at every point, projected per
     head after). Sampling is linear, so both are exact; the bias enters sample-first times the in-image
@@ -149,6 +150,8 @@ def sample_project_onnx(levels: List[Tensor], image_index: Tensor, locations: Te
     """
     q, m, _, p, _ = locations.shape
     d = proj_weight.shape[1]
+    if per_level is None:
+        per_level = onnx_sampling_per_level(levels[0].device.type)
     out: Optional[Tensor] = None
     for i, level in enumerate(levels):
         loc, wt = locations[:, :, i : i + 1], weights[:, :, i : i + 1]
