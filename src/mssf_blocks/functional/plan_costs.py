@@ -112,9 +112,9 @@ COMPILED_TRAINING = {"cpu": "op"}
 # P2 (304 x 484) break even at about 7,800 voxels, of P3 (152 x 242) at about 2,000. Measured in the whole
 # MSDFF (the same host and benchmark): raw P2 and P3 (the constant at 100) 262 / 840 ms at 2,500 / 8,000
 # voxels, raw P2 only (150) 279 / 663 ms, every level project-first 534 / 644 ms (with a copy of every level,
-# since removed: about 137 ms on P2). A graph
-# serves every voxel count: it is planned for bag.STATIC_PLAN_QUERIES. "project" (every other device: on
-# a GPU the projection is one cheap GEMM): project every pixel of every level first.
+# since removed: about 137 ms on P2). A graph serves every voxel count: it is planned for
+# bag.STATIC_PLAN_QUERIES. "project" (every other device: on a GPU the projection is one cheap GEMM): project
+# every pixel of every level first.
 ONNX_SAMPLING = {"cpu": "per_level"}
 _ONNX_GRID_RAW_COST = 150.0
 

@@ -18,7 +18,7 @@ from mssf_blocks.functional.deform.touched.order import _inverse
 from mssf_blocks.functional.deform.touched.points import _pixel_coordinate
 from mssf_blocks.functional.plan_costs import _STATIC_BAG_COST
 
-__all__ = ["STATIC_PLAN_QUERIES", "sample", "sample_project_chunked", "sample_project_static"]
+__all__ = ["STATIC_PLAN_QUERIES", "plan_queries", "sample", "sample_project_chunked", "sample_project_static"]
 
 
 def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
@@ -125,12 +125,17 @@ def _sample_project_level(
 STATIC_PLAN_QUERIES = 2500
 
 
+def plan_queries(q) -> int:
+    """The query count a static plan is made for: ``q``, or ``STATIC_PLAN_QUERIES`` where ``q`` is symbolic."""
+    return q if isinstance(q, int) else STATIC_PLAN_QUERIES
+
+
 def _dense_pays(level: Tensor, q: int, m: int, p: int, d: int) -> bool:
     """Whether projecting every pixel of ``level (I, 1, C, H, W)`` and bagging ``d`` channels per head costs
     less than bagging the ``C`` raw channels of every corner (in GEMM multiply-adds, ``plan_costs``)."""
     c = level.shape[2]
     pixels = level.shape[0] * level.shape[-2] * level.shape[-1]
-    corners = (q if isinstance(q, int) else STATIC_PLAN_QUERIES) * m * p * 4
+    corners = plan_queries(q) * m * p * 4
     return pixels * c * m * d + corners * d * _STATIC_BAG_COST < corners * c * _STATIC_BAG_COST
 
 

@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from mssf_blocks.functional.deform.bag import STATIC_PLAN_QUERIES
+from mssf_blocks.functional.deform.bag import plan_queries
 from mssf_blocks.functional.plan_costs import _ONNX_GRID_RAW_COST, onnx_sampling_per_level
 
 __all__ = ["grid_sample_static", "project_levels", "sample_project", "sample_project_onnx"]
@@ -109,7 +109,7 @@ def _raw_pays(level: Tensor, q, m: int, p: int, d: int) -> bool:
     every head costs less than projecting every pixel (``C x M * d``) and sampling ``d`` channels per head
     (``plan_costs._ONNX_GRID_RAW_COST``; planned for ``STATIC_PLAN_QUERIES`` queries when ``q`` is symbolic)."""
     num_images, _, c, h, w = level.shape
-    points = num_images * (q if isinstance(q, int) else STATIC_PLAN_QUERIES) * m * p  # (every query in every image)
+    points = num_images * plan_queries(q) * m * p  # (every query in every image)
     return points * c * _ONNX_GRID_RAW_COST < num_images * h * w * c * m * d
 
 
@@ -137,12 +137,12 @@ def _sample_first(level: Tensor, image_index: Tensor, locations: Tensor, weights
 
 
 def sample_project_onnx(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
-                        proj_weight: Tensor, proj_bias: Tensor, per_level: Optional[bool] = None) -> Tensor:
+                        proj_weight: Tensor, proj_bias: Tensor) -> Tensor:
     """``(Q, M, d)``: the op's formula as MSDFF's ONNX graph takes it (``GridSample``, ``Conv``, ``MatMul`` and
     elementwise operators, which TensorRT parses; no embedding bag, which ONNX writes as a ``Loop``).
 
-    Per level (with ``per_level``, by default ``plan_costs.ONNX_SAMPLING`` of the levels' device; else every
-    level project-first) the cheaper in onnxruntime
+    Per level (where ``plan_costs.ONNX_SAMPLING`` of the levels' device says so; else every level
+    project-first) the cheaper in onnxruntime
     (:func:`_raw_pays`) of project-first (a 1 x 1 ``Conv`` over every pixel, ``GridSample`` of ``d`` channels
     per head) and sample-first (:func:`_sample_first`: the raw level sampled at every point, projected per
     head after). Sampling is linear, so both are exact; the bias enters sample-first times the in-image
@@ -150,8 +150,7 @@ def sample_project_onnx(levels: List[Tensor], image_index: Tensor, locations: Te
     """
     q, m, _, p, _ = locations.shape
     d = proj_weight.shape[1]
-    if per_level is None:
-        per_level = onnx_sampling_per_level(levels[0].device.type)
+    per_level = onnx_sampling_per_level(levels[0].device.type)
     out: Optional[Tensor] = None
     for i, level in enumerate(levels):
         loc, wt = locations[:, :, i : i + 1], weights[:, :, i : i + 1]
