@@ -28,29 +28,22 @@ only the pixels its voxels touch, a data-dependent set.
 
 from __future__ import annotations
 
-import statistics
 import time
 from contextlib import contextmanager
 from typing import Callable, Dict, List
 
 import torch
 
-from mssf_blocks import static_path
+from _common import measure
 from mssf_blocks.functional.deform import bag
 from mssf_blocks.samplers import msdff as msdff_module
 
 __all__ = ["capture_static_sampling", "onnx_floor", "torch_floor"]
 
 
-def _median_cpu(fn: Callable[[], object], repeats: int) -> float:
-    """Median process CPU time (s) of ``repeats`` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.process_time()
-        fn()
-        times.append(time.process_time() - t0)
-    return statistics.median(times)
+def _cpu(fn: Callable[[], object], repeats: int) -> float:
+    """Median process CPU time (s) of ``repeats`` calls after a warm-up (``_common.measure``)."""
+    return measure(fn, repeats, clock=time.process_time)[0]
 
 
 @contextmanager
@@ -94,12 +87,12 @@ def torch_floor(args: tuple, repeats: int) -> Dict[str, object]:
     levels, image_index, locations, weights, w, b = _ordered(args)
     per_level = []
     with torch.no_grad():
-        sampling = _median_cpu(lambda: bag.sample_project_static(*args), repeats)
+        sampling = _cpu(lambda: bag.sample_project_static(*args), repeats)
         for i, lvl in enumerate(levels):
             loc, wt = locations[:, :, i : i + 1], weights[:, :, i : i + 1]
-            raw = _median_cpu(lambda: bag.sample([lvl], image_index, loc, wt, True), repeats)
-            projected = _median_cpu(
-                lambda: bag.sample([bag._project_level(lvl, w, b)], image_index, loc, wt, False), repeats)
+            raw = _cpu(lambda: bag.sample([lvl], image_index, loc, wt, True, query_major=True), repeats)
+            projected = _cpu(lambda: bag.sample([bag._project_level(lvl, w, b)], image_index, loc, wt, False,
+                                                query_major=True), repeats)
             per_level.append((raw, projected))
     return {"sampling": sampling, "floor": sum(min(r, p) for r, p in per_level), "levels": per_level}
 
@@ -112,7 +105,8 @@ def _corner_rows(args: tuple) -> List[torch.Tensor]:
     for i, lvl in enumerate(levels):
         record: List = []
         with torch.no_grad(), _recording(bag.torch_versions, "embedding_bag", record):
-            bag.sample([lvl], image_index, locations[:, :, i : i + 1], weights[:, :, i : i + 1], False)
+            bag.sample([lvl], image_index, locations[:, :, i : i + 1], weights[:, :, i : i + 1], False,
+                       query_major=True)
         rows.append(record[0][0][0].to(torch.int64))
     return rows
 
@@ -134,7 +128,7 @@ def _session(graph, repeats: int, feeds: Dict[str, "object"], expected: tuple) -
     want, magnitude = (float(t) for t in expected)
     if abs(got - want) > 1e-5 * magnitude + 1e-3:
         raise SystemExit(f"internal error: the floor graph {graph.name!r} gave {got}, expected {want}")
-    return _median_cpu(lambda: session.run(None, feeds), repeats)
+    return _cpu(lambda: session.run(None, feeds), repeats)
 
 
 def onnx_floor(args: tuple, repeats: int) -> Dict[str, object]:
@@ -153,8 +147,8 @@ def onnx_floor(args: tuple, repeats: int) -> Dict[str, object]:
         nchw = lvl[:, 0].contiguous().numpy()  # (I, C, H, W)
         x = oh.make_tensor_value_info("x", TensorProto.FLOAT, list(nchw.shape))
         weight = oh.make_tensor("w", TensorProto.FLOAT, [m * d, c, 1, 1], w.reshape(-1).tolist())
-        conv = oh.make_graph([oh.make_node("Conv", ["x", "w"], ["y"]), oh.make_node("ReduceSum", ["y"], ["out"], keepdims=0)],
-                             "project", [x], [out], [weight])
+        conv = oh.make_graph([oh.make_node("Conv", ["x", "w"], ["y"]),
+                              oh.make_node("ReduceSum", ["y"], ["out"], keepdims=0)], "project", [x], [out], [weight])
         idx = rows[i].reshape(-1).numpy()
         gather = oh.make_graph([
             oh.make_node("Transpose", ["x"], ["t"], perm=[0, 2, 3, 1]),
@@ -191,12 +185,3 @@ def onnx_floor(args: tuple, repeats: int) -> Dict[str, object]:
                           _session(sample, repeats, {"x": nchw, "g": grid_points}, expected[2])))
     return {"floor": sum(min(t) for t in per_level), "levels": per_level}
 
-
-def static_forward(graph, args) -> Callable[[], object]:
-    """``graph(*args)`` under :func:`mssf_blocks.static_path`, as a no-argument callable."""
-
-    def run():
-        with static_path():
-            return graph(*args)
-
-    return run
