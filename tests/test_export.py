@@ -18,6 +18,7 @@ from mssf_blocks import (
     SemanticGuidedHead,
     SparseVoxels,
 )
+from mssf_blocks.functional.deform import bag as deform_bag
 from mssf_blocks.geometry import CentroidProjection
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -81,14 +82,27 @@ def _leaves(out):
 
 
 @pytest.mark.skipif(NO_EXPORT is not None, reason=str(NO_EXPORT))
-@pytest.mark.parametrize("name", ["SFF", "MSDFF", "QueryInit", "FusionBlock", "SemanticGuidedHead", "PillarLift"])
-def test_torch_export_with_dynamic_voxel_count(name):
+@pytest.mark.parametrize("name", ["SFF", "MSDFF", "MSDFF_blocks", "QueryInit", "FusionBlock", "SemanticGuidedHead",
+                                  "PillarLift"])
+def test_torch_export_with_dynamic_voxel_count(name, monkeypatch):
+    """Every block exported once with a symbolic voxel count, then run at other counts; "MSDFF_blocks": MSDFF's
+    static sampling planned in 4 blocks of queries (its block size made small), which must hold for any count,
+    the smallest (2) included."""
+    counts = COUNTS
+    if name == "MSDFF_blocks":
+        name, counts = "MSDFF", COUNTS + (2, 3)
+        # (a symbolic count is planned as bag.STATIC_PLAN_QUERIES queries of M = 2 x C = 8 float32 samples)
+        monkeypatch.setattr(deform_bag, "_STATIC_BLOCK_BYTES", deform_bag.STATIC_PLAN_QUERIES * 2 * 8 * 4 // 4)
+        assert deform_bag.static_blocks(deform_bag.STATIC_PLAN_QUERIES, 2, 8, 4) == 4
     mod, make_args, dynamic = _case(name)
     mod.eval()
     example = make_args(*_scene(COUNTS[0], 0))
     ep = torch.export.export(mod, example, dynamic_shapes=dynamic)
+    if counts is not COUNTS:  # one bag per level and block
+        bags = [nd for nd in ep.graph.nodes if nd.op == "call_function" and "embedding_bag" in str(nd.target)]
+        assert len(bags) == 4 * 2
     exported = ep.module()
-    for n in COUNTS:
+    for n in counts:
         args = make_args(*_scene(n, n))
         got, want = _leaves(exported(*args)), _leaves(mod(*args))
         assert len(got) == len(want) and got[0].shape[0] == n

@@ -57,7 +57,7 @@ def _perturb(mod, seed=2):
 @pytest.mark.parametrize("b,v", [(1, 1), (2, 1), (2, 3)])
 @pytest.mark.parametrize("training", [False, True])
 @pytest.mark.parametrize("kind", ["sff", "msdff", "msdff_raw_rows", "msdff_projected_levels", "msdff_onnx_form",
-                                  "msdff_onnx_raw_levels", "msdff_onnx_mixed", "msdff_channels_last"])
+                                  "msdff_onnx_raw_levels", "msdff_onnx_mixed", "msdff_channels_last", "msdff_blocks"])
 def test_static_path_equals_eager_forward_backward_and_running_stats(kind, training, b, v, monkeypatch):
     """MSDFF's static path (bag.sample_project_static) per level bags the raw channels and projects per head
     after ("msdff_raw_rows", forced; "msdff_channels_last": the same on channels-last levels, whose tables
@@ -65,7 +65,8 @@ def test_static_path_equals_eager_forward_backward_and_running_stats(kind, train
     choice; "msdff_onnx_form" is what an ONNX export captures instead (grid.sample_project_onnx, its own choice per
     level), "msdff_onnx_raw_levels" its raw-level form forced (GridSample of the raw channels, projected after,
     the bias times a ones map's samples), "msdff_onnx_mixed" one level of each form (1 x 1 Conv + GridSample per
-    head on the other)."""
+    head on the other); "msdff_blocks": the static path's queries bagged in blocks of 7 (its block size made
+    small; the last query repeated to fill the last block), one raw level and one projected."""
     n = 40
     # float64: the comparison then sees formulation errors, not float32 rounding of near-zero gradients
     proj = _projection(n, b, v)
@@ -89,6 +90,12 @@ def test_static_path_equals_eager_forward_backward_and_running_stats(kind, train
         monkeypatch.setattr(deform_grid, "_raw_pays", lambda level, *a: kind.endswith("raw_levels") or level.shape[-1] == 14)
     if kind in ("msdff_raw_rows", "msdff_channels_last", "msdff_projected_levels"):
         monkeypatch.setattr(deform_bag, "_dense_pays", lambda *args: kind == "msdff_projected_levels")
+    if kind == "msdff_blocks":
+        monkeypatch.setattr(deform_bag, "_dense_pays", lambda level, *a: level.shape[-1] == 7)
+        # 7 queries' (queries * M, C) float64 raw samples a block: M = 2, C = 6
+        monkeypatch.setattr(deform_bag, "_STATIC_BLOCK_BYTES", 7 * 2 * 6 * 8)
+        pairs = n * v  # (the static layout takes every (voxel, camera) pair)
+        assert deform_bag.static_blocks(pairs, 2, 6, 8) == -(-pairs // 7) > 1
     results = []
     for static in (False, True):
         mod = copy.deepcopy(base)

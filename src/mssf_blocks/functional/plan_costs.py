@@ -32,6 +32,15 @@ _DIRECT_BAG_COST = _BAG_COST
 # width on a VoD image, 2,500 / 8,000 radar-band voxels, channels-last levels, one core of a Xeon, torch
 # 2.13, 2026-12-04). Per level it projects every pixel when that costs less.
 _STATIC_BAG_COST = 10.0
+# It bags its queries in blocks of this many bytes of (queries * M, C) raw samples (bag.static_blocks: 1,024
+# queries at M = 8, C = 256 float32), in row order, so that a block's samples and corner arrays stay in cache
+# and its temporaries are reused from the heap: one block of every query (65 MiB of samples at 8,000 voxels)
+# came back as fresh pages on each call (the bags of P2 117 -> 63 ms at 8,000 voxels with glibc's mmap
+# threshold raised, 75 ms in blocks either way). Measured with `python benchmarks/static_path.py --block-mib
+# 2 4 8 16 0 --repeats 9` (the static MSDFF / eager at 2,500 and 8,000 voxels, paper width, channels-last,
+# 2 / 4 / 8 / 16 MiB / one block: 1.36 / 1.20 / 1.27 / 1.23 / 1.44 and 1.43 / 1.42 / 1.33 / 1.46 / 1.79; the AMD
+# EPYC host, one thread, 2026-12-05).
+_STATIC_BLOCK_BYTES = 8 << 20
 # "sample" gathers the touched rows in pieces and concatenates them into one table (a second copy).
 _COPY_COST = 8.0
 _PROJECT_CHUNK = 4096  # touched rows gathered at a time (4 MiB of 256 float32 channels)

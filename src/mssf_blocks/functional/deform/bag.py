@@ -6,6 +6,7 @@ public functions check them)."""
 
 from __future__ import annotations
 
+import math
 from typing import List, Optional, Sequence, Tuple, Union
 
 import torch
@@ -15,10 +16,11 @@ from torch.utils.checkpoint import checkpoint
 
 from mssf_blocks import torch_versions
 from mssf_blocks.functional.deform.touched.order import _inverse
-from mssf_blocks.functional.deform.touched.points import _pixel_coordinate
-from mssf_blocks.functional.plan_costs import _STATIC_BAG_COST
+from mssf_blocks.functional.deform.touched.points import _pixel_coordinate, _rows
+from mssf_blocks.functional.plan_costs import _STATIC_BAG_COST, _STATIC_BLOCK_BYTES
 
-__all__ = ["STATIC_PLAN_QUERIES", "plan_queries", "sample", "sample_project_chunked", "sample_project_static"]
+__all__ = ["STATIC_PLAN_QUERIES", "plan_queries", "sample", "sample_project_chunked", "sample_project_static",
+           "static_blocks"]
 
 
 def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
@@ -27,11 +29,43 @@ def _index_dtype(values: Sequence[Tensor], mv: int) -> torch.dtype:
     return torch.int32 if rows + 2 * max(v.shape[-1] for v in values) < 2**31 else torch.int64
 
 
+def _level_corners(loc: Tensor, wts: Tensor, plane: Tensor, planes: int, h: int, w: int, idt: torch.dtype,
+                   return_mass: bool) -> Tuple[Tensor, Tensor, Optional[Tensor]]:
+    """One level's ``(A, B, 4, P)`` table rows and weights (``bilinear weight * attention weight``) of the four
+    bilinear corners of the points ``loc (A, B, P, 2)`` with attention weights ``wts (A, B, P)`` (``A, B``:
+    queries and heads in either order) on planes ``plane (A, B, 1)`` of a table of ``planes`` maps of
+    ``h x w`` rows, and with ``return_mass`` the ``(A, B)`` in-map weight mass."""
+    x = _pixel_coordinate(loc[..., 0], w)  # (A, B, P); the sizes are Python numbers: scalar operands
+    y = _pixel_coordinate(loc[..., 1], h)
+    x0 = x.detach().floor()
+    y0 = y.detach().floor()
+    fx = x - x0  # carries d/dx; floor is piecewise constant
+    fy = y - y0
+    # Per-axis corner weights, zero where the corner is outside the map (zero padding); the attention
+    # weight is folded into the y factors so that each corner weight is one product.
+    ax0 = (1.0 - fx) * ((x0 >= 0) & (x0 <= w - 1))
+    ax1 = fx * ((x0 >= -1) & (x0 <= w - 2))
+    ay0 = (1.0 - fy) * ((y0 >= 0) & (y0 <= h - 1)) * wts
+    ay1 = fy * ((y0 >= -1) & (y0 <= h - 2)) * wts
+    # Corner-major inside each bag, (A, B, 4, P): the order within a bag is free and this layout stacks in
+    # blocks of P instead of interleaving single elements.
+    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), -2)
+    mass = ((ay0 + ay1) * (ax0 + ax1)).sum(-1) if return_mass else None
+    # Row of the top-left corner, (plane * h + y0) * w + x0, computed on points (4x fewer than corners)
+    # after clamping x0, y0 to [-1, size] so that huge coordinates cannot overflow; the corners add
+    # (0, 1, w, w + 1). A corner outside the map has weight 0 and any row inside the table will do, hence
+    # the final clamp to the table.
+    base = (plane * h + y0.clamp(-1.0, float(h)).to(idt)) * w + x0.clamp(-1.0, float(w)).to(idt)
+    offsets = torch.tensor([0, 1, w, w + 1], dtype=idt, device=base.device).view(4, 1)
+    rows = (base.unsqueeze(-2) + offsets).clamp_(0, planes * h * w - 1)
+    return rows, psw, mass
+
+
 def sample(
     values: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor, return_mass: bool,
     query_major: bool = False,
 ) -> Union[Tensor, Tuple[Tensor, Tensor]]:
-    q, m, num_levels, p, _ = locations.shape
+    q, m, _, p, _ = locations.shape
     mv, d = values[0].shape[1:3]
     dev = locations.device
     # Work level-major and head-major, (L, M, Q, P): every level's corners are a contiguous slice and
@@ -40,65 +74,33 @@ def sample(
     # near the same reference point while they are in cache (the static path: 0.88-0.94 of the time,
     # benchmarks/static_path.py's MSDFF cases); the output is then (Q, M, D) memory.
     order = (2, 0, 1) if query_major else (2, 1, 0)
-    locs = locations.permute(*order, 3, 4)
+    locs = locations.permute(*order, 3, 4)  # (L, M, Q, P, 2) or (L, Q, M, P, 2)
     wts = weights.permute(*order, 3)
-    hs = torch.tensor([v.shape[-2] for v in values], device=dev).view(num_levels, 1, 1, 1)
-    ws = torch.tensor([v.shape[-1] for v in values], device=dev).view(num_levels, 1, 1, 1)
-    size_w = ws.to(locations.dtype)
-    size_h = hs.to(locations.dtype)
-    x = _pixel_coordinate(locs[..., 0], size_w)  # (L, M, Q, P)
-    y = _pixel_coordinate(locs[..., 1], size_h)
-    x0 = x.detach().floor()
-    y0 = y.detach().floor()
-    fx = x - x0  # carries d/dx; floor is piecewise constant
-    fy = y - y0
-    # Per-axis corner weights, zero where the corner is outside the map (zero padding); the attention
-    # weight is folded into the y factors so that each corner weight is one product.
-    ax0 = (1.0 - fx) * ((x0 >= 0) & (x0 <= size_w - 1))
-    ax1 = fx * ((x0 >= -1) & (x0 <= size_w - 2))
-    ay0 = (1.0 - fy) * ((y0 >= 0) & (y0 <= size_h - 1)) * wts
-    ay1 = fy * ((y0 >= -1) & (y0 <= size_h - 2)) * wts
-    # Corner-major inside each (head, query) bag, (L, M, Q, 4, P): the order within a bag is free and
-    # this layout stacks in blocks of P instead of interleaving single elements.
-    psw = torch.stack((ay0 * ax0, ay0 * ax1, ay1 * ax0, ay1 * ax1), -2)  # (L, M, Q, 4, P)
-    mass = None
-    if return_mass:
-        mass = ((ay0 + ay1) * (ax0 + ax1)).sum((0, 3))
-        mass = mass if query_major else mass.t()  # (Q, M)
-
-    # Row of the top-left corner in level l's table (I * Mv * H_l * W_l, D):
-    #   ((image * Mv + head) * H_l + y0) * W_l + x0, computed on points (4x fewer than corners) after
-    # clamping x0, y0 to [-1, size] so that huge coordinates cannot overflow; the corners add
-    # (0, 1, W_l, W_l + 1). A corner outside the map has weight 0 and any row inside the table will
-    # do, hence the final clamp to the table.
     idt = _index_dtype(values, mv)
-    heads = torch.arange(m, device=dev, dtype=idt)[:, None] if mv > 1 else torch.zeros((m, 1), dtype=idt, device=dev)
-    plane = image_index.to(idt)[None, :] * mv + heads  # (M, Q)
-    plane = plane.t().reshape(1, q, m, 1) if query_major else plane.view(1, m, q, 1)
-    x0i = torch.minimum(x0.clamp(min=-1.0), size_w).to(idt)
-    y0i = torch.minimum(y0.clamp(min=-1.0), size_h).to(idt)
-    hs_i, ws_i = hs.to(idt), ws.to(idt)
-    base = (plane * hs_i + y0i) * ws_i + x0i  # (L, M, Q, P)
-    corner_offsets = torch.stack([torch.zeros_like(ws_i), torch.ones_like(ws_i), ws_i, ws_i + 1], -2)  # (L,1,1,4,1)
-    last_row = torch.tensor(
-        [v.shape[0] * mv * v.shape[-2] * v.shape[-1] - 1 for v in values], device=dev, dtype=idt
-    ).view(num_levels, 1, 1, 1, 1)
-    rows = torch.clamp(base[..., None, :] + corner_offsets, min=torch.zeros_like(last_row), max=last_row)
-
-    out = None
+    heads = torch.arange(m, device=dev, dtype=idt) if mv > 1 else torch.zeros(m, dtype=idt, device=dev)
+    if query_major:
+        plane = (image_index.to(idt)[:, None] * mv + heads[None, :]).unsqueeze(-1)  # (Q, M, 1)
+    else:
+        plane = (image_index.to(idt)[None, :] * mv + heads[:, None]).unsqueeze(-1)  # (M, Q, 1)
+    out = mass = None
     for lvl, val in enumerate(values):
+        rows, psw, part_mass = _level_corners(locs[lvl], wts[lvl], plane, val.shape[0] * mv, val.shape[-2],
+                                              val.shape[-1], idt, return_mass)
+        mass = part_mass if mass is None else mass + part_mass
         # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
         # along D); otherwise one layout copy of this level.
         table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
         if table.stride(-1) != 1:  # (embedding_bag reads a strided table several times slower than a copy)
             table = table.contiguous()
-        part = torch_versions.embedding_bag(
-            rows[lvl].reshape(m * q, p * 4), table, per_sample_weights=psw[lvl].reshape(m * q, p * 4), mode="sum"
-        )  # (M * Q, D)
+        # (rows follow the locations' memory order: a copy where that is not the bags' order)
+        part = torch_versions.embedding_bag(rows.reshape(m * q, p * 4), table,
+                                            per_sample_weights=psw.reshape(m * q, p * 4), mode="sum")  # (M * Q, D)
         if out is None:
             out = part
         else:
             out += part  # in place: embedding_bag's backward does not need its output
+    if return_mass:
+        mass = mass if query_major else mass.t()  # (Q, M)
     out = out.view(q, m, d) if query_major else out.view(m, q, d).transpose(0, 1)  # (Q, M, D)
     return (out, mass) if return_mass else out
 
@@ -128,6 +130,27 @@ STATIC_PLAN_QUERIES = 2500
 def plan_queries(q) -> int:
     """The query count a static plan is made for: ``q``, or ``STATIC_PLAN_QUERIES`` where ``q`` is symbolic."""
     return q if isinstance(q, int) else STATIC_PLAN_QUERIES
+
+
+def _row_major(level: Tensor) -> Tensor:
+    """``level (I, Mv, D, H, W)`` over ``(I, Mv, H, W, D)`` memory, the row table :func:`sample` reads in place:
+    ``level`` itself when it is in that memory (channels-last features), else one layout copy (made once,
+    not once per block of queries)."""
+    rows = level.permute(0, 1, 3, 4, 2)
+    return level if rows.is_contiguous() else rows.contiguous().permute(0, 1, 4, 2, 3)
+
+
+def _levels(t: Tensor, chosen: List[int]) -> Tensor:
+    """The levels ``chosen`` (ascending) of ``t (Q, M, L, ...)``: a view where they are consecutive."""
+    if chosen == list(range(chosen[0], chosen[0] + len(chosen))):
+        return t.narrow(2, chosen[0], len(chosen))
+    return t.index_select(2, torch.tensor(chosen, device=t.device))
+
+
+def static_blocks(q: int, m: int, c: int, itemsize: int) -> int:
+    """How many blocks of queries the static path bags ``q`` queries in: ``plan_costs._STATIC_BLOCK_BYTES`` of
+    ``(queries * m, c)`` raw samples each."""
+    return max(1, math.ceil(q * m * c * itemsize / _STATIC_BLOCK_BYTES))
 
 
 def _dense_pays(level: Tensor, q: int, m: int, p: int, d: int) -> bool:
@@ -178,28 +201,51 @@ def sample_project_static(levels: List[Tensor], image_index: Tensor, locations: 
     * every pixel projected (``O(H_l * W_l * C * M * d)``, a small level), ``d`` channels per head bagged.
 
     The queries are taken in image order (:func:`_row_order`): neighbouring bags read neighbouring rows;
-    each bag's sum is the same in any order.
+    each bag's sum is the same in any order. They are bagged in :func:`static_blocks` blocks of one size
+    (``plan_costs._STATIC_BLOCK_BYTES`` of raw samples; planned like the levels), a fixed count of views,
+    so that the voxel count stays one dynamic axis under ``torch.export``.
     """
     q, m, _, p, _ = locations.shape
-    d = proj_weight.shape[1]
+    d, c = proj_weight.shape[1], levels[0].shape[2]
     sizes = [tuple(lvl.shape[-2:]) for lvl in levels]
     order = _row_order(image_index, locations, sizes)
-    image_index, locations, weights = image_index[order], locations[order], weights[order]
+    k = static_blocks(plan_queries(q), m, c, locations.element_size())
+    # k blocks of s queries in row order: the block's raw samples and corner arrays stay in cache, and its
+    # temporaries (a few MiB) are reused from the heap, where one block of every query (65 MiB of samples
+    # at 8,000 voxels) comes back as fresh pages on each call. k * s >= q rows are gathered (the last query
+    # repeated, its copies dropped at the end), so that every block is a view of one size s >= 2; with a
+    # symbolic q, s is one floor division (s = q // k + 2 would make torch.export guard on
+    # (2 * s) % s == 0, which it cannot prove for such a sum, when a (s * M) dim is split into (s, M)).
+    s = (q + 2 * k - 1) // k if k > 1 else q
+    take = order if k == 1 else order.index_select(0, torch.arange(k * s, device=order.device).clamp(max=q - 1))
+    image_index, locations, weights = (_rows(t, take) for t in (image_index, locations, weights))
     dense = [_dense_pays(lvl, q, m, p, d) for lvl in levels]
-    out = None
     raw = [i for i, dn in enumerate(dense) if not dn]
-    if raw:
-        sampled, mass = sample([levels[i] for i in raw], image_index, locations[:, :, raw], weights[:, :, raw], True,
-                               query_major=True)
-        out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (Q, M, d)
-        out = out + mass[..., None] * proj_bias
     projected = [i for i, dn in enumerate(dense) if dn]
-    if projected:
-        values = [_project_level(levels[i], proj_weight, proj_bias) for i in projected]
-        part = sample(values, image_index, locations[:, :, projected], weights[:, :, projected], False,
-                      query_major=True)
-        out = part if out is None else out + part
-    return out[_inverse(order)]
+    values = [_project_level(levels[i], proj_weight, proj_bias) for i in projected]
+    parts = []
+    for chosen, tables in ((raw, [_row_major(levels[i]) for i in raw]), (projected, values)):
+        if chosen:
+            loc, wt = _levels(locations, chosen), _levels(weights, chosen)
+            parts.append((tables, loc.view(k, s, *loc.shape[1:]), wt.view(k, s, *wt.shape[1:])))
+        else:
+            parts.append(None)
+    image_index = image_index.view(k, s)
+    blocks = []
+    for b in range(k):
+        out = None
+        if parts[0] is not None:
+            tables, loc, wt = parts[0]
+            sampled, mass = sample(tables, image_index[b], loc[b], wt[b], True, query_major=True)
+            out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (s, M, d)
+            out = out + mass[..., None] * proj_bias
+        if parts[1] is not None:
+            tables, loc, wt = parts[1]
+            part = sample(tables, image_index[b], loc[b], wt[b], False, query_major=True)
+            out = part if out is None else out + part
+        blocks.append(out)
+    out = blocks[0] if k == 1 else torch.cat(blocks)
+    return out.index_select(0, _inverse(order))
 
 
 def sample_project_chunked(levels: List[Tensor], image_index: Tensor, locations: Tensor, weights: Tensor,
