@@ -15,8 +15,10 @@ primitives, and the sum over levels a floor of the whole sampling. Eager MSDFF e
 only the pixels its voxels touch, a data-dependent set.
 
 * **PyTorch** (``torch.export``, ``static_path()``): the primitives are the static path's own, timed on
-  the frame's real locations (:func:`torch_floor`): ``embedding_bag`` over the raw rows of the level,
-  and the level's projection plus the ``d``-channel bags. The floor of the static path = the rest of its
+  the frame's real locations in its blocks of queries (:func:`torch_floor`): ``embedding_bag`` over the
+  raw rows of the level (after the copy into a row table that a level not in channels-last memory needs:
+  the raw rows of an NCHW level are 256 strided reads each), and the level's projection plus the
+  ``d``-channel bags. The floor of the static path = the rest of its
   forward (everything but the sampling call, measured) + the per-level minima.
 * **onnxruntime** (operators TensorRT parses; no embedding bag, which ONNX writes as a ``Loop``): per
   level the cheapest of three one-operator graphs built with ``onnx.helper`` (:func:`onnx_floor`): the
@@ -80,20 +82,35 @@ def _ordered(args: tuple) -> tuple:
     return levels, image_index[order], locations[order], weights[order], w, b
 
 
+def _blocks(image_index, locations, weights, channels: int) -> List[tuple]:
+    """``(image_index, locations, weights)`` of the queries in the static path's blocks (``bag.static_blocks``)."""
+    q, m = locations.shape[:2]
+    k = bag.static_blocks(q, m, channels, locations.element_size())
+    return list(zip(image_index.tensor_split(k), locations.tensor_split(k), weights.tensor_split(k)))
+
+
 def torch_floor(args: tuple, repeats: int) -> Dict[str, object]:
     """``{"sampling": s, "floor": s, "levels": [(raw, projected), ...]}``: the static path's sampling call on
     ``args`` (:func:`capture_static_sampling`) and its floor, the sum over levels of the cheaper of the
-    level's raw-row bags alone and its projection plus ``d``-channel bags alone (process CPU time)."""
+    level's raw-row bags alone and its projection plus ``d``-channel bags alone, bagged in the static path's
+    blocks of queries (process CPU time)."""
     levels, image_index, locations, weights, w, b = _ordered(args)
+    blocks = _blocks(image_index, locations, weights, levels[0].shape[2])
     per_level = []
     with torch.no_grad():
         sampling = _cpu(lambda: bag.sample_project_static(*args), repeats)
         for i, lvl in enumerate(levels):
-            loc, wt = locations[:, :, i : i + 1], weights[:, :, i : i + 1]
-            raw = _cpu(lambda: bag.sample([lvl], image_index, loc, wt, True, query_major=True), repeats)
-            projected = _cpu(lambda: bag.sample([bag._project_level(lvl, w, b)], image_index, loc, wt, False,
-                                                query_major=True), repeats)
-            per_level.append((raw, projected))
+            def raw(lvl=lvl, i=i):
+                table = bag._row_major(lvl)  # (free for channels-last levels, a layout copy of NCHW ones)
+                for ii, loc, wt in blocks:
+                    bag.sample([table], ii, loc[:, :, i : i + 1], wt[:, :, i : i + 1], True, query_major=True)
+
+            def projected(lvl=lvl, i=i):
+                table = bag._project_level(lvl, w, b)
+                for ii, loc, wt in blocks:
+                    bag.sample([table], ii, loc[:, :, i : i + 1], wt[:, :, i : i + 1], False, query_major=True)
+
+            per_level.append((_cpu(raw, repeats), _cpu(projected, repeats)))
     return {"sampling": sampling, "floor": sum(min(r, p) for r, p in per_level), "levels": per_level}
 
 

@@ -29,7 +29,8 @@ the three agree (max abs difference to eager).
 
 Usage: ``python benchmarks/static_path.py [--repeats 5] [--voxels 2500 8000] [--no-detector] [--smoke]
 [--json out.json]``; ``--smoke``: tiny sizes, one fusion block, one round (seconds;
-tests/project/test_bench_static_path.py runs it).
+tests/project/test_bench_static_path.py runs it). ``--block-mib 2 4 8 16 0``: only the static MSDFF with its
+queries bagged in blocks of each size (0: one block), the measurement behind ``plan_costs._STATIC_BLOCK_BYTES``.
 """
 
 from __future__ import annotations
@@ -131,21 +132,22 @@ def ratios_row(label, times, outputs, base="eager"):
     return row
 
 
-def floors_row(label, eager_ms, run_static, repeats):
-    """The floors of ``_static_floors`` at this case (channels-last levels), against eager."""
+def floors_row(label, eager_ms, run_static, repeats, onnx=None):
+    """The floors of ``_static_floors`` at this case, against eager; ``onnx``: the ONNX floor already measured on
+    the same values in the other layout (ONNX tensors have no strides: the same graphs)."""
     from _static_floors import capture_static_sampling, onnx_floor, torch_floor
 
     args = capture_static_sampling(run_static)
     with torch.no_grad():
         static_total = statistics.median(interleaved({"static": run_static}, repeats)["static"])
-    tf, of = torch_floor(args, repeats), onnx_floor(args, repeats)
+    tf, of = torch_floor(args, repeats), onnx or onnx_floor(args, repeats)
     static_floor = static_total - tf["sampling"] + tf["floor"]
     return {"case": label, "eager ms": eager_ms, "static ms": static_total * 1e3,
             "static floor ms": static_floor * 1e3, "static floor / eager": static_floor * 1e3 / eager_ms,
             "ONNX floor ms": of["floor"] * 1e3, "ONNX floor / eager": of["floor"] * 1e3 / eager_ms,
             "static levels (raw / projected) ms": " ".join(f"{r * 1e3:.1f}/{p * 1e3:.1f}" for r, p in tf["levels"]),
             "ONNX levels (Conv / Gather / GridSample) ms": " ".join(
-                "/".join(f"{t * 1e3:.1f}" for t in lv) for lv in of["levels"])}
+                "/".join(f"{t * 1e3:.1f}" for t in lv) for lv in of["levels"]), "onnx": of}
 
 
 def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
@@ -177,8 +179,49 @@ def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
                 outputs = {k: fn() for k, fn in paths.items()}
                 times = interleaved(paths, repeats)
             rows.append(ratios_row(f"MSDFF N={n} {layout}", times, outputs))
-            if floors is not None and layout == "channels-last":
-                floors.append(floors_row(f"MSDFF N={n} {layout}", rows[-1]["eager ms"], static, repeats))
+            if floors is not None:
+                floors.append(floors_row(f"MSDFF N={n} {layout}", rows[-1]["eager ms"], static, repeats,
+                                         onnx=floors[-1]["onnx"] if layout == "NCHW" else None))
+    for row in floors or []:
+        row.pop("onnx", None)
+    return rows
+
+
+def bench_block_sizes(cfg, voxels, mibs, repeats):
+    """The static MSDFF (channels-last levels) with its queries bagged in blocks of each of ``mibs`` MiB of raw
+    samples (0: one block of every query), against eager, interleaved: the measurement behind
+    ``plan_costs._STATIC_BLOCK_BYTES``."""
+    from mssf_blocks.functional.deform import bag
+
+    torch.manual_seed(0)
+    msdff = MSDFF(cfg["channels"], cfg["voxel_channels"], num_heads=cfg["heads"], num_levels=len(cfg["strides"]),
+                  num_points=cfg["points"]).eval()
+    with torch.no_grad():
+        msdff.sampling_offsets.weight.normal_(0, 0.5)
+        msdff.attention_weights.weight.normal_(0, 0.1)
+    graph = MSDFFGraph(msdff).eval()
+    default = bag._STATIC_BLOCK_BYTES
+    rows = []
+    for n in voxels:
+        args = msdff_inputs(cfg, n, True, seed=n)
+
+        def static(mib, args=args):
+            bag._STATIC_BLOCK_BYTES = (mib << 20) if mib else 1 << 62
+            try:
+                with static_path():
+                    return graph(*args)
+            finally:
+                bag._STATIC_BLOCK_BYTES = default
+
+        paths = {"eager": lambda args=args: graph(*args)}
+        paths.update({f"{mib} MiB" if mib else "one block": lambda mib=mib: static(mib) for mib in mibs})
+        with torch.no_grad():
+            times = interleaved(paths, repeats)
+        row = {"case": f"MSDFF N={n} channels-last", "eager ms": statistics.median(times["eager"]) * 1e3}
+        for k, ts in times.items():
+            if k != "eager":
+                row[f"{k} / eager"] = statistics.median(ts) / statistics.median(times["eager"])
+        rows.append(row)
     return rows
 
 
@@ -235,12 +278,20 @@ def main(argv=None) -> int:
     ap.add_argument("--no-detector", action="store_true")
     ap.add_argument("--no-floors", action="store_true", help="skip the floors (benchmarks/_static_floors.py)")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes, one round: checks that the script runs")
+    ap.add_argument("--block-mib", type=int, nargs="+", default=None,
+                    help="only time the static MSDFF with blocks of these many MiB of raw samples (0: one block)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     cfg = SMOKE if args.smoke else PAPER
     voxels = [40, 70] if args.smoke else args.voxels
     repeats = 1 if args.smoke else args.repeats
+    if args.block_mib:
+        rows = bench_block_sizes(cfg, voxels, args.block_mib, repeats)
+        print_table(rows, list(rows[0]))
+        if args.json:
+            write_json(args.json, rows)
+        return 0
     floors = None if args.no_floors else []
     with tempfile.TemporaryDirectory() as tmp:
         rows = bench_msdff(cfg, voxels, repeats, tmp, floors)
@@ -251,7 +302,8 @@ def main(argv=None) -> int:
                "exported / eager", "exported rounds", "static max diff", "exported max diff"]
     print_table(rows, columns)
     if floors:
-        print("\nFloors of any exact static-shape sampling (benchmarks/_static_floors.py), channels-last levels:")
+        print("\nFloors of any exact static-shape sampling (benchmarks/_static_floors.py; the ONNX floor measured once per"
+              " voxel count, on the channels-last case's values):")
         print_table(floors, list(floors[0]))
     if args.json:
         write_json(args.json, rows + (floors or []))

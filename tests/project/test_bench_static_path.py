@@ -27,9 +27,10 @@ def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
     cases = [row["case"] for row in rows]
     assert sum(c.startswith("MSDFF N=") for c in cases) == 4
     assert cases[-2].startswith("MSSF-PointPillars") and cases[-1].startswith("radar-only PointPillars")
-    # the floors (benchmarks/_static_floors.py; their ONNX graphs check their own sums): one per channels-last case,
+    # the floors (benchmarks/_static_floors.py; their ONNX graphs check their own sums): one per case,
     # four levels each, every time positive, the static floor no more than the static path it bounds plus noise
-    assert [f["case"] for f in floors] == ["MSDFF N=40 channels-last", "MSDFF N=70 channels-last"]
+    assert [f["case"] for f in floors] == ["MSDFF N=40 channels-last", "MSDFF N=40 NCHW", "MSDFF N=70 channels-last",
+                                           "MSDFF N=70 NCHW"]
     for f in floors:
         assert f["ONNX floor ms"] > 0 and f["static floor ms"] > 0
         assert len(f["static levels (raw / projected) ms"].split()) == 2  # (the smoke configuration's 2 levels)
@@ -40,3 +41,17 @@ def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
             assert row[f"{path} ms"] > 0
             assert float(row[f"{path} max diff"]) <= 1e-4, row  # the same function, three ways
     assert "| case | eager ms | static ms | exported ms |" in r.stdout
+
+
+def test_static_path_block_size_sweep_smoke_runs(tmp_path):
+    """``--block-mib``: one row per voxel count, one ratio per block size (0: one block of every query)."""
+    path = [str(REPO / "src"), str(REPO / "examples"), os.environ.get("PYTHONPATH", "")]
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(path))
+    out = tmp_path / "rows.json"
+    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "static_path.py"), "--smoke", "--block-mib", "1", "0",
+                        "--json", str(out)], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    rows = json.loads(out.read_text())
+    assert [row["case"] for row in rows] == ["MSDFF N=40 channels-last", "MSDFF N=70 channels-last"]
+    for row in rows:
+        assert row["eager ms"] > 0 and row["1 MiB / eager"] > 0 and row["one block / eager"] > 0
