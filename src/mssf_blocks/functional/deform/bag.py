@@ -68,11 +68,11 @@ def sample(
     q, m, _, p, _ = locations.shape
     mv, d = values[0].shape[1:3]
     dev = locations.device
-    # Work level-major and head-major, (L, M, Q, P): every level's corners are a contiguous slice and
-    # the embedding-bag output comes out as (M, Q, D), the layout a per-head projection (bmm) wants.
-    # With query_major, (L, Q, M, P) instead: the bags of a query's heads are neighbours, and read rows
-    # near the same reference point while they are in cache (the static path: 0.88-0.94 of the time,
-    # benchmarks/static_path.py's MSDFF cases); the output is then (Q, M, D) memory.
+    # Level by level, head-major bags, (M, Q, P) points: the embedding-bag output comes out as (M, Q, D),
+    # the layout a per-head projection (bmm) wants. With query_major, (Q, M, P) instead: the bags of a
+    # query's heads are neighbours, and read rows near the same reference point while they are in cache
+    # (the static path: 0.88-0.94 of the time, benchmarks/static_path.py's MSDFF cases); the output is then
+    # (Q, M, D) memory.
     order = (2, 0, 1) if query_major else (2, 1, 0)
     locs = locations.permute(*order, 3, 4)  # (L, M, Q, P, 2) or (L, Q, M, P, 2)
     wts = weights.permute(*order, 3)
