@@ -87,11 +87,9 @@ def sample(
         rows, psw, part_mass = _level_corners(locs[lvl], wts[lvl], plane, val.shape[0] * mv, val.shape[-2],
                                               val.shape[-1], idt, return_mass)
         mass = part_mass if mass is None else mass + part_mass
-        # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features (stride 1
-        # along D); otherwise one layout copy of this level.
-        table = val.permute(0, 1, 3, 4, 2).reshape(-1, d)
-        if table.stride(-1) != 1:  # (embedding_bag reads a strided table several times slower than a copy)
-            table = table.contiguous()
+        # (I, Mv, D, H, W) -> (I * Mv * H * W, D): a free view for channels-last features; otherwise one
+        # layout copy of this level (embedding_bag reads a strided table several times slower than a copy)
+        table = _row_major(val).permute(0, 1, 3, 4, 2).reshape(-1, d)
         # (rows follow the locations' memory order: a copy where that is not the bags' order)
         part = torch_versions.embedding_bag(rows.reshape(m * q, p * 4), table,
                                             per_sample_weights=psw.reshape(m * q, p * 4), mode="sum")  # (M * Q, D)
@@ -134,8 +132,8 @@ def plan_queries(q) -> int:
 
 def _row_major(level: Tensor) -> Tensor:
     """``level (I, Mv, D, H, W)`` over ``(I, Mv, H, W, D)`` memory, the row table :func:`sample` reads in place:
-    ``level`` itself when it is in that memory (channels-last features), else one layout copy (made once,
-    not once per block of queries)."""
+    ``level`` itself when it is in that memory (channels-last features), else one layout copy (the static
+    path makes it once, before its blocks of queries, so that :func:`sample` finds it in place)."""
     rows = level.permute(0, 1, 3, 4, 2)
     return level if rows.is_contiguous() else rows.contiguous().permute(0, 1, 4, 2, 3)
 
