@@ -133,8 +133,8 @@ def ratios_row(label, times, outputs, base="eager"):
 
 
 def floors_row(label, eager_ms, run_static, repeats, onnx=None):
-    """The floors of ``_static_floors`` at this case, against eager; ``onnx``: the ONNX floor already measured on
-    the same values in the other layout (ONNX tensors have no strides: the same graphs)."""
+    """``(row, ONNX floor)``: the floors of ``_static_floors`` at this case, against eager; ``onnx``: the ONNX floor
+    already measured on the same values in the other layout (ONNX tensors have no strides: the same graphs)."""
     from _static_floors import capture_static_sampling, onnx_floor, torch_floor
 
     args = capture_static_sampling(run_static)
@@ -147,17 +147,22 @@ def floors_row(label, eager_ms, run_static, repeats, onnx=None):
             "ONNX floor ms": of["floor"] * 1e3, "ONNX floor / eager": of["floor"] * 1e3 / eager_ms,
             "static levels (raw / projected) ms": " ".join(f"{r * 1e3:.1f}/{p * 1e3:.1f}" for r, p in tf["levels"]),
             "ONNX levels (Conv / Gather / GridSample) ms": " ".join(
-                "/".join(f"{t * 1e3:.1f}" for t in lv) for lv in of["levels"]), "onnx": of}
+                "/".join(f"{t * 1e3:.1f}" for t in lv) for lv in of["levels"])}, of
 
 
-def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
+def msdff_graph(cfg) -> MSDFFGraph:
+    """The benchmark's MSDFF (seed 0) as a graph module, eval."""
     torch.manual_seed(0)
     msdff = MSDFF(cfg["channels"], cfg["voxel_channels"], num_heads=cfg["heads"], num_levels=len(cfg["strides"]),
                   num_points=cfg["points"]).eval()
     with torch.no_grad():  # query-dependent offsets and weights, as after training
         msdff.sampling_offsets.weight.normal_(0, 0.5)
         msdff.attention_weights.weight.normal_(0, 0.1)
-    graph = MSDFFGraph(msdff).eval()
+    return MSDFFGraph(msdff).eval()
+
+
+def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
+    graph = msdff_graph(cfg)
     from torch.export import Dim
 
     n_dim = Dim("N", min=2)
@@ -165,6 +170,7 @@ def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
     exported = ort_session(graph, msdff_inputs(cfg, 64, False), dynamic, os.path.join(tmp, "msdff.onnx"))
     rows = []
     for n in voxels:
+        onnx = None  # (the ONNX floor of this voxel count, measured on the channels-last case)
         for layout in ("channels-last", "NCHW"):
             args = msdff_inputs(cfg, n, layout == "channels-last", seed=n)
             nchw = args[:4] + ([lv.contiguous() for lv in args[4]],)  # (an ONNX graph's layout; copied untimed)
@@ -180,10 +186,8 @@ def bench_msdff(cfg, voxels, repeats, tmp, floors=None):
                 times = interleaved(paths, repeats)
             rows.append(ratios_row(f"MSDFF N={n} {layout}", times, outputs))
             if floors is not None:
-                floors.append(floors_row(f"MSDFF N={n} {layout}", rows[-1]["eager ms"], static, repeats,
-                                         onnx=floors[-1]["onnx"] if layout == "NCHW" else None))
-    for row in floors or []:
-        row.pop("onnx", None)
+                row, onnx = floors_row(f"MSDFF N={n} {layout}", rows[-1]["eager ms"], static, repeats, onnx)
+                floors.append(row)
     return rows
 
 
@@ -193,13 +197,7 @@ def bench_block_sizes(cfg, voxels, mibs, repeats):
     ``plan_costs._STATIC_BLOCK_BYTES``."""
     from mssf_blocks.functional.deform import bag
 
-    torch.manual_seed(0)
-    msdff = MSDFF(cfg["channels"], cfg["voxel_channels"], num_heads=cfg["heads"], num_levels=len(cfg["strides"]),
-                  num_points=cfg["points"]).eval()
-    with torch.no_grad():
-        msdff.sampling_offsets.weight.normal_(0, 0.5)
-        msdff.attention_weights.weight.normal_(0, 0.1)
-    graph = MSDFFGraph(msdff).eval()
+    graph = msdff_graph(cfg)
     default = bag._STATIC_BLOCK_BYTES
     rows = []
     for n in voxels:

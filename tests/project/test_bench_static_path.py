@@ -12,16 +12,21 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 
 
-def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
-    pytest.importorskip("onnxruntime")
-    pytest.importorskip("onnxscript")
+def _run_smoke(tmp_path, *extra):
+    """``(stdout, rows)`` of ``benchmarks/static_path.py --smoke *extra``, asserting it exits 0."""
     path = [str(REPO / "src"), str(REPO / "examples"), os.environ.get("PYTHONPATH", "")]
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(path))
     out = tmp_path / "rows.json"
-    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "static_path.py"), "--smoke", "--json", str(out)],
-                       cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "static_path.py"), "--smoke", *extra, "--json",
+                        str(out)], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
-    rows = json.loads(out.read_text())
+    return r.stdout, json.loads(out.read_text())
+
+
+def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxscript")
+    stdout, rows = _run_smoke(tmp_path)
     floors = [row for row in rows if "static floor ms" in row]
     rows = [row for row in rows if "static floor ms" not in row]
     cases = [row["case"] for row in rows]
@@ -35,23 +40,17 @@ def test_static_path_benchmark_smoke_runs_and_its_paths_agree(tmp_path):
         assert f["ONNX floor ms"] > 0 and f["static floor ms"] > 0
         assert len(f["static levels (raw / projected) ms"].split()) == 2  # (the smoke configuration's 2 levels)
         assert len(f["ONNX levels (Conv / Gather / GridSample) ms"].split()) == 2
-    assert "Floors of any exact static-shape sampling" in r.stdout
+    assert "Floors of any exact static-shape sampling" in stdout
     for row in rows:
         for path in ("static", "exported"):
             assert row[f"{path} ms"] > 0
             assert float(row[f"{path} max diff"]) <= 1e-4, row  # the same function, three ways
-    assert "| case | eager ms | static ms | exported ms |" in r.stdout
+    assert "| case | eager ms | static ms | exported ms |" in stdout
 
 
 def test_static_path_block_size_sweep_smoke_runs(tmp_path):
     """``--block-mib``: one row per voxel count, one ratio per block size (0: one block of every query)."""
-    path = [str(REPO / "src"), str(REPO / "examples"), os.environ.get("PYTHONPATH", "")]
-    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=os.pathsep.join(path))
-    out = tmp_path / "rows.json"
-    r = subprocess.run([sys.executable, str(REPO / "benchmarks" / "static_path.py"), "--smoke", "--block-mib", "1", "0",
-                        "--json", str(out)], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
-    rows = json.loads(out.read_text())
+    _, rows = _run_smoke(tmp_path, "--block-mib", "1", "0")
     assert [row["case"] for row in rows] == ["MSDFF N=40 channels-last", "MSDFF N=70 channels-last"]
     for row in rows:
         assert row["eager ms"] > 0 and row["1 MiB / eager"] > 0 and row["one block / eager"] > 0
