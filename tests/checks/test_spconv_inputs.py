@@ -114,34 +114,53 @@ def test_float64_on_several_cpu_threads_is_refused_before_spconv():
         torch.set_num_threads(n)
 
 
+# Whether the race shows depends on the problem's size and on the machine's load: on the developers' 2-core host
+# (session 52) 400 voxels gave 0 wrong draws of 20 on an idle machine and 18 of 20 beside a busy process, 4,000
+# voxels 20 of 20 idle and 12 of 20 busy; one CI run saw 20 draws of the small size agree. So the probe cycles
+# through three sizes and stops at the first wrong draw.
 _TWO_THREADS = """
 import torch, spconv.pytorch as spconv
 gen = torch.Generator().manual_seed(0)
 worst = 0.0
-for draw in range(20):  # (about 3 draws in 4 are wrong: stop at the first)
-    idx = torch.unique(torch.randint(0, 20, (400, 3), generator=gen), dim=0)
+for draw in range(60):
+    points, side = ((400, 20), (2000, 30), (4000, 40))[draw % 3]
+    idx = torch.unique(torch.randint(0, side, (points, 3), generator=gen), dim=0)
     coords = torch.cat([torch.zeros(len(idx), 1, dtype=torch.int64), idx], 1).int()
     feats = torch.randn(len(idx), 16, dtype=torch.float64, generator=gen)
     conv = spconv.SubMConv3d(16, 32, 3, indice_key="t", bias=False).double()
     out = []
     for threads in (1, 2):
         torch.set_num_threads(threads)
-        out.append(conv(spconv.SparseConvTensor(feats, coords, [20, 20, 20], 1)).features)
+        out.append(conv(spconv.SparseConvTensor(feats, coords, [side] * 3, 1)).features)
     worst = max(worst, (out[0] - out[1]).abs().max().item())
     if worst > 1e-6:
         break
 print(worst, draw + 1)
 """
 
+# The spconv release whose float64 CPU results were measured wrong on two threads (the check above exists for it).
+_KNOWN_WRONG = "2.3.8"
+
 
 def test_spconv_float64_on_two_threads_is_still_wrong():
     """Why the check above exists; when a newer spconv is right on two threads, this fails: drop the check.
 
     Run in a fresh interpreter: inside the whole suite one CI run saw five draws agree (what earlier tests
-    leave behind can keep the second thread from running alongside the first)."""
+    leave behind can keep the second thread from running alongside the first). The race is a matter of
+    chance: where it does not show within the probe's draws on the release known to be wrong, the test skips
+    and says so; on any other release an unseen race fails it, so that the upgrade is looked at."""
     pytest.importorskip("spconv.pytorch")
+    from importlib.metadata import version
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one CPU core available: two torch threads cannot run at once, so the race cannot be probed")
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
     done = subprocess.run([sys.executable, "-c", _TWO_THREADS], capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
     worst, draws = done.stdout.split()[-2:]
-    assert float(worst) > 1e-6, f"spconv's float64 CPU results agree on one and two threads ({draws} draws, max diff {worst})"
+    if float(worst) > 1e-6:
+        return
+    seen = f"spconv's float64 CPU results agree on one and two threads ({draws} draws, max diff {worst})"
+    if version("spconv") == _KNOWN_WRONG:
+        pytest.skip(f"{seen}: the race did not show this time on spconv {_KNOWN_WRONG}, the release known to be wrong")
+    pytest.fail(f"{seen} on spconv {version('spconv')}: if it is right now, drop check_spconv_input's thread check")
