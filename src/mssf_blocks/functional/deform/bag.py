@@ -220,26 +220,26 @@ def sample_project_static(levels: List[Tensor], image_index: Tensor, locations: 
     dense = [_dense_pays(lvl, q, m, p, d) for lvl in levels]
     raw = [i for i, dn in enumerate(dense) if not dn]
     projected = [i for i, dn in enumerate(dense) if dn]
-    values = [_project_level(levels[i], proj_weight, proj_bias) for i in projected]
-    parts = []
-    for chosen, tables in ((raw, [_row_major(levels[i]) for i in raw]), (projected, values)):
-        if chosen:
-            loc, wt = _levels(locations, chosen), _levels(weights, chosen)
-            parts.append((tables, loc.view(k, s, *loc.shape[1:]), wt.view(k, s, *wt.shape[1:])))
-        else:
-            parts.append(None)
+
+    def in_blocks(chosen: List[int]) -> Tuple[Tensor, Tensor]:
+        loc, wt = _levels(locations, chosen), _levels(weights, chosen)
+        return loc.view(k, s, *loc.shape[1:]), wt.view(k, s, *wt.shape[1:])
+
+    # (the tables are made once, before the blocks: an NCHW level's row-table copy, a projected level)
+    raw_tables = [_row_major(levels[i]) for i in raw]
+    projected_tables = [_project_level(levels[i], proj_weight, proj_bias) for i in projected]
+    raw_loc, raw_wt = in_blocks(raw) if raw else (None, None)
+    projected_loc, projected_wt = in_blocks(projected) if projected else (None, None)
     image_index = image_index.view(k, s)
     blocks = []
     for b in range(k):
         out = None
-        if parts[0] is not None:
-            tables, loc, wt = parts[0]
-            sampled, mass = sample(tables, image_index[b], loc[b], wt[b], True, query_major=True)
+        if raw:
+            sampled, mass = sample(raw_tables, image_index[b], raw_loc[b], raw_wt[b], True, query_major=True)
             out = torch.bmm(sampled.transpose(0, 1), proj_weight.transpose(1, 2)).transpose(0, 1)  # (s, M, d)
             out = out + mass[..., None] * proj_bias
-        if parts[1] is not None:
-            tables, loc, wt = parts[1]
-            part = sample(tables, image_index[b], loc[b], wt[b], False, query_major=True)
+        if projected:
+            part = sample(projected_tables, image_index[b], projected_loc[b], projected_wt[b], False, query_major=True)
             out = part if out is None else out + part
         blocks.append(out)
     out = blocks[0] if k == 1 else torch.cat(blocks)
